@@ -1,0 +1,492 @@
+"""Record ROS 2 topics into a rosbag2 bag (MCAP storage) without rosbag2.
+
+The ``ros2`` command line and rosbag2 are not installed here (DESIGN.md section 6), so bags are
+written with the ``rosbags`` library in the layout ``ros2 bag record -s mcap`` of ROS 2 Jazzy
+produces: a folder with ``metadata.yaml`` (version 9) and one ``.mcap`` file whose schemas are
+the concatenated ``.msg`` definitions (``ros2msg``) with their RIHS01 type hashes, so that
+``ros2 bag info/play`` on a full install and Foxglove open it.
+
+Messages are taken from raw subscriptions (``raw=True``): the CDR bytes as received are written
+unchanged, stamped with the receive time (``time.time_ns()``, as ``ros2 bag record`` does with
+the system clock). The subscription QoS follows the publishers: reliable if all publishers are
+reliable, transient-local if all are (so latched topics are captured), keep-last
+``SUBSCRIPTION_DEPTH`` deep. The publishers' offered QoS profiles go into the topic metadata.
+
+Message definitions come from the rosbags typestore for Jazzy; types it does not know
+(``psl_msgs``, or any other package's) are read from the installed ``.msg`` files, found via
+``ament_index_python`` or, failing that, ``AMENT_PREFIX_PATH``.
+"""
+
+from collections.abc import Sequence
+import importlib
+import math
+import os
+from pathlib import Path
+import threading
+import time
+
+import rclpy
+import rclpy.logging
+from rclpy.duration import Duration
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+)
+from rclpy.signals import SignalHandlerOptions
+from rclpy.topic_endpoint_info import TopicEndpointInfo
+from rosbags.interfaces import (
+    Connection,
+    Nodetype,
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import get_typestore, get_types_from_msg, Stores
+from rosbags.typesys.store import Typestore
+
+# Keep-last depth of every recording subscription: 1 s of a 1 kHz topic.
+SUBSCRIPTION_DEPTH = 1000
+# Topics never recorded when recording "all" topics.
+EXCLUDED_TOPICS = frozenset({'/rosout', '/parameter_events'})
+# Interface packages registered in every typestore made here.
+PROJECT_INTERFACE_PACKAGES = ('psl_msgs',)
+# rosbag2 metadata version written by ROS 2 Jazzy (QoS stored as a YAML list with names).
+BAG_VERSION = 9
+
+_DISCOVERY_PERIOD = 0.2  # [s] between two looks at the ROS graph
+_MAX_SPIN_WAIT = 0.1  # [s] longest wait in one spin, bounds the reaction time to `stop`
+_NODE_NAME = 'psl_bag_recorder'
+
+
+# --------------------------------------------------------------------------------------------
+# Message types
+# --------------------------------------------------------------------------------------------
+
+def _share_dirs(package: str) -> list[Path]:
+    """Candidate share folders of an installed package, ament index first."""
+    candidates = []
+    try:
+        from ament_index_python.packages import (
+            get_package_share_directory,
+            PackageNotFoundError,
+        )
+    except ImportError:
+        pass
+    else:
+        try:
+            candidates.append(Path(get_package_share_directory(package)))
+        except PackageNotFoundError:
+            pass
+    for prefix in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep):
+        if prefix:
+            candidates.append(Path(prefix) / 'share' / package)
+    return candidates
+
+
+def _split_msgtype(msgtype: str) -> tuple[str, str, str]:
+    """('package', 'msg', 'Name') of 'package/msg/Name'.
+
+    Raises:
+        ValueError: ``msgtype`` is not of that form.
+
+    """
+    parts = msgtype.split('/')
+    if len(parts) != 3 or not all(parts):
+        raise ValueError(f"message type {msgtype!r} is not of the form 'package/msg/Name'")
+    return parts[0], parts[1], parts[2]
+
+
+def _referenced_types(fielddef: tuple) -> list[str]:
+    """Names of the message types a rosbags field definition refers to."""
+    kind, detail = fielddef
+    if kind == Nodetype.NAME:
+        return [detail]
+    if kind in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+        return _referenced_types(detail[0])
+    return []
+
+
+def register_msgtype(typestore: Typestore, msgtype: str) -> None:
+    """Make ``msgtype`` (e.g. 'psl_msgs/msg/TaskInstance') and its dependencies known.
+
+    Types already in the typestore are left alone; the others are parsed from their installed
+    ``.msg`` files (``<share>/<package>/msg/<Name>.msg``) and registered together.
+
+    Raises:
+        LookupError: The type or one of its dependencies has no installed ``.msg`` file.
+        ValueError: A type name is not of the form 'package/msg/Name'.
+
+    """
+    pending: dict = {}
+
+    def collect(name: str) -> None:
+        if name in typestore.fielddefs or name in pending:
+            return
+        package, subfolder, stem = _split_msgtype(name)
+        paths = [share / subfolder / f'{stem}.msg' for share in _share_dirs(package)]
+        path = next((p for p in paths if p.is_file()), None)
+        if path is None:
+            raise LookupError(f'no {package}/{subfolder}/{stem}.msg in the ament index '
+                              'or under AMENT_PREFIX_PATH')
+        types = get_types_from_msg(path.read_text(encoding='utf-8'), name)
+        pending.update(types)
+        for _constants, fields in types.values():
+            for _field_name, fielddef in fields:
+                for dependency in _referenced_types(fielddef):
+                    collect(dependency)
+
+    collect(msgtype)
+    if pending:
+        typestore.register(pending)
+
+
+def make_typestore() -> Typestore:
+    """The rosbags typestore for ROS 2 Jazzy plus every message of the project's packages.
+
+    Raises:
+        LookupError: A project interface package is not installed.
+
+    """
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    for package in PROJECT_INTERFACE_PACKAGES:
+        msg_dir = next((share / 'msg' for share in _share_dirs(package)
+                        if (share / 'msg').is_dir()), None)
+        if msg_dir is None:
+            raise LookupError(f'interface package {package!r} is not installed (not in the '
+                              'ament index nor under AMENT_PREFIX_PATH)')
+        for path in sorted(msg_dir.glob('*.msg')):
+            register_msgtype(typestore, f'{package}/msg/{path.stem}')
+    return typestore
+
+
+def import_message_class(msgtype: str) -> type:
+    """The rclpy message class of a type name like 'sensor_msgs/msg/JointState'.
+
+    Raises:
+        LookupError: The module or the class does not exist.
+        ValueError: ``msgtype`` is not of the form 'package/msg/Name'.
+
+    """
+    package, subfolder, name = _split_msgtype(msgtype)
+    try:
+        module = importlib.import_module(f'{package}.{subfolder}')
+    except ImportError as exc:
+        raise LookupError(f'cannot import {package}.{subfolder}: {exc}') from exc
+    try:
+        return getattr(module, name)
+    except AttributeError:
+        raise LookupError(f'{package}.{subfolder} has no message {name}') from None
+
+
+# --------------------------------------------------------------------------------------------
+# QoS
+# --------------------------------------------------------------------------------------------
+
+def subscription_qos(publishers: Sequence[TopicEndpointInfo]) -> QoSProfile:
+    """Recording QoS compatible with every publisher, as strict as all of them allow.
+
+    Reliable if all publishers are reliable (else best effort), transient-local if all are
+    (else volatile), keep-last ``SUBSCRIPTION_DEPTH``.
+    """
+    reliable = all(p.qos_profile.reliability == ReliabilityPolicy.RELIABLE for p in publishers)
+    latched = all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                  for p in publishers)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=SUBSCRIPTION_DEPTH,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
+    )
+
+
+def _qos_time(duration: Duration) -> QosTime:
+    """Seconds and nanoseconds; rclpy's infinite duration (2**63 - 1 ns) becomes
+    RMW_DURATION_INFINITE {9223372036, 854775807}, as rosbag2 stores it in version 9."""
+    sec, nsec = divmod(duration.nanoseconds, 1_000_000_000)
+    return QosTime(sec, nsec)
+
+
+def offered_qos(profile: QoSProfile) -> Qos:
+    """A publisher's offered QoS profile in the form rosbags writes into metadata.yaml."""
+    return Qos(
+        history=QosHistory[profile.history.name],
+        depth=profile.depth,
+        reliability=QosReliability[profile.reliability.name],
+        durability=QosDurability[profile.durability.name],
+        deadline=_qos_time(profile.deadline),
+        lifespan=_qos_time(profile.lifespan),
+        liveliness=QosLiveliness[profile.liveliness.name],
+        liveliness_lease_duration=_qos_time(profile.liveliness_lease_duration),
+        avoid_ros_namespace_conventions=profile.avoid_ros_namespace_conventions,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Recording
+# --------------------------------------------------------------------------------------------
+
+def _is_hidden(topic: str) -> bool:
+    """Hidden topic: a name token starts with '_' (e.g. '/fibonacci/_action/status')."""
+    return any(token.startswith('_') for token in topic.split('/'))
+
+
+class _Recorder:
+    """Subscribes to topics as they appear and writes their raw messages to an open Writer."""
+
+    def __init__(self, node: Node, writer: Writer, typestore: Typestore,
+                 wanted: list[str] | None):
+        self._node = node
+        self._writer = writer
+        self._typestore = typestore
+        self._wanted = wanted  # None: every topic
+        self._lock = threading.Lock()  # callbacks may run in another executor's thread
+        self._closed = False
+        self._subscriptions = {}
+        self._counts: dict[str, int] = dict.fromkeys(wanted or (), 0)
+        self._unrecordable: set[str] = set()  # unknown type: reported, not retried
+        self._ambiguous: set[str] = set()  # more than one type: reported once, retried
+
+    @property
+    def counts(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._counts)
+
+    def missing(self) -> list[str]:
+        """Named topics not subscribed (yet)."""
+        return [t for t in self._wanted or () if t not in self._subscriptions]
+
+    def never_seen(self) -> list[str]:
+        """Named topics never subscribed, other than those already reported (unrecordable
+        type, several types)."""
+        return [t for t in self.missing()
+                if t not in self._unrecordable and t not in self._ambiguous]
+
+    def discover(self, accept_new: bool) -> None:
+        """Subscribe to every wanted topic that now has publishers.
+
+        Args:
+            accept_new: In all-topics mode, whether topics not subscribed yet are taken.
+
+        """
+        available = dict(self._node.get_topic_names_and_types())
+        if self._wanted is not None:
+            candidates = self._wanted
+        elif accept_new:
+            candidates = sorted(t for t in available
+                                if t not in EXCLUDED_TOPICS and not _is_hidden(t))
+        else:
+            return
+        for topic in candidates:
+            if (topic in self._subscriptions or topic in self._unrecordable
+                    or topic not in available):
+                continue
+            publishers = self._node.get_publishers_info_by_topic(topic)
+            if not publishers:
+                continue
+            msgtypes = sorted({p.topic_type for p in publishers})
+            if len(msgtypes) > 1:
+                if topic not in self._ambiguous:
+                    self._ambiguous.add(topic)
+                    self._node.get_logger().warning(
+                        f'not recording {topic} while it is published with several types: '
+                        f'{", ".join(msgtypes)}')
+                continue
+            try:
+                self._subscribe(topic, msgtypes[0], publishers)
+            except (LookupError, ValueError) as exc:
+                self._unrecordable.add(topic)
+                self._node.get_logger().error(f'cannot record {topic}: {exc}')
+
+    def _subscribe(self, topic: str, msgtype: str,
+                   publishers: Sequence[TopicEndpointInfo]) -> None:
+        msg_class = import_message_class(msgtype)
+        register_msgtype(self._typestore, msgtype)
+        rihs01 = self._typestore.hash_rihs01(msgtype)
+        advertised = {str(p.topic_type_hash) for p in publishers
+                      if p.topic_type_hash.version == 1}
+        if advertised - {rihs01}:
+            self._node.get_logger().warning(
+                f'{topic}: publishers advertise type hash {", ".join(sorted(advertised))} '
+                f'but the installed definition of {msgtype} hashes to {rihs01}; '
+                'the bag stores the installed definition')
+        qos = subscription_qos(publishers)
+        with self._lock:
+            connection = self._writer.add_connection(
+                topic, msgtype, typestore=self._typestore,
+                offered_qos_profiles=[offered_qos(p.qos_profile) for p in publishers])
+            self._counts.setdefault(topic, 0)
+        self._subscriptions[topic] = self._node.create_subscription(
+            msg_class, topic, self._make_callback(topic, connection), qos, raw=True)
+        self._node.get_logger().info(
+            f'recording {topic} [{msgtype}] ({qos.reliability.name.lower()}, '
+            f'{qos.durability.name.lower()})')
+
+    def _make_callback(self, topic: str, connection: Connection):
+        def on_message(data: bytes) -> None:
+            stamp = time.time_ns()
+            with self._lock:
+                if self._closed:
+                    return
+                self._writer.write(connection, stamp, data)
+                self._counts[topic] += 1
+        return on_message
+
+    def close(self) -> None:
+        """Close the writer (the bag is then complete), then drop the subscriptions."""
+        with self._lock:
+            self._closed = True
+            self._writer.close()
+        for subscription in self._subscriptions.values():
+            self._node.destroy_subscription(subscription)
+
+
+def _run(recorder: _Recorder, executor: SingleThreadedExecutor | None,
+         duration: float | None, stop: threading.Event | None,
+         discovery_timeout: float, all_topics: bool, logger) -> None:
+    """Discover and (if ``executor``) spin until the duration is over or ``stop`` is set."""
+    start = time.monotonic()
+    end = math.inf if duration is None else start + duration
+    discovery_end = start + discovery_timeout
+    next_look = start
+    reported_missing = False
+    while not (stop is not None and stop.is_set()):
+        now = time.monotonic()
+        if now >= end:
+            break
+        if now >= next_look:
+            if all_topics:
+                if now < discovery_end:
+                    recorder.discover(accept_new=True)
+            elif recorder.missing():
+                recorder.discover(accept_new=True)
+                if now >= discovery_end and not reported_missing and recorder.missing():
+                    reported_missing = True
+                    logger.info('no publisher yet on ' + ', '.join(recorder.missing())
+                                + '; subscribing when they appear')
+            next_look = now + _DISCOVERY_PERIOD
+        wait = max(0.0, min(next_look, end, now + _MAX_SPIN_WAIT) - now)
+        if executor is not None:
+            executor.spin_once(timeout_sec=wait)
+        elif stop is not None:
+            stop.wait(wait)
+        else:
+            time.sleep(wait)
+
+
+def _logger(node: Node):
+    """The node's logger, or after an external shutdown (which leaves it unable to publish to
+    /rosout) a console-only logger."""
+    if node.context.ok():
+        return node.get_logger()
+    return rclpy.logging.get_logger(f'{node.get_name()}.after_shutdown')
+
+
+def record(output: str | Path, topics: Sequence[str] = (), *,
+           duration: float | None = None, stop: threading.Event | None = None,
+           discovery_timeout: float = 5.0, node: Node | None = None) -> dict[str, int]:
+    """Record topics into a new rosbag2 bag folder ``output`` (MCAP storage).
+
+    Named topics (relative names resolve against the node's namespace) are subscribed as soon
+    as they have publishers; those still missing after ``discovery_timeout`` are waited for
+    during the whole recording (looked for every 0.2 s), and those never seen are reported at
+    the end with count 0. With no ``topics``, every topic that has publishers within
+    ``discovery_timeout`` is recorded, except /rosout, /parameter_events and hidden topics
+    (a name token starting with '_'); topics appearing later are not added. A topic published
+    with several types at once is not recorded (as rosbag2 does). Publishers appearing after
+    a topic is subscribed do not change its QoS.
+
+    Recording stops after ``duration`` seconds (wall clock, counted from the call), when
+    ``stop`` is set, or on KeyboardInterrupt or an external rclpy shutdown (both end the
+    recording normally). The bag is closed (complete and readable) in every case.
+
+    Node and rclpy: with ``node=None`` a node is created in rclpy's default context and
+    destroyed at the end; if rclpy is not initialised yet, record() initialises it and shuts
+    it down again at the end (only what it initialised). A given ``node`` is used and left
+    alive: if it already belongs to an executor, that executor must be spinning it (e.g. in
+    another thread) and record() only waits; otherwise record() spins it in its own
+    SingleThreadedExecutor in the calling thread for the duration of the call.
+
+    Args:
+        output: Bag folder to create; must not exist.
+        topics: Topic names to record; empty for all topics.
+        duration: Recording time [s]; None for no limit.
+        stop: Set to end the recording.
+        discovery_timeout: [s] See above.
+        node: Node to subscribe with; None to create one.
+
+    Returns:
+        Messages written per topic (fully qualified names).
+
+    Raises:
+        TypeError: ``topics`` is a single string.
+        FileExistsError: ``output`` exists already.
+        ValueError: ``duration`` or ``discovery_timeout`` is negative or NaN.
+        LookupError: The project's interface packages are not installed.
+
+    """
+    if isinstance(topics, str):
+        raise TypeError(f'topics must be a sequence of names, not the string {topics!r}')
+    output = Path(output)
+    if output.exists() or output.is_symlink():
+        raise FileExistsError(f'{output} exists already; a bag is recorded into a new folder')
+    if duration is not None and not duration >= 0.0:
+        raise ValueError(f'duration must be >= 0 or None, got {duration}')
+    if not discovery_timeout >= 0.0:
+        raise ValueError(f'discovery_timeout must be >= 0, got {discovery_timeout}')
+    typestore = make_typestore()
+
+    initialised_here = False
+    own_node = node is None
+    if own_node:
+        if not rclpy.ok():
+            # Without rclpy's signal handlers Ctrl-C raises KeyboardInterrupt, which ends the
+            # recording while the context is still valid.
+            rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+            initialised_here = True
+        node = Node(_NODE_NAME)
+    executor = None
+    try:
+        wanted = list(dict.fromkeys(node.resolve_topic_name(t) for t in topics)) or None
+        if node.executor is None:
+            executor = SingleThreadedExecutor(context=node.context)
+            executor.add_node(node)
+        writer = Writer(output, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP)
+        writer.open()
+        recorder = _Recorder(node, writer, typestore, wanted)
+        try:
+            _run(recorder, executor, duration, stop, discovery_timeout,
+                 all_topics=wanted is None, logger=node.get_logger())
+        except (KeyboardInterrupt, ExternalShutdownException):
+            _logger(node).info('recording interrupted')
+        finally:
+            recorder.close()
+        counts = recorder.counts
+        logger = _logger(node)
+        never_seen = recorder.never_seen()
+        if never_seen:
+            logger.warning('no publisher seen on ' + ', '.join(never_seen)
+                           + '; recorded 0 messages')
+        logger.info(f'wrote {sum(counts.values())} messages to {output}')
+        return counts
+    finally:
+        if executor is not None:
+            node.executor = None  # detaches the node from our executor
+            executor.shutdown()
+        if own_node:
+            node.destroy_node()
+        if initialised_here:
+            rclpy.try_shutdown()
+
+
+def read_bag_summary(path: str | Path) -> dict[str, tuple[str, int]]:
+    """Topic -> (message type, message count) of a rosbag2 bag (any storage rosbags reads)."""
+    with Reader(Path(path)) as reader:
+        return {topic: (info.msgtype, info.msgcount) for topic, info in reader.topics.items()}

@@ -1,0 +1,145 @@
+"""Start the psl node graph as separate processes and end exactly those processes.
+
+Every node is its own executable (``install/<package>/lib/<package>/<executable>``, what
+``ros2 run`` would start); `Graph` starts them with ROS arguments (namespace, parameters),
+keeps their PIDs, writes each one's output to a log file, and ends them by PID: SIGINT, then
+SIGTERM, then SIGKILL. If one dies, `Graph.watch` reports which one and its last output.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+NODES = (  # (name, package, executable)
+    ('sim', 'psl_sim', 'sim'),
+    ('pd_controller', 'psl_controller', 'pd_controller'),
+    ('dmp_executor', 'psl_controller', 'dmp_executor'),
+    ('reward_evaluator', 'psl_optimizer', 'reward_evaluator'),
+)
+
+
+def find_executable(package: str, executable: str) -> Path:
+    for prefix in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep):
+        path = Path(prefix) / 'lib' / package / executable
+        if path.is_file() and os.access(path, os.X_OK):
+            return path
+    raise FileNotFoundError(
+        f'executable {executable!r} of package {package!r} not found on AMENT_PREFIX_PATH; '
+        'did you source scripts/env.sh?')
+
+
+@dataclasses.dataclass
+class NodeProcess:
+    name: str
+    process: subprocess.Popen
+    log_path: Path
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    def tail(self, lines: int = 15) -> str:
+        try:
+            return '\n'.join(self.log_path.read_text(errors='replace').splitlines()[-lines:])
+        except OSError:
+            return ''
+
+
+class Graph:
+    """The robot loop (sim, controller, executor, evaluator) as separate processes."""
+
+    def __init__(self, task: str = 'reach_over_obstacle', mode: str = 'lockstep',
+                 namespace: str = '', log_dir: str | Path | None = None,
+                 nodes: tuple = NODES, extra_params: dict[str, dict] | None = None):
+        if mode not in ('lockstep', 'realtime'):
+            raise ValueError(f"mode must be 'lockstep' or 'realtime', got {mode!r}")
+        self.task, self.mode = task, mode
+        self.namespace = '/' + namespace.strip('/') if namespace.strip('/') else ''
+        root = Path(os.environ.get('PSL_ROOT', '.'))
+        self.log_dir = Path(log_dir) if log_dir else (
+            root / 'log' / 'graph' / time.strftime('%Y%m%d-%H%M%S'))
+        self.nodes_spec = nodes
+        self.extra_params = extra_params or {}
+        self.processes: list[NodeProcess] = []
+
+    def params(self, name: str) -> dict:
+        common = {'task': self.task}
+        if name == 'sim':
+            common['mode'] = self.mode
+        if name in ('dmp_executor', 'reward_evaluator'):
+            common = {}
+        common.update(self.extra_params.get(name, {}))
+        return common
+
+    def start(self) -> list[NodeProcess]:
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            for name, package, executable in self.nodes_spec:
+                cmd = [str(find_executable(package, executable)), '--ros-args']
+                if self.namespace:
+                    cmd += ['-r', f'__ns:={self.namespace}']
+                for key, value in self.params(name).items():
+                    cmd += ['-p', f'{key}:={value}']
+                log_path = self.log_dir / f'{name}.log'
+                with open(log_path, 'wb') as log:
+                    process = subprocess.Popen(
+                        cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                        start_new_session=True)   # Ctrl-C reaches us only; we end them
+                self.processes.append(NodeProcess(name, process, log_path))
+        except BaseException:
+            self.stop()
+            raise
+        return self.processes
+
+    def dead(self) -> list[NodeProcess]:
+        return [p for p in self.processes if p.process.poll() is not None]
+
+    def describe_death(self, node: NodeProcess) -> str:
+        code = node.process.returncode
+        why = f'signal {signal.Signals(-code).name}' if code < 0 else f'exit code {code}'
+        return f'{node.name} (pid {node.pid}) ended with {why}; its last output:\n{node.tail()}'
+
+    def wait_ready(self, timeout: float = 30.0) -> None:
+        """Block until the executor's action server and the simulator's reset service are
+        discoverable; raise RuntimeError (naming a dead node, if any) otherwise."""
+        from psl_cli.ros_client import RosClient
+
+        with RosClient(self.namespace) as client:
+            deadline = time.monotonic() + timeout
+            while time.monotonic() < deadline:
+                dead = self.dead()
+                if dead:
+                    raise RuntimeError(self.describe_death(dead[0]))
+                if client.graph_ready(timeout=0.5):
+                    return
+            raise RuntimeError(f'the graph was not ready within {timeout:.0f} s '
+                               f'(logs in {self.log_dir})')
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """End every process this graph started, by PID."""
+        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 2.0), (signal.SIGKILL, 2.0)):
+            alive = [p for p in self.processes if p.process.poll() is None]
+            if not alive:
+                break
+            for p in alive:
+                try:
+                    os.kill(p.pid, sig)
+                except ProcessLookupError:
+                    pass
+            deadline = time.monotonic() + wait
+            for p in alive:
+                try:
+                    p.process.wait(timeout=max(0.0, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    pass
+
+    def __enter__(self) -> 'Graph':
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()

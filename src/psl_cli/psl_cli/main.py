@@ -1,0 +1,155 @@
+"""``psl``: start the node graph, run rollouts, record bags, run the demo and benchmarks."""
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _load_theta(path: str | None, task) -> np.ndarray:
+    from psl_controller.policy import policy_for
+
+    if path is None:
+        return policy_for(task).default_theta
+    file = Path(path)
+    if file.suffix == '.npy':
+        return np.load(file).ravel()
+    if file.suffix == '.json':
+        return np.asarray(json.loads(file.read_text()), dtype=float).ravel()
+    return np.loadtxt(file, ndmin=1).ravel()
+
+
+def cmd_up(args) -> int:
+    from psl_cli.graph import Graph
+
+    graph = Graph(task=args.task, mode=args.mode, namespace=args.namespace)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        graph.start()
+        for p in graph.processes:
+            print(f'started {p.name:18s} pid {p.pid}')
+        print(f'logs in {graph.log_dir}; Ctrl-C ends the graph', flush=True)
+        while not stop.wait(0.2):
+            dead = graph.dead()
+            if dead:
+                print(graph.describe_death(dead[0]), file=sys.stderr)
+                return 1
+        return 0
+    finally:
+        graph.stop()
+        print('graph ended', flush=True)
+
+
+def format_evaluation(ev: dict) -> str:
+    lines = [f"reward {ev['reward']:.4f}  fulfilled {ev['fulfilled']}  "
+             f"steps {ev['num_steps']}  tracking error {ev['tracking_error']:.4f} rad"]
+    lines += [f'  {name:15s} {value:.6g}' for name, value in ev['components'].items()]
+    return '\n'.join(lines)
+
+
+def cmd_rollout(args) -> int:
+    from psl_cli.ros_client import RosClient, evaluation_dict
+    from psl_sim.task import TaskError, load_task
+
+    try:
+        task = load_task(args.task)
+        tau = task.tau_default if args.tau is None else np.asarray(args.tau, dtype=float)
+        theta = _load_theta(args.theta_file, task)
+    except (TaskError, OSError, ValueError) as exc:
+        print(f'psl rollout: {exc}', file=sys.stderr)
+        return 2
+    with RosClient(args.namespace) as client:
+        try:
+            result = client.rollout(args.task, tau, theta, timeout=args.timeout)
+        except (TimeoutError, RuntimeError) as exc:
+            print(f'psl rollout: {exc}', file=sys.stderr)
+            return 1
+    if not result.success:
+        print(f'psl rollout: {result.message}', file=sys.stderr)
+        return 1
+    ev = evaluation_dict(result.evaluation)
+    print(json.dumps(ev) if args.json else format_evaluation(ev))
+    return 0
+
+
+def cmd_record(args) -> int:
+    from psl_cli.bag_recorder import record
+
+    try:
+        counts = record(args.output, args.topics, duration=args.duration)
+    except (FileExistsError, ValueError) as exc:
+        print(f'psl record: {exc}', file=sys.stderr)
+        return 2
+    for topic, count in counts.items():
+        print(f'{topic:30s} {count}')
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from psl_cli.demo import run_demo
+
+    return run_demo(task=args.task, out=Path(args.out), positions=args.positions)
+
+
+def cmd_bench(args) -> int:
+    from psl_cli import bench
+
+    return bench.main(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog='psl', description=__doc__)
+    sub = parser.add_subparsers(dest='command', required=True)
+
+    up = sub.add_parser('up', help='start the node graph; Ctrl-C ends it')
+    up.add_argument('--task', default='reach_over_obstacle')
+    up.add_argument('--mode', choices=('lockstep', 'realtime'), default='lockstep')
+    up.add_argument('--namespace', default='')
+    up.set_defaults(func=cmd_up)
+
+    ro = sub.add_parser('rollout', help='one rollout through the running graph')
+    ro.add_argument('--task', default='reach_over_obstacle')
+    ro.add_argument('--tau', type=float, nargs='+', help='task parameters (default: the task '
+                    'defaults)')
+    ro.add_argument('--theta-file', help='.npy, .json or whitespace-separated text; default: '
+                    "the demonstration's fit")
+    ro.add_argument('--namespace', default='')
+    ro.add_argument('--timeout', type=float, default=120.0)
+    ro.add_argument('--json', action='store_true')
+    ro.set_defaults(func=cmd_rollout)
+
+    rec = sub.add_parser('record', help='record topics into a rosbag2 (MCAP) bag')
+    rec.add_argument('-o', '--output', required=True)
+    rec.add_argument('--duration', type=float, default=None, help='seconds (default: Ctrl-C)')
+    rec.add_argument('topics', nargs='*', help='topics (default: all)')
+    rec.set_defaults(func=cmd_record)
+
+    demo = sub.add_parser('demo', help='start the graph, roll out over a few obstacle '
+                          'positions, record a bag, print a table, end everything')
+    demo.add_argument('--task', default='reach_over_obstacle')
+    demo.add_argument('--out', default='demo')
+    demo.add_argument('--positions', type=int, default=5)
+    demo.set_defaults(func=cmd_demo)
+
+    bench_parser = sub.add_parser('bench', help='benchmarks (see docs/benchmarks.md)')
+    from psl_cli import bench
+    bench.add_arguments(bench_parser)
+    bench_parser.set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

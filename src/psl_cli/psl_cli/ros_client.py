@@ -1,0 +1,111 @@
+"""A small rclpy client for the CLI and the tests: run rollouts and reset the simulator."""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import rclpy
+from rclpy.action import ActionClient
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+
+from psl_msgs.action import ExecuteRollout
+from psl_msgs.msg import RolloutEvaluation
+from psl_msgs.srv import ResetTask
+
+
+class RosClient:
+    """Owns an rclpy context and a node spun in a background thread; use as a context
+    manager. Service and action names are relative to ``namespace``."""
+
+    def __init__(self, namespace: str = '', name: str = 'psl_cli'):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = Node(f'{name}_{id(self) % 100000}', namespace=namespace or '/',
+                         context=self.context)
+        self.rollout_client = ActionClient(self.node, ExecuteRollout, 'execute_rollout')
+        self.reset_client = self.node.create_client(ResetTask, 'sim/reset')
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except Exception:  # noqa: BLE001 - the context was shut down under us
+            pass
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        self._thread.join(timeout=2.0)
+
+    def __enter__(self) -> 'RosClient':
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # topic -> (publishers, subscribers) the robot loop needs before its first episode
+    LOOP_TOPICS = {'joint_states': (1, 2), 'effort_command': (1, 1), 'reference': (1, 1),
+                   'task_instance': (1, 1), 'joint_trajectory': (1, 1),
+                   'rollout_evaluation': (1, 1)}
+
+    def graph_ready(self, timeout: float) -> bool:
+        """True when the executor's action server, the simulator's reset service and every
+        topic of the loop have their endpoints discovered."""
+        if not (self.rollout_client.wait_for_server(timeout_sec=timeout)
+                and self.reset_client.wait_for_service(timeout_sec=timeout)):
+            return False
+        for topic, (pubs, subs) in self.LOOP_TOPICS.items():
+            if (self.node.count_publishers(topic) < pubs
+                    or self.node.count_subscribers(topic) < subs):
+                time.sleep(timeout)
+                return False
+        time.sleep(0.2)   # discovery seen from here; give the pairwise matching a moment
+        return True
+
+    @staticmethod
+    def _wait(future, timeout: float, what: str):
+        event = threading.Event()
+        future.add_done_callback(lambda _: event.set())
+        if not event.wait(timeout):
+            raise TimeoutError(f'no answer to {what} within {timeout:.0f} s')
+        return future.result()
+
+    def reset(self, task: str, tau, timeout: float = 10.0) -> ResetTask.Response:
+        if not self.reset_client.wait_for_service(timeout_sec=timeout):
+            raise TimeoutError('the simulator service sim/reset is not available')
+        request = ResetTask.Request(task=task, tau=[float(x) for x in tau])
+        return self._wait(self.reset_client.call_async(request), timeout, 'sim/reset')
+
+    def rollout(self, task: str, tau, theta, timeout: float = 120.0,
+                feedback=None) -> ExecuteRollout.Result:
+        """One rollout through the graph; returns the action result (success, message,
+        evaluation). Raises TimeoutError when the executor does not answer."""
+        if not self.rollout_client.wait_for_server(timeout_sec=min(timeout, 10.0)):
+            raise TimeoutError('the execute_rollout action server is not available')
+        goal = ExecuteRollout.Goal(task=task, tau=[float(x) for x in np.ravel(tau)],
+                                   theta=[float(x) for x in np.ravel(theta)])
+        start = time.monotonic()
+        handle = self._wait(self.rollout_client.send_goal_async(goal, feedback_callback=feedback),
+                            timeout, 'execute_rollout goal')
+        if not handle.accepted:
+            raise RuntimeError('the rollout goal was rejected')
+        remaining = max(1.0, timeout - (time.monotonic() - start))
+        return self._wait(handle.get_result_async(), remaining, 'execute_rollout result').result
+
+
+def evaluation_dict(evaluation: RolloutEvaluation) -> dict:
+    return {
+        'task': evaluation.task,
+        'tau': list(evaluation.tau),
+        'reward': evaluation.reward,
+        'fulfilled': evaluation.fulfilled,
+        'components': dict(zip(evaluation.component_names, evaluation.component_values)),
+        'tracking_error': evaluation.tracking_error,
+        'num_steps': evaluation.num_steps,
+    }

@@ -1,0 +1,182 @@
+"""The low-level controller node: PD + feed-forward on a sampled joint trajectory.
+
+Answers every ``joint_states`` message with one ``effort_command``
+(std_msgs/Float64MultiArray, joint order of the state):
+``u = Kp (q_ref - q) + Kd (qd_ref - qd) + u_ffwd``, clipped to the torque limits.
+The reference comes from ``joint_trajectory`` (trajectory_msgs/JointTrajectory; effort field =
+feed-forward, the ros2_control convention) sampled at the state's time stamp. A trajectory
+stamped zero starts at the first state received after it; otherwise at its stamp. With no
+trajectory the controller holds the position of the first state it saw; after the end it
+holds the last point. Each command's reference is published on ``reference``
+(sensor_msgs/JointState: position = q_ref, velocity = qd_ref, effort = u_ffwd) with the
+state's stamp, so the tracking error can be computed and recorded.
+"""
+from __future__ import annotations
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from trajectory_msgs.msg import JointTrajectory
+
+from psl_controller.pd_law import pd_feedforward
+from psl_controller.trajectory_sampling import SampledTrajectory
+from psl_sim.arm_model import ArmModel
+from psl_sim.task import load_task
+
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def time_ns(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def trajectory_from_msg(msg: JointTrajectory, joint_names: list[str]) -> SampledTrajectory:
+    """Reorder a JointTrajectory to the given joint order and make it sampleable.
+    Raises ValueError for unknown joints, ragged points or non-finite values."""
+    if sorted(msg.joint_names) != sorted(joint_names):
+        raise ValueError(f'trajectory joints {list(msg.joint_names)} do not match the '
+                         f'robot joints {joint_names}')
+    if not msg.points:
+        raise ValueError('trajectory has no points')
+    order = [list(msg.joint_names).index(name) for name in joint_names]
+    n = len(joint_names)
+
+    def column(field: str) -> np.ndarray | None:
+        rows = [getattr(p, field) for p in msg.points]
+        if all(len(r) == 0 for r in rows):
+            return None
+        if any(len(r) != n for r in rows):
+            raise ValueError(f'every trajectory point needs {n} {field} (or none)')
+        return np.asarray(rows, dtype=float)[:, order]
+
+    times = np.array([time_ns(p.time_from_start) for p in msg.points], dtype=np.int64)
+    positions = column('positions')
+    if positions is None:
+        raise ValueError('trajectory points need positions')
+    arrays = [positions, column('velocities'), column('effort')]
+    if not all(a is None or np.all(np.isfinite(a)) for a in arrays):
+        raise ValueError('trajectory contains NaN or inf')
+    return SampledTrajectory(times, *arrays)
+
+
+class PDController(Node):
+
+    def __init__(self):
+        super().__init__('pd_controller')
+        self.declare_parameter('task', 'reach_over_obstacle', ParameterDescriptor(
+            description='task whose YAML gives the default gains and whose model the '
+                        'default torque limits', read_only=True))
+        for name, text in (('kp', 'proportional gains [N m/rad], one per joint'),
+                           ('kd', 'derivative gains [N m s/rad], one per joint'),
+                           ('torque_limit', 'symmetric torque limits [N m], one per joint')):
+            self.declare_parameter(name, [0.0], ParameterDescriptor(
+                description=f'{text}; [0.0] = from the task'))
+        arm = ArmModel(load_task(self.get_parameter('task').value))
+        self.defaults = {'kp': arm.task.kp, 'kd': arm.task.kd,
+                         'torque_limit': np.maximum(-arm.torque_low, arm.torque_high)}
+        self.n_joints = len(arm.joint_names)
+        self.gains = {name: self._param(name) for name in self.defaults}
+        self.add_on_set_parameters_callback(self.on_set_parameters)
+
+        self.joint_names: list[str] | None = None
+        self.trajectory: SampledTrajectory | None = None
+        self.trajectory_msg: JointTrajectory | None = None
+        self.start_ns: int | None = None
+        self.hold: np.ndarray | None = None
+
+        self.pub_command = self.create_publisher(Float64MultiArray, 'effort_command', RELIABLE)
+        self.pub_reference = self.create_publisher(JointState, 'reference', RELIABLE)
+        # created before joint_states: when both are ready, the trajectory is taken first
+        self.create_subscription(JointTrajectory, 'joint_trajectory', self.on_trajectory,
+                                 RELIABLE)
+        self.create_subscription(JointState, 'joint_states', self.on_state, RELIABLE)
+        self.get_logger().info(
+            f'PD + feed-forward controller, kp={self.gains["kp"].tolist()} '
+            f'kd={self.gains["kd"].tolist()} limit={self.gains["torque_limit"].tolist()}')
+
+    def _param(self, name: str, value=None) -> np.ndarray:
+        value = np.asarray(self.get_parameter(name).value if value is None else value, float)
+        if value.size == 1 and value[0] == 0.0:
+            return np.asarray(self.defaults[name], dtype=float)
+        if value.size != self.n_joints or not np.all(np.isfinite(value)) or np.any(value < 0):
+            raise ValueError(f'{name} needs {self.n_joints} finite values >= 0')
+        return value
+
+    def on_set_parameters(self, params) -> SetParametersResult:
+        try:
+            new = {p.name: self._param(p.name, p.value) for p in params if p.name in self.gains}
+        except ValueError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        self.gains.update(new)
+        return SetParametersResult(successful=True)
+
+    def on_trajectory(self, msg: JointTrajectory) -> None:
+        self.trajectory_msg = msg
+        if self.joint_names is not None:
+            self._load_trajectory()
+
+    def _load_trajectory(self) -> None:
+        msg, self.trajectory_msg = self.trajectory_msg, None
+        try:
+            self.trajectory = trajectory_from_msg(msg, self.joint_names)
+        except ValueError as exc:
+            self.get_logger().error(f'refused trajectory: {exc}')
+            return
+        start = time_ns(msg.header.stamp)
+        self.start_ns = start if start > 0 else None   # None: the next state starts it
+
+    def on_state(self, msg: JointState) -> None:
+        if self.joint_names is None:
+            self.joint_names = list(msg.name)
+            if self.trajectory_msg is not None:
+                self._load_trajectory()
+        q = np.asarray(msg.position, dtype=float)
+        qd = np.asarray(msg.velocity, dtype=float)
+        if q.shape != (self.n_joints,) or qd.shape != q.shape or list(msg.name) != self.joint_names:
+            self.get_logger().warning('joint_states does not match the robot joints',
+                                      throttle_duration_sec=1.0)
+            return
+        t = time_ns(msg.header.stamp)
+        if self.trajectory is not None:
+            if self.start_ns is None:
+                self.start_ns = t
+            q_ref, qd_ref, u_ffwd = self.trajectory.sample(t - self.start_ns)
+        else:
+            if self.hold is None:
+                self.hold = q.copy()
+            q_ref, qd_ref, u_ffwd = self.hold, np.zeros_like(q), np.zeros_like(q)
+        try:
+            u = pd_feedforward(q, qd, q_ref, qd_ref, u_ffwd, self.gains['kp'],
+                               self.gains['kd'], self.gains['torque_limit'])
+        except ValueError as exc:
+            self.get_logger().warning(f'no command: {exc}', throttle_duration_sec=1.0)
+            return
+        self.pub_command.publish(Float64MultiArray(data=u.tolist()))
+        ref = JointState()
+        ref.header.stamp = msg.header.stamp
+        ref.name = self.joint_names
+        ref.position, ref.velocity, ref.effort = q_ref.tolist(), qd_ref.tolist(), u_ffwd.tolist()
+        self.pub_reference.publish(ref)
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = PDController()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

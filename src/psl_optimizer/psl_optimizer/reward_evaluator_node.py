@@ -1,0 +1,115 @@
+"""The reward evaluator node: watches each episode and publishes ``rollout_evaluation``.
+
+An episode is announced by the simulator on ``task_instance`` (task, tau, stamp of the first
+state, number of steps). The evaluator collects the ``joint_states`` of that episode and the
+controller's ``reference`` for each of them (matched by time stamp, so arrival order does not
+matter), scores the rollout with the task's reward (`psl_optimizer.reward`) and publishes a
+psl_msgs/RolloutEvaluation stamped with the episode's first state.
+"""
+from __future__ import annotations
+
+import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+
+from psl_msgs.msg import RolloutEvaluation, TaskInstance
+from psl_optimizer.reward import evaluate_rollout
+from psl_sim.arm_model import ArmModel
+from psl_sim.task import TaskError, load_task
+
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+BUFFER = 5000   # messages kept per stream while the episode announcement is on its way
+
+
+def time_ns(stamp) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+class RewardEvaluator(Node):
+
+    def __init__(self):
+        super().__init__('reward_evaluator')
+        self._arms: dict[str, ArmModel] = {}
+        self.episode: TaskInstance | None = None
+        self.states: dict[int, JointState] = {}
+        self.references: dict[int, JointState] = {}
+        self.pub = self.create_publisher(RolloutEvaluation, 'rollout_evaluation', RELIABLE)
+        self.create_subscription(TaskInstance, 'task_instance', self.on_task, LATCHED)
+        self.create_subscription(JointState, 'joint_states', self.on_state, RELIABLE)
+        self.create_subscription(JointState, 'reference', self.on_reference, RELIABLE)
+        self.get_logger().info('evaluating episodes announced on task_instance')
+
+    def on_task(self, msg: TaskInstance) -> None:
+        self.episode = msg
+        t0 = time_ns(msg.stamp)
+        for stream in (self.states, self.references):
+            for t in [t for t in stream if t < t0]:
+                del stream[t]
+        self._try_finish()
+
+    def on_state(self, msg: JointState) -> None:
+        self._store(self.states, msg)
+
+    def on_reference(self, msg: JointState) -> None:
+        self._store(self.references, msg)
+
+    def _store(self, stream: dict[int, JointState], msg: JointState) -> None:
+        stream[time_ns(msg.header.stamp)] = msg
+        if len(stream) > BUFFER:
+            del stream[min(stream)]
+        self._try_finish()
+
+    def _try_finish(self) -> None:
+        ep = self.episode
+        if ep is None:
+            return
+        if min(len(self.states), len(self.references)) <= ep.num_steps:
+            return
+        t0, period = time_ns(ep.stamp), int(round(ep.control_period * 1e9))
+        times = [t0 + k * period for k in range(ep.num_steps + 1)]
+        if not all(t in self.states and t in self.references for t in times):
+            return
+        self.episode = None
+        states = [self.states.pop(t) for t in times]
+        refs = [self.references.pop(t) for t in times]
+        try:
+            self.pub.publish(self._evaluate(ep, states, refs))
+        except (TaskError, ValueError) as exc:
+            self.get_logger().error(f'cannot evaluate episode of {ep.task!r}: {exc}')
+
+    def _evaluate(self, ep: TaskInstance, states, refs) -> RolloutEvaluation:
+        if ep.task not in self._arms:
+            self._arms[ep.task] = ArmModel(load_task(ep.task))
+        arm = self._arms[ep.task]
+        q = np.array([s.position for s in states])
+        torque = np.array([s.effort for s in states])
+        q_ref = np.array([r.position for r in refs])
+        result = evaluate_rollout(arm, np.asarray(ep.tau), q, torque, q_ref)
+        return RolloutEvaluation(
+            stamp=ep.stamp, task=ep.task, tau=list(ep.tau), reward=result.reward,
+            fulfilled=result.fulfilled, component_names=list(result.components),
+            component_values=list(result.components.values()),
+            tracking_error=result.components['tracking_error'], num_steps=ep.num_steps)
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = RewardEvaluator()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,152 @@
+"""The physics of a task: its MuJoCo model with the task parameters applied.
+
+`ArmModel` steps the simulation with joint torques (one physics step per control period) and
+gives named accessors (joint names, torque limits, end-effector position, obstacle distance).
+`ArmModel.replay` recomputes end-effector positions and obstacle distances along a recorded
+joint trajectory with a private MjData, so the reward can be computed from joint states
+alone, in the graph and in batch mode alike. Imports no ROS.
+"""
+from __future__ import annotations
+
+import functools
+
+import mujoco
+import numpy as np
+
+from psl_sim.task import TaskDefinition, TaskError
+
+
+class ArmModel:
+    """A task's MJCF model: hinge/slide joints driven by one torque actuator each."""
+
+    def __init__(self, task: TaskDefinition):
+        self.task = task
+        try:
+            self.model = mujoco.MjModel.from_xml_path(str(task.model_path))
+        except ValueError as exc:
+            raise TaskError(f'cannot load model {task.model_path}: {exc}') from exc
+        self.data = mujoco.MjData(self.model)
+        self._replay_data = mujoco.MjData(self.model)
+        m = self.model
+        if m.nu != m.nv or m.nq != m.nv:
+            raise TaskError(
+                f'{task.model_path}: psl drives one actuator per hinge/slide joint '
+                f'(nq={m.nq}, nv={m.nv}, nu={m.nu})')
+        if task.n_joints != m.nq:
+            raise TaskError(f'{task.path}: start_posture has {task.n_joints} entries, '
+                            f'the model has {m.nq} joints')
+        if abs(m.opt.timestep * task.control_rate - 1.0) > 1e-9:
+            raise TaskError(f'{task.path}: control_rate {task.control_rate:g} Hz must equal '
+                            f'1 / model timestep ({1.0 / m.opt.timestep:g} Hz)')
+        self.joint_names = [m.joint(m.actuator_trnid[i, 0]).name for i in range(m.nu)]
+        self.joint_ids = np.array([m.actuator_trnid[i, 0] for i in range(m.nu)])
+        self.qpos_adr = m.jnt_qposadr[self.joint_ids]
+        self.dof_adr = m.jnt_dofadr[self.joint_ids]
+        self.torque_low = m.actuator_ctrlrange[:, 0].copy()
+        self.torque_high = m.actuator_ctrlrange[:, 1].copy()
+        if not np.all(m.actuator_ctrllimited):
+            raise TaskError(f'{task.model_path}: every actuator needs a ctrlrange (torque limit)')
+        self.ee_site = self._id(mujoco.mjtObj.mjOBJ_SITE, task.end_effector_site)
+        reward = task.reward
+        self.obstacle_geoms = [self._id(mujoco.mjtObj.mjOBJ_GEOM, g)
+                               for g in reward.get('obstacle_geoms', [])]
+        self.arm_geoms = [self._id(mujoco.mjtObj.mjOBJ_GEOM, g)
+                          for g in reward.get('arm_geoms', [])]
+        self._bindings = [self._binding(p.binds) for p in task.parameters]
+        self.tau = task.tau_default.copy()
+        self.ee_goal = self.end_effector_at(task.goal_posture)
+
+    # -- set-up -------------------------------------------------------------------------
+    def _id(self, kind: mujoco.mjtObj, name: str) -> int:
+        idx = mujoco.mj_name2id(self.model, kind, name)
+        if idx < 0:
+            raise TaskError(f'{self.task.model_path}: no {kind.name[6:].lower()} named {name!r}')
+        return idx
+
+    def _binding(self, binds: dict):
+        body = self._id(mujoco.mjtObj.mjOBJ_BODY, binds['body'])
+        offset = float(binds.get('offset', 0.0))
+        if binds['kind'] == 'mocap_position':
+            mocap = self.model.body_mocapid[body]
+            if mocap < 0:
+                raise TaskError(f'{self.task.model_path}: body {binds["body"]!r} is not mocap')
+            axis = int(binds['axis'])
+
+            def apply(model, data, value):
+                data.mocap_pos[mocap, axis] = value + offset
+            return apply
+
+        def apply_mass(model, data, value):
+            model.body_mass[body] = value + offset
+        return apply_mass
+
+    def apply_tau(self, tau: np.ndarray, data: mujoco.MjData | None = None) -> None:
+        """Place the task instance in the model (obstacle position, payload mass, ...)."""
+        self.tau = self.task.validate_tau(tau)
+        for apply, value in zip(self._bindings, self.tau):
+            apply(self.model, self.data if data is None else data, value)
+
+    # -- simulation ---------------------------------------------------------------------
+    def reset(self, tau: np.ndarray) -> None:
+        """Start posture at rest, task parameters applied, time zero."""
+        mujoco.mj_resetData(self.model, self.data)
+        self.apply_tau(tau)
+        self.data.qpos[self.qpos_adr] = self.task.start_posture
+        mujoco.mj_forward(self.model, self.data)
+
+    def clip_torque(self, torque: np.ndarray) -> np.ndarray:
+        return np.clip(torque, self.torque_low, self.torque_high)
+
+    def step(self, torque: np.ndarray) -> np.ndarray:
+        """One control period (one physics step) with the given joint torques; returns the
+        torques actually applied (clipped to the actuator limits)."""
+        applied = self.clip_torque(np.asarray(torque, dtype=float))
+        self.data.ctrl[:] = applied
+        mujoco.mj_step(self.model, self.data)
+        return applied
+
+    @property
+    def q(self) -> np.ndarray:
+        return self.data.qpos[self.qpos_adr].copy()
+
+    @property
+    def qd(self) -> np.ndarray:
+        return self.data.qvel[self.dof_adr].copy()
+
+    def end_effector_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """Position (3,) and orientation quaternion (w, x, y, z) of the end-effector site."""
+        quat = np.empty(4)
+        mujoco.mju_mat2Quat(quat, self.data.site_xmat[self.ee_site])
+        return self.data.site_xpos[self.ee_site].copy(), quat
+
+    # -- kinematic replay ---------------------------------------------------------------
+    def end_effector_at(self, q: np.ndarray) -> np.ndarray:
+        return self.replay(np.asarray(q, dtype=float)[None, :], self.tau)[0][0]
+
+    def replay(self, q: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """End-effector positions (T, 3) and the smallest arm-obstacle signed distance (T,)
+        along joint positions q (T, n_joints) for the task instance tau. The distance is
+        +inf when the task names no obstacle."""
+        d = self._replay_data
+        saved = self.tau.copy()
+        self.apply_tau(tau, d)
+        self.tau = saved
+        ee = np.empty((len(q), 3))
+        dist = np.full(len(q), np.inf)
+        fromto = np.empty(6)
+        distmax = 10.0
+        for k, qk in enumerate(q):
+            d.qpos[self.qpos_adr] = qk
+            mujoco.mj_kinematics(self.model, d)
+            ee[k] = d.site_xpos[self.ee_site]
+            for g1 in self.arm_geoms:
+                for g2 in self.obstacle_geoms:
+                    dist[k] = min(dist[k], mujoco.mj_geomDistance(
+                        self.model, d, g1, g2, distmax, fromto))
+        return ee, dist
+
+
+@functools.lru_cache(maxsize=32)
+def joint_names_of(task: TaskDefinition) -> list[str]:
+    """The task model's actuated joints, in actuator order (the order of every command)."""
+    return ArmModel(task).joint_names

@@ -1,0 +1,231 @@
+"""The simulator node: a task's MuJoCo model behind standard robot topics.
+
+Publishes ``joint_states`` (sensor_msgs/JointState, effort = torque applied in the step that
+led to the state), ``ee_pose`` (geometry_msgs/PoseStamped), ``/clock`` and, on every reset,
+``task_instance`` (psl_msgs/TaskInstance, latched). Applies ``effort_command``
+(std_msgs/Float64MultiArray, the forward_command_controller convention) clipped to the
+model's torque limits. ``~/reset`` (psl_msgs/ResetTask) starts an episode of the task's
+length; between episodes the simulation is paused.
+
+Modes:
+- ``lockstep``: after publishing a state the simulation waits for the command that answers it,
+  then advances one control period. Deterministic; as fast as the loop allows.
+- ``realtime``: the simulation advances on the wall clock; each period it applies the latest
+  command. A period whose answer has not arrived in time is a deadline miss; misses are
+  counted and published on ``/diagnostics`` at the end of each episode.
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from psl_msgs.msg import TaskInstance
+from psl_msgs.srv import ResetTask
+from psl_sim.arm_model import ArmModel
+from psl_sim.task import TaskError, load_task
+
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def stamp(t_ns: int) -> Time:
+    return Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
+
+
+class SimNode(Node):
+
+    def __init__(self):
+        super().__init__('sim')
+        self.declare_parameter('task', 'reach_over_obstacle', ParameterDescriptor(
+            description='task loaded at start (name or YAML path); a reset may name another',
+            read_only=True))
+        self.declare_parameter('mode', 'lockstep', ParameterDescriptor(
+            description='lockstep | realtime', read_only=True))
+        self.declare_parameter('episode_duration', 0.0, ParameterDescriptor(
+            description='episode length [s]; 0 = the task duration plus its settle time'))
+        self.mode = self.get_parameter('mode').value
+        if self.mode not in ('lockstep', 'realtime'):
+            raise ValueError(f"mode must be 'lockstep' or 'realtime', got {self.mode!r}")
+        self._lock = threading.Lock()
+        self._arms: dict[str, ArmModel] = {}
+        self.arm = self._arm(self.get_parameter('task').value)
+        self.t_ns = 0                 # simulation time, monotonic over episodes
+        self.steps_left = 0           # control periods left in the episode; 0 = paused
+        self.applied = np.zeros(len(self.arm.joint_names))
+        self.pending: np.ndarray | None = None   # command answering the last state
+        self.episode = {}
+
+        self.pub_joints = self.create_publisher(JointState, 'joint_states', RELIABLE)
+        self.pub_pose = self.create_publisher(PoseStamped, 'ee_pose', RELIABLE)
+        self.pub_clock = self.create_publisher(Clock, '/clock', 10)
+        self.pub_task = self.create_publisher(TaskInstance, 'task_instance', LATCHED)
+        self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_subscription(Float64MultiArray, 'effort_command', self.on_command, RELIABLE)
+        self.create_service(ResetTask, '~/reset', self.on_reset)
+        if self.mode == 'realtime':
+            self._stop = threading.Event()
+            self._thread = threading.Thread(target=self._realtime_loop, daemon=True)
+            self._thread.start()
+        self.get_logger().info(
+            f'{self.mode} simulation of task {self.arm.task.name!r} '
+            f'({len(self.arm.joint_names)} joints, {self.arm.task.control_rate:g} Hz); '
+            f'waiting for {self.resolve_service_name("~/reset")}')
+
+    def _arm(self, task_name: str) -> ArmModel:
+        task = load_task(task_name)
+        if task.name not in self._arms:
+            self._arms[task.name] = ArmModel(task)
+        return self._arms[task.name]
+
+    # -- services -----------------------------------------------------------------------
+    def on_reset(self, request: ResetTask.Request, response: ResetTask.Response):
+        try:
+            arm = self._arm(request.task)
+            tau = arm.task.validate_tau(np.asarray(request.tau))
+        except TaskError as exc:
+            response.success, response.message = False, str(exc)
+            self.get_logger().warning(f'reset refused: {exc}')
+            return response
+        duration = self.get_parameter('episode_duration').value
+        num_steps = (int(round(duration * arm.task.control_rate)) if duration > 0
+                     else arm.task.num_steps)
+        with self._lock:
+            self.arm = arm
+            arm.reset(tau)
+            self.applied = np.zeros(len(arm.joint_names))
+            self.pending = None
+            self.steps_left = num_steps
+            self.episode = {'t0': self.t_ns, 'misses': 0, 'start': time.perf_counter(),
+                            'steps': num_steps}
+            self.pub_task.publish(TaskInstance(
+                stamp=stamp(self.t_ns), task=arm.task.name, tau=tau.tolist(),
+                num_steps=num_steps, control_period=arm.task.control_period))
+            self._publish_state()
+        response.success, response.message = True, f'episode of {num_steps} steps started'
+        response.stamp, response.num_steps = stamp(self.t_ns), num_steps
+        response.joint_names = list(arm.joint_names)
+        return response
+
+    # -- commands -----------------------------------------------------------------------
+    def on_command(self, msg: Float64MultiArray) -> None:
+        command = np.asarray(msg.data, dtype=float)
+        n = len(self.arm.joint_names)
+        if command.shape != (n,) or not np.all(np.isfinite(command)):
+            self.get_logger().warning(
+                f'refused effort_command: expected {n} finite torques, got '
+                f'{len(command)} value(s){"" if np.all(np.isfinite(command)) else " with NaN/inf"}',
+                throttle_duration_sec=1.0)
+            return
+        with self._lock:
+            if self.steps_left == 0:
+                return                 # paused between episodes
+            if self.mode == 'lockstep':
+                self._advance(command)
+            else:
+                self.pending = command
+
+    def _advance(self, command: np.ndarray) -> None:
+        """One control period with the given torques, then publish the new state."""
+        self.applied = self.arm.step(command)
+        self.t_ns += self.arm.task.control_period_ns
+        self.steps_left -= 1
+        self._publish_state()
+        done = self.episode['steps'] - self.steps_left
+        if self.steps_left == 0 or done % max(1, self.episode['steps'] // 10) == 0:
+            self._publish_status(done)
+
+    def _realtime_loop(self) -> None:
+        next_tick = time.perf_counter()
+        while not self._stop.is_set():
+            with self._lock:
+                period = self.arm.task.control_period
+                if self.steps_left > 0:
+                    if self.pending is None:
+                        self.episode['misses'] += 1
+                        command = self.applied
+                    else:
+                        command = self.pending
+                    self.pending = None
+                    self._advance(command)
+            next_tick += period
+            delay = next_tick - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            elif delay < -period:      # fell behind by more than a period: don't burst
+                next_tick = time.perf_counter()
+
+    def _publish_status(self, done: int) -> None:
+        """Episode progress on /diagnostics: about every tenth of the episode and at its end
+        (steps done, deadline misses, wall time, steps per second)."""
+        ep = self.episode
+        wall = time.perf_counter() - ep['start']
+        status = DiagnosticStatus(
+            level=DiagnosticStatus.OK, name=f'{self.get_fully_qualified_name()}: episode',
+            message=f'{done}/{ep["steps"]} steps, {ep["misses"]} deadline misses',
+            hardware_id=str(ep['t0']),
+            values=[KeyValue(key=k, value=str(v)) for k, v in (
+                ('mode', self.mode), ('task', self.arm.task.name), ('episode_start_ns', ep['t0']),
+                ('steps_done', done), ('steps', ep['steps']),
+                ('deadline_misses', ep['misses']), ('wall_time_s', f'{wall:.6f}'),
+                ('steps_per_second', f'{done / wall:.1f}'))])
+        diag = DiagnosticArray(status=[status])
+        diag.header.stamp = stamp(self.t_ns)
+        self.pub_diag.publish(diag)
+
+    # -- state --------------------------------------------------------------------------
+    def _publish_state(self) -> None:
+        t = stamp(self.t_ns)
+        arm = self.arm
+        js = JointState()
+        js.header.stamp = t
+        js.name = arm.joint_names
+        js.position = arm.q.tolist()
+        js.velocity = arm.qd.tolist()
+        js.effort = self.applied.tolist()
+        pose = PoseStamped()
+        pose.header.stamp, pose.header.frame_id = t, 'world'
+        pos, quat = arm.end_effector_pose()
+        pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = pos.tolist()
+        (pose.pose.orientation.w, pose.pose.orientation.x,
+         pose.pose.orientation.y, pose.pose.orientation.z) = quat.tolist()
+        self.pub_clock.publish(Clock(clock=t))
+        self.pub_pose.publish(pose)
+        self.pub_joints.publish(js)
+
+    def destroy_node(self):
+        if self.mode == 'realtime':
+            self._stop.set()
+            self._thread.join(timeout=1.0)
+        super().destroy_node()
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = SimNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,221 @@
+"""Task definitions: a YAML file next to its MJCF model names everything a task varies.
+
+A task YAML holds the model file, the task parameters tau (names, ranges, and how each one
+is applied to the model), the start and goal postures, the controller gains, the movement
+representation, the demonstration the default policy is fitted to, the reward weights and
+the success threshold. Tasks are found by name in the embedded ``tasks/`` folder and in the
+folders listed in ``PSL_TASK_PATH`` (colon-separated), or given as a path to a YAML file.
+
+Imports no ROS: usable from the nodes, the batch rollouts, tests and notebooks.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+EMBEDDED_TASKS = Path(__file__).resolve().parent / 'tasks'
+BINDING_KINDS = ('mocap_position', 'body_mass')
+
+
+class TaskError(ValueError):
+    """A task that cannot be found or loaded, or task parameters it does not accept."""
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskParameter:
+    """One entry of tau: its range and where it goes in the model."""
+
+    name: str
+    low: float
+    high: float
+    default: float
+    binds: dict[str, Any]
+    unit: str = ''
+
+
+@dataclasses.dataclass(frozen=True, eq=False)   # hashed by identity: load_task caches
+class TaskDefinition:
+    """Everything a task varies and how it is scored (see the module docstring)."""
+
+    name: str
+    path: Path                      # the YAML file
+    model_path: Path                # the MJCF file
+    description: str
+    end_effector_site: str
+    control_rate: float             # Hz
+    duration: float                 # s, length of the motion
+    settle_time: float              # s, the episode goes on after the motion
+    start_posture: np.ndarray       # (n_joints,)
+    goal_posture: np.ndarray        # (n_joints,)
+    parameters: tuple[TaskParameter, ...]
+    kp: np.ndarray                  # (n_joints,)
+    kd: np.ndarray                  # (n_joints,)
+    policy: dict[str, Any]
+    demo_times: np.ndarray          # (n_waypoints,)
+    demo_positions: np.ndarray      # (n_waypoints, n_joints)
+    reward: dict[str, Any]
+
+    @property
+    def tau_names(self) -> list[str]:
+        return [p.name for p in self.parameters]
+
+    @property
+    def tau_low(self) -> np.ndarray:
+        return np.array([p.low for p in self.parameters])
+
+    @property
+    def tau_high(self) -> np.ndarray:
+        return np.array([p.high for p in self.parameters])
+
+    @property
+    def tau_default(self) -> np.ndarray:
+        return np.array([p.default for p in self.parameters])
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.start_posture)
+
+    @property
+    def control_period(self) -> float:
+        return 1.0 / self.control_rate
+
+    @property
+    def control_period_ns(self) -> int:
+        return int(round(1e9 / self.control_rate))
+
+    @property
+    def num_steps(self) -> int:
+        """Control periods in one episode (motion plus settling)."""
+        return int(round((self.duration + self.settle_time) * self.control_rate))
+
+    def validate_tau(self, tau: Any) -> np.ndarray:
+        """Return tau as a float array, or raise TaskError saying what is wrong with it."""
+        tau = np.asarray(tau, dtype=float)
+        if tau.ndim != 1 or tau.size != len(self.parameters):
+            raise TaskError(
+                f'task {self.name!r} takes {len(self.parameters)} task parameters '
+                f'({", ".join(self.tau_names)}), got {tau.size}')
+        if not np.all(np.isfinite(tau)):
+            raise TaskError(f'task parameters must be finite, got {tau.tolist()}')
+        for value, p in zip(tau, self.parameters):
+            if not p.low <= value <= p.high:
+                raise TaskError(
+                    f'{p.name} = {value:g} is outside its range [{p.low:g}, {p.high:g}] '
+                    f'in task {self.name!r}')
+        return tau
+
+    def sample_tau(self, rng: np.random.Generator) -> np.ndarray:
+        """A task instance drawn uniformly from the parameter ranges."""
+        return rng.uniform(self.tau_low, self.tau_high)
+
+
+def task_search_path() -> list[Path]:
+    extra = [Path(p) for p in os.environ.get('PSL_TASK_PATH', '').split(':') if p]
+    return extra + [EMBEDDED_TASKS]
+
+
+def list_tasks() -> list[str]:
+    """Names of all tasks on the search path."""
+    names = set()
+    for folder in task_search_path():
+        names.update(p.stem for p in folder.glob('*.yaml'))
+    return sorted(names)
+
+
+def find_task_file(name_or_path: str) -> Path:
+    candidate = Path(name_or_path)
+    if candidate.suffix in ('.yaml', '.yml'):
+        if candidate.is_file():
+            return candidate.resolve()
+        raise TaskError(f'task file {name_or_path} does not exist')
+    for folder in task_search_path():
+        path = folder / f'{name_or_path}.yaml'
+        if path.is_file():
+            return path.resolve()
+    raise TaskError(f'unknown task {name_or_path!r}; known tasks: {", ".join(list_tasks())}')
+
+
+_CACHE: dict[tuple[Path, float], TaskDefinition] = {}
+
+
+def load_task(name_or_path: str) -> TaskDefinition:
+    """Load a task by name (search path) or by YAML path. Raises TaskError."""
+    path = find_task_file(name_or_path)
+    key = (path, path.stat().st_mtime)
+    if key not in _CACHE:
+        _CACHE[key] = _parse(path)
+    return _CACHE[key]
+
+
+def _require(data: dict, key: str, path: Path) -> Any:
+    if key not in data:
+        raise TaskError(f'{path}: missing key {key!r}')
+    return data[key]
+
+
+def _vector(value: Any, key: str, n: int | None, path: Path) -> np.ndarray:
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim != 1 or (n is not None and arr.size != n) or not np.all(np.isfinite(arr)):
+        want = f'{n} finite numbers' if n is not None else 'a list of finite numbers'
+        raise TaskError(f'{path}: {key} must be {want}, got {value!r}')
+    return arr
+
+
+def _parse(path: Path) -> TaskDefinition:
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise TaskError(f'{path}: not valid YAML: {exc}') from exc
+    if not isinstance(data, dict):
+        raise TaskError(f'{path}: a task file is a mapping of keys')
+    model_path = (path.parent / _require(data, 'model', path)).resolve()
+    if not model_path.is_file():
+        raise TaskError(f'{path}: model file {model_path} does not exist')
+    start = _vector(_require(data, 'start_posture', path), 'start_posture', None, path)
+    n = start.size
+    params = []
+    for entry in _require(data, 'task_parameters', path):
+        binds = dict(entry.get('binds', {}))
+        if binds.get('kind') not in BINDING_KINDS:
+            raise TaskError(f'{path}: task parameter {entry.get("name")!r} binds kind must be '
+                            f'one of {BINDING_KINDS}, got {binds.get("kind")!r}')
+        low, high = float(entry['low']), float(entry['high'])
+        if not low < high:
+            raise TaskError(f'{path}: task parameter {entry["name"]!r} needs low < high')
+        params.append(TaskParameter(
+            name=str(entry['name']), low=low, high=high,
+            default=float(entry.get('default', 0.5 * (low + high))),
+            binds=binds, unit=str(entry.get('unit', ''))))
+    controller = _require(data, 'controller', path)
+    demo = _require(data, 'demonstration', path)
+    demo_positions = np.asarray(demo['positions'], dtype=float)
+    if demo_positions.ndim != 2 or demo_positions.shape[1] != n:
+        raise TaskError(f'{path}: demonstration positions must be rows of {n} joint angles')
+    demo_times = _vector(demo['times'], 'demonstration times', len(demo_positions), path)
+    reward = dict(_require(data, 'reward', path))
+    for key in ('weights', 'success_threshold'):
+        _require(reward, key, path)
+    return TaskDefinition(
+        name=str(data.get('name', path.stem)),
+        path=path,
+        model_path=model_path,
+        description=str(data.get('description', '')),
+        end_effector_site=str(_require(data, 'end_effector_site', path)),
+        control_rate=float(_require(data, 'control_rate', path)),
+        duration=float(_require(data, 'duration', path)),
+        settle_time=float(data.get('settle_time', 0.0)),
+        start_posture=start,
+        goal_posture=_vector(_require(data, 'goal_posture', path), 'goal_posture', n, path),
+        parameters=tuple(params),
+        kp=_vector(controller['kp'], 'controller.kp', n, path),
+        kd=_vector(controller['kd'], 'controller.kd', n, path),
+        policy=dict(_require(data, 'policy', path)),
+        demo_times=demo_times,
+        demo_positions=demo_positions,
+        reward=reward,
+    )
