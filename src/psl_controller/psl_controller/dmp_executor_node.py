@@ -129,8 +129,12 @@ class DMPExecutor(Node):
                 if goal_handle.is_cancel_requested:
                     raise RuntimeError('rollout canceled')
                 if time.monotonic() > deadline:
-                    raise RuntimeError(f'no rollout_evaluation within {timeout:.1f} s: is the '
-                                       'reward_evaluator running?')
+                    done = self._progress.get(t0)
+                    raise RuntimeError(
+                        f'no rollout_evaluation within {timeout:.1f} s; the simulator reported '
+                        + ('no progress (is the controller running?)' if done is None else
+                           f'{100 * done:.0f} % of the episode (is the reward_evaluator '
+                           'running?)'))
                 self._cv.wait(timeout=0.05)
                 feedback.progress = float(self._progress.get(t0, 0.0))
                 if feedback.progress != last:

@@ -12,6 +12,7 @@ import numpy as np
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
@@ -21,6 +22,13 @@ from psl_sim.arm_model import ArmModel
 from psl_sim.task import TaskError, load_task
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+# The evaluator may lag behind the loop (it is not on the lockstep path): a history longer
+# than any episode keeps every state until it is taken.
+WHOLE_EPISODE = QoSProfile(depth=20000, reliability=ReliabilityPolicy.RELIABLE)
+# Per-step topics skip rclpy's default QoS-event handlers: each is a waitable that every
+# executor spin adds to its wait set, and the lockstep loop is bound by that overhead.
+HOT_PUB = {'event_callbacks': PublisherEventCallbacks(use_default_callbacks=False)}
+HOT_SUB = {'event_callbacks': SubscriptionEventCallbacks(use_default_callbacks=False)}
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 BUFFER = 5000   # messages kept per stream while the episode announcement is on its way
@@ -40,11 +48,18 @@ class RewardEvaluator(Node):
         self.references: dict[int, JointState] = {}
         self.pub = self.create_publisher(RolloutEvaluation, 'rollout_evaluation', RELIABLE)
         self.create_subscription(TaskInstance, 'task_instance', self.on_task, LATCHED)
-        self.create_subscription(JointState, 'joint_states', self.on_state, RELIABLE)
-        self.create_subscription(JointState, 'reference', self.on_reference, RELIABLE)
+        self.create_subscription(JointState, 'joint_states', self.on_state, WHOLE_EPISODE,
+                                 **HOT_SUB)
+        self.create_subscription(JointState, 'reference', self.on_reference, WHOLE_EPISODE,
+                                 **HOT_SUB)
         self.get_logger().info('evaluating episodes announced on task_instance')
 
     def on_task(self, msg: TaskInstance) -> None:
+        if self.episode is not None:
+            self.get_logger().warning(
+                f'episode at {time_ns(self.episode.stamp)} ns was not evaluated: got '
+                f'{len(self.states)} states and {len(self.references)} references of '
+                f'{self.episode.num_steps + 1}')
         self.episode = msg
         t0 = time_ns(msg.stamp)
         for stream in (self.states, self.references):

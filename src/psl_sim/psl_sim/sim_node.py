@@ -27,6 +27,7 @@ from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
@@ -38,6 +39,10 @@ from psl_sim.arm_model import ArmModel
 from psl_sim.task import TaskError, load_task
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+# Per-step topics skip rclpy's default QoS-event handlers: each is a waitable that every
+# executor spin adds to its wait set, and the lockstep loop is bound by that overhead.
+HOT_PUB = {'event_callbacks': PublisherEventCallbacks(use_default_callbacks=False)}
+HOT_SUB = {'event_callbacks': SubscriptionEventCallbacks(use_default_callbacks=False)}
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -69,12 +74,13 @@ class SimNode(Node):
         self.pending: np.ndarray | None = None   # command answering the last state
         self.episode = {}
 
-        self.pub_joints = self.create_publisher(JointState, 'joint_states', RELIABLE)
-        self.pub_pose = self.create_publisher(PoseStamped, 'ee_pose', RELIABLE)
-        self.pub_clock = self.create_publisher(Clock, '/clock', 10)
+        self.pub_joints = self.create_publisher(JointState, 'joint_states', RELIABLE, **HOT_PUB)
+        self.pub_pose = self.create_publisher(PoseStamped, 'ee_pose', RELIABLE, **HOT_PUB)
+        self.pub_clock = self.create_publisher(Clock, '/clock', 10, **HOT_PUB)
         self.pub_task = self.create_publisher(TaskInstance, 'task_instance', LATCHED)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_subscription(Float64MultiArray, 'effort_command', self.on_command, RELIABLE)
+        self.create_subscription(Float64MultiArray, 'effort_command', self.on_command, RELIABLE,
+                                 **HOT_SUB)
         self.create_service(ResetTask, '~/reset', self.on_reset)
         if self.mode == 'realtime':
             self._stop = threading.Event()
