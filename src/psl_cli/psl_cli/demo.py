@@ -48,9 +48,9 @@ def run_demo(task: str, out: Path, positions: int = 5) -> int:
         recorder = threading.Thread(target=record, args=(bag, TOPICS),
                                     kwargs={'stop': stop, 'discovery_timeout': 2.0})
         recorder.start()
-        time.sleep(2.5)     # the recorder subscribes to every topic that has a publisher
         try:
             with RosClient() as client:
+                client.wait_for_subscribers([t for t in TOPICS if t in client.LOOP_TOPICS])
                 for tau in placements(definition, positions):
                     result = client.rollout(definition.name, tau, theta)
                     if not result.success:

@@ -22,6 +22,19 @@ NODES = (  # (name, package, executable)
 )
 
 
+def pid_alive(pid: int) -> bool:
+    """True while the process runs (a zombie, ended but not yet reaped, counts as ended)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:
+        with open(f'/proc/{pid}/stat') as f:
+            return f.read().rsplit(')', 1)[-1].split()[0] != 'Z'
+    except OSError:
+        return False
+
+
 def find_executable(package: str, executable: str) -> Path:
     for prefix in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep):
         path = Path(prefix) / 'lib' / package / executable

@@ -61,7 +61,7 @@ def cmd_rollout(args) -> int:
 
     try:
         task = load_task(args.task)
-        tau = task.tau_default if args.tau is None else np.asarray(args.tau, dtype=float)
+        tau = task.tau_default if args.tau is None else task.validate_tau(args.tau)
         theta = _load_theta(args.theta_file, task)
     except (TaskError, OSError, ValueError) as exc:
         print(f'psl rollout: {exc}', file=sys.stderr)

@@ -68,6 +68,19 @@ class RosClient:
         time.sleep(0.2)   # discovery seen from here; give the pairwise matching a moment
         return True
 
+    def wait_for_subscribers(self, topics, extra: int = 1, timeout: float = 15.0) -> None:
+        """Wait until each topic of the loop has `extra` more subscribers than the graph's
+        own (e.g. a recorder that just started); raise TimeoutError otherwise."""
+        deadline = time.monotonic() + timeout
+        for topic in topics:
+            want = self.LOOP_TOPICS.get(topic.lstrip('/'), (0, 0))[1] + extra
+            while self.node.count_subscribers(topic) < want:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f'{topic} has {self.node.count_subscribers(topic)} '
+                                       f'subscribers, expected {want}')
+                time.sleep(0.05)
+        time.sleep(0.3)   # seen from here; give the pairwise matching a moment
+
     @staticmethod
     def _wait(future, timeout: float, what: str):
         event = threading.Event()

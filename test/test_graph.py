@@ -1,0 +1,160 @@
+"""The robot loop end to end: sim, controller, executor and evaluator as separate processes."""
+import threading
+import time
+
+import numpy as np
+import pytest
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Float64MultiArray
+
+from psl_cli.bag_recorder import make_typestore, read_bag_summary, record
+from psl_controller.policy import policy_for
+from psl_sim.task import load_task
+
+TASK = 'reach_over_obstacle'
+GOAL_TOLERANCE = 0.005   # m, end-effector distance to the goal after the demonstration
+
+
+@pytest.fixture(scope='module')
+def task():
+    return load_task(TASK)
+
+
+@pytest.fixture(scope='module')
+def theta(task):
+    return policy_for(task).default_theta
+
+
+@pytest.fixture(scope='module')
+def reference_result(client, task, theta):
+    """The demonstration's rollout at the default task instance (compared against below)."""
+    result = client.rollout(TASK, task.tau_default, theta)
+    assert result.success, result.message
+    return result.evaluation
+
+
+def components(evaluation) -> dict:
+    return dict(zip(evaluation.component_names, evaluation.component_values))
+
+
+def test_demonstration_rollout_ends_at_goal(reference_result, task):
+    ev = reference_result
+    assert ev.task == TASK
+    assert list(ev.tau) == task.tau_default.tolist()
+    assert ev.num_steps == task.num_steps
+    assert components(ev)['goal_error'] < GOAL_TOLERANCE
+    assert components(ev)['penetration'] == 0.0
+    assert ev.fulfilled and ev.reward >= task.reward['success_threshold']
+
+
+def test_lockstep_rollouts_are_identical(client, task, theta, reference_result):
+    other = client.rollout(TASK, task.tau_high, theta)     # a different instance in between
+    assert other.success, other.message
+    assert list(other.evaluation.component_values) != list(reference_result.component_values)
+    again = client.rollout(TASK, task.tau_default, theta)
+    assert again.success, again.message
+    assert again.evaluation.reward == reference_result.reward
+    assert list(again.evaluation.component_values) == list(reference_result.component_values)
+
+
+@pytest.mark.parametrize('task_name, tau, theta_change, words', [
+    ('no_such_task', None, None, ['unknown task', 'no_such_task', TASK]),
+    (TASK, [0.7], None, ['2 task parameters', 'got 1']),
+    (TASK, [0.7, 10.0], None, ['obstacle_height', 'outside its range']),
+    (TASK, [float('nan'), 0.2], None, ['finite']),
+    (TASK, None, 'short', ['theta', 'entries', 'got 3']),
+    (TASK, None, 'nan', ['NaN']),
+])
+def test_bad_rollout_requests_get_clear_errors(client, task, theta, reference_result,
+                                               task_name, tau, theta_change, words):
+    bad_theta = theta.copy()
+    if theta_change == 'short':
+        bad_theta = theta[:3]
+    elif theta_change == 'nan':
+        bad_theta[5] = np.nan
+    result = client.rollout(task_name, task.tau_default if tau is None else tau, bad_theta)
+    assert not result.success
+    for word in words:
+        assert word in result.message, result.message
+    # the graph goes on serving, and nothing of the bad request stayed behind
+    good = client.rollout(TASK, task.tau_default, theta)
+    assert good.success, good.message
+    assert list(good.evaluation.component_values) == list(reference_result.component_values)
+
+
+def test_reset_refuses_bad_task_instances(client, task):
+    response = client.reset(TASK, [0.7, 0.2, 0.1])
+    assert not response.success and 'got 3' in response.message
+    response = client.reset('nope', [0.7, 0.2])
+    assert not response.success and 'unknown task' in response.message
+
+
+def test_bad_effort_commands_never_reach_the_physics(client, graph, task, theta,
+                                                     reference_result):
+    """Wrong-sized and NaN commands, published throughout a rollout, are refused: the
+    rollout is bit-identical to one without them, and the simulator says why."""
+    node = client.node
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    pub = node.create_publisher(Float64MultiArray, 'effort_command', qos)
+    deadline = time.monotonic() + 10
+    while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    stop = threading.Event()
+
+    def spam():
+        bad = [Float64MultiArray(data=[1.0, 2.0]), Float64MultiArray(data=[np.nan, 0.0, 0.0])]
+        i = 0
+        while not stop.is_set():
+            pub.publish(bad[i % 2])
+            i += 1
+            time.sleep(0.002)
+
+    thread = threading.Thread(target=spam)
+    thread.start()
+    try:
+        result = client.rollout(TASK, task.tau_default, theta)
+    finally:
+        stop.set()
+        thread.join()
+        node.destroy_publisher(pub)
+    assert result.success, result.message
+    assert list(result.evaluation.component_values) == list(reference_result.component_values)
+    sim_log = next(p for p in graph.processes if p.name == 'sim').log_path.read_text()
+    assert 'refused effort_command: expected 3 finite torques' in sim_log
+
+
+def test_recorded_bag_reads_back(client, task, theta, tmp_path, reference_result):
+    bag = tmp_path / 'rollout_bag'
+    topics = ['joint_states', 'reference', 'effort_command', 'task_instance',
+              'rollout_evaluation', 'joint_trajectory']
+    stop = threading.Event()
+    counts = {}
+    recorder = threading.Thread(target=lambda: counts.update(
+        record(bag, topics, stop=stop, discovery_timeout=1.0)))
+    recorder.start()
+    try:
+        client.wait_for_subscribers(topics)
+        result = client.rollout(TASK, task.tau_default, theta)
+    finally:
+        time.sleep(0.5)
+        stop.set()
+        recorder.join(timeout=30)
+    assert result.success, result.message
+    n = task.num_steps + 1       # states 0..N, each answered by one command and reference
+    # task_instance is latched: the recorder also receives the previous episode's announcement
+    expected = {'/joint_states': n, '/reference': n, '/effort_command': n,
+                '/task_instance': 2, '/rollout_evaluation': 1, '/joint_trajectory': 1}
+    summary = read_bag_summary(bag)
+    assert {topic: count for topic, (_, count) in summary.items()} == expected
+    assert counts == expected
+    assert summary['/joint_states'][0] == 'sensor_msgs/msg/JointState'
+    assert summary['/rollout_evaluation'][0] == 'psl_msgs/msg/RolloutEvaluation'
+    # the evaluation in the bag is the one the action returned
+    from rosbags.rosbag2 import Reader
+    store = make_typestore()
+    with Reader(bag) as reader:
+        conns = [c for c in reader.connections if c.topic == '/rollout_evaluation']
+        (_, _, raw), = list(reader.messages(connections=conns))
+        stored = store.deserialize_cdr(raw, conns[0].msgtype)
+    assert stored.reward == result.evaluation.reward
+    assert (bag / 'metadata.yaml').read_text().count('storage_identifier: mcap') == 1
