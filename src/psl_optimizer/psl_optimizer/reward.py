@@ -26,13 +26,16 @@ def _finite(name: str, array: np.ndarray) -> np.ndarray:
 
 def goal_error(ee_final: np.ndarray, ee_goal: np.ndarray) -> float:
     """Euclidean distance [m] of the final end-effector position (3,) to the goal (3,)."""
-    return float(np.linalg.norm(_finite('ee_final', ee_final) - _finite('ee_goal', ee_goal)))
+    ee_final, ee_goal = _finite('ee_final', ee_final), _finite('ee_goal', ee_goal)
+    if ee_final.shape != (3,) or ee_goal.shape != (3,):
+        raise ValueError(f'ee_final {ee_final.shape} and ee_goal {ee_goal.shape} must be (3,)')
+    return float(np.linalg.norm(ee_final - ee_goal))
 
 
 def penetration(distance: np.ndarray) -> float:
     """Deepest penetration [m] of the arm into an obstacle over the rollout: the largest
     negative signed distance (T,), or 0 when the arm never touches one."""
-    distance = np.asarray(distance, dtype=float)
+    distance = _finite('distance', distance)
     if distance.size == 0:
         raise ValueError('distance is empty')
     return float(max(0.0, -np.min(distance)))
@@ -40,9 +43,9 @@ def penetration(distance: np.ndarray) -> float:
 
 def clearance(distance: np.ndarray, margin: float) -> float:
     """Mean shortfall [m] of the signed distance (T,) below the clearance margin >= 0."""
-    if margin < 0:
-        raise ValueError('margin must be >= 0')
-    distance = np.asarray(distance, dtype=float)
+    if not margin >= 0:
+        raise ValueError(f'margin must be >= 0, got {margin}')
+    distance = _finite('distance', distance)
     if distance.size == 0:
         raise ValueError('distance is empty')
     return float(np.mean(np.maximum(0.0, margin - distance)))
@@ -70,6 +73,8 @@ def tracking_error(q: np.ndarray, q_ref: np.ndarray) -> float:
     q, q_ref = _finite('q', q), _finite('q_ref', q_ref)
     if q.shape != q_ref.shape:
         raise ValueError(f'q {q.shape} and q_ref {q_ref.shape} differ in shape')
+    if q.size == 0:
+        raise ValueError('q is empty')
     return float(np.sqrt(np.mean((q_ref - q) ** 2)))
 
 
@@ -107,7 +112,11 @@ def evaluate_rollout(arm: ArmModel, tau: np.ndarray, q: np.ndarray, torque: np.n
         ValueError: non-finite data or inconsistent shapes.
     """
     task = arm.task
-    ee, dist = arm.replay(_finite('q', q), tau)
+    q, torque = _finite('q', q), _finite('torque', torque)
+    if q.ndim != 2 or q.shape[1] != len(arm.joint_names) or torque.shape != q.shape:
+        raise ValueError(f'q {q.shape} and torque {torque.shape} must both be '
+                         f'(T, {len(arm.joint_names)})')
+    ee, dist = arm.replay(q, tau)
     cfg = task.reward
     components = {
         'goal_error': goal_error(ee[-1], arm.ee_goal),

@@ -48,9 +48,6 @@ def test_goal_error_rejects_incompatible_shapes():
         goal_error([1.0, 2.0, 3.0], [1.0, 2.0])
 
 
-@pytest.mark.xfail(strict=True, reason='goal_error does not check shapes: numpy broadcasting '
-                                       'accepts a (1,) goal or a (T, 3) trajectory and returns '
-                                       'a number for a meaningless pair')
 @pytest.mark.parametrize('final, goal', [
     ([3.0, 4.0, 0.0], [0.0]), ([[3.0, 4.0, 0.0], [0.0, 0.0, 0.0]], [0.0, 0.0, 0.0])])
 def test_goal_error_rejects_broadcastable_shape_mismatch(final, goal):
@@ -74,9 +71,6 @@ def test_penetration_rejects_empty():
         penetration([])
 
 
-@pytest.mark.xfail(strict=True, reason='penetration does not validate finiteness: '
-                                       'max(0.0, -nan) is 0.0, so a NaN distance silently '
-                                       'scores as "no penetration"')
 def test_penetration_rejects_nan():
     with pytest.raises(ValueError):
         penetration([0.1, np.nan, -0.2])
@@ -101,8 +95,6 @@ def test_clearance_rejects_bad_input(distance, margin, message):
         clearance(distance, margin)
 
 
-@pytest.mark.xfail(strict=True, reason='clearance does not validate finiteness: a NaN '
-                                       'distance or margin returns NaN instead of raising')
 @pytest.mark.parametrize('distance, margin', [([0.1, np.nan], 0.02), ([0.1, 0.0], np.nan)])
 def test_clearance_rejects_nan(distance, margin):
     with pytest.raises(ValueError):
@@ -180,9 +172,6 @@ def test_tracking_error_rejects_nan():
         tracking_error(np.zeros((2, 2)), np.array([[0.0, np.nan], [0.0, 0.0]]))
 
 
-@pytest.mark.xfail(strict=True, reason='tracking_error of empty trajectories takes the mean '
-                                       'of nothing and returns NaN (with a RuntimeWarning) '
-                                       'instead of raising ValueError')
 @pytest.mark.filterwarnings('ignore::RuntimeWarning')
 def test_tracking_error_rejects_empty():
     with pytest.raises(ValueError):
@@ -320,9 +309,6 @@ def test_evaluate_rollout_rejects_nan(task, arm):
         evaluate_rollout(arm, task.tau_default, q, np.zeros((5, 3)), np.zeros((5, 3)))
 
 
-@pytest.mark.xfail(strict=True, reason='evaluate_rollout documents ValueError for inconsistent '
-                                       'shapes but never checks torque against q: a (T, 2) or '
-                                       '(1, n) torque is scored without complaint')
 @pytest.mark.parametrize('torque_shape', [(5, 2), (1, 3)])
 def test_evaluate_rollout_rejects_torque_shape_mismatch(task, arm, torque_shape):
     q = np.tile(task.start_posture, (5, 1))

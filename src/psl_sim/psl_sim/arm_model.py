@@ -53,6 +53,9 @@ class ArmModel:
         self.arm_geoms = [self._id(mujoco.mjtObj.mjOBJ_GEOM, g)
                           for g in reward.get('arm_geoms', [])]
         self._bindings = [self._binding(p.binds) for p in task.parameters]
+        # bindings that move things (data-level); replay applies only these, so a kinematic
+        # replay never changes the dynamics (e.g. a payload mass) of the live simulation
+        self._kinematic = [p.binds['kind'] == 'mocap_position' for p in task.parameters]
         self.tau = task.tau_default.copy()
         self.ee_goal = self.end_effector_at(task.goal_posture)
 
@@ -128,9 +131,10 @@ class ArmModel:
         along joint positions q (T, n_joints) for the task instance tau. The distance is
         +inf when the task names no obstacle."""
         d = self._replay_data
-        saved = self.tau.copy()
-        self.apply_tau(tau, d)
-        self.tau = saved
+        tau = self.task.validate_tau(tau)
+        for apply, kinematic, value in zip(self._bindings, self._kinematic, tau):
+            if kinematic:
+                apply(self.model, d, value)
         ee = np.empty((len(q), 3))
         dist = np.full(len(q), np.inf)
         fromto = np.empty(6)

@@ -171,6 +171,17 @@ def _parse(path: Path) -> TaskDefinition:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
         raise TaskError(f'{path}: not valid YAML: {exc}') from exc
+    try:
+        return _build(path, data)
+    except KeyError as exc:
+        raise TaskError(f'{path}: missing key {exc}') from exc
+    except (TypeError, ValueError) as exc:
+        if isinstance(exc, TaskError):
+            raise
+        raise TaskError(f'{path}: {exc}') from exc
+
+
+def _build(path: Path, data: Any) -> TaskDefinition:
     if not isinstance(data, dict):
         raise TaskError(f'{path}: a task file is a mapping of keys')
     model_path = (path.parent / _require(data, 'model', path)).resolve()

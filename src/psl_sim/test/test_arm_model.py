@@ -469,11 +469,6 @@ def test_unknown_site_raises(tmp_path):
         ArmModel(task)
 
 
-@pytest.mark.xfail(strict=True,
-                   reason='ArmModel.replay applies tau through the body_mass binding, which '
-                          'writes the shared MjModel.body_mass, and never restores it: after '
-                          'replay(q, other_tau) the live simulation steps with the other mass '
-                          '(replay only restores self.tau)')
 def test_replay_with_mass_parameter_leaves_dynamics_alone(tmp_path):
     task = write_arm4_task(tmp_path, extra={'task_parameters': [
         {'name': 'payload', 'unit': 'kg', 'low': 0.1, 'high': 5.0, 'default': 0.4,

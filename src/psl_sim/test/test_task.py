@@ -217,10 +217,6 @@ def _delete_nested(data, keys):
     del node[keys[-1]]
 
 
-@pytest.mark.xfail(strict=True, raises=KeyError,
-                   reason='task._parse indexes nested keys directly (controller[...], '
-                          'demonstration[...], entry["low"/"high"]): a missing nested key '
-                          'escapes as KeyError instead of TaskError')
 @pytest.mark.parametrize('keys', [
     ('controller', 'kp'), ('controller', 'kd'), ('demonstration', 'times'),
     ('demonstration', 'positions'), ('task_parameters', 0, 'low'),
