@@ -18,7 +18,6 @@ import rclpy
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
@@ -27,13 +26,10 @@ from trajectory_msgs.msg import JointTrajectory
 from psl_controller.pd_law import pd_feedforward
 from psl_controller.trajectory_sampling import SampledTrajectory
 from psl_sim.arm_model import ArmModel
+from psl_sim.hot_path import HotPath
 from psl_sim.task import load_task
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-# Per-step topics skip rclpy's default QoS-event handlers: each is a waitable that every
-# executor spin adds to its wait set, and the lockstep loop is bound by that overhead.
-HOT_PUB = {'event_callbacks': PublisherEventCallbacks(use_default_callbacks=False)}
-HOT_SUB = {'event_callbacks': SubscriptionEventCallbacks(use_default_callbacks=False)}
 
 
 def time_ns(stamp) -> int:
@@ -94,12 +90,15 @@ class PDController(Node):
         self.start_ns: int | None = None
         self.hold: np.ndarray | None = None
 
-        self.pub_command = self.create_publisher(Float64MultiArray, 'effort_command', RELIABLE, **HOT_PUB)
-        self.pub_reference = self.create_publisher(JointState, 'reference', RELIABLE, **HOT_PUB)
-        # created before joint_states: when both are ready, the trajectory is taken first
-        self.create_subscription(JointTrajectory, 'joint_trajectory', self.on_trajectory,
-                                 RELIABLE)
-        self.create_subscription(JointState, 'joint_states', self.on_state, RELIABLE, **HOT_SUB)
+        self.pub_command = self.create_publisher(Float64MultiArray, 'effort_command', RELIABLE)
+        self.pub_reference = self.create_publisher(JointState, 'reference', RELIABLE)
+        # one thread serves both, the trajectory first when both are ready: a trajectory
+        # published before an episode starts is in place for the episode's first state
+        self.hot_path = HotPath(self)
+        self.hot_path.subscribe(JointTrajectory, 'joint_trajectory', self.on_trajectory,
+                                RELIABLE)
+        self.hot_path.subscribe(JointState, 'joint_states', self.on_state, RELIABLE)
+        self.hot_path.start()
         self.get_logger().info(
             f'PD + feed-forward controller, kp={self.gains["kp"].tolist()} '
             f'kd={self.gains["kd"].tolist()} limit={self.gains["torque_limit"].tolist()}')
@@ -167,6 +166,11 @@ class PDController(Node):
         ref.name = self.joint_names
         ref.position, ref.velocity, ref.effort = q_ref.tolist(), qd_ref.tolist(), u_ffwd.tolist()
         self.pub_reference.publish(ref)
+
+
+    def destroy_node(self):
+        self.hot_path.stop()
+        super().destroy_node()
 
 
 def main(args=None):

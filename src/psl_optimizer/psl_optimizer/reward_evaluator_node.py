@@ -12,23 +12,19 @@ import numpy as np
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from psl_msgs.msg import RolloutEvaluation, TaskInstance
 from psl_optimizer.reward import evaluate_rollout
 from psl_sim.arm_model import ArmModel
+from psl_sim.hot_path import HotPath
 from psl_sim.task import TaskError, load_task
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 # The evaluator may lag behind the loop (it is not on the lockstep path): a history longer
 # than any episode keeps every state until it is taken.
 WHOLE_EPISODE = QoSProfile(depth=20000, reliability=ReliabilityPolicy.RELIABLE)
-# Per-step topics skip rclpy's default QoS-event handlers: each is a waitable that every
-# executor spin adds to its wait set, and the lockstep loop is bound by that overhead.
-HOT_PUB = {'event_callbacks': PublisherEventCallbacks(use_default_callbacks=False)}
-HOT_SUB = {'event_callbacks': SubscriptionEventCallbacks(use_default_callbacks=False)}
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 BUFFER = 5000   # messages kept per stream while the episode announcement is on its way
@@ -47,11 +43,11 @@ class RewardEvaluator(Node):
         self.states: dict[int, JointState] = {}
         self.references: dict[int, JointState] = {}
         self.pub = self.create_publisher(RolloutEvaluation, 'rollout_evaluation', RELIABLE)
-        self.create_subscription(TaskInstance, 'task_instance', self.on_task, LATCHED)
-        self.create_subscription(JointState, 'joint_states', self.on_state, WHOLE_EPISODE,
-                                 **HOT_SUB)
-        self.create_subscription(JointState, 'reference', self.on_reference, WHOLE_EPISODE,
-                                 **HOT_SUB)
+        self.hot_path = HotPath(self)
+        self.hot_path.subscribe(TaskInstance, 'task_instance', self.on_task, LATCHED)
+        self.hot_path.subscribe(JointState, 'joint_states', self.on_state, WHOLE_EPISODE)
+        self.hot_path.subscribe(JointState, 'reference', self.on_reference, WHOLE_EPISODE)
+        self.hot_path.start()
         self.get_logger().info('evaluating episodes announced on task_instance')
 
     def on_task(self, msg: TaskInstance) -> None:
@@ -110,6 +106,11 @@ class RewardEvaluator(Node):
             fulfilled=result.fulfilled, component_names=list(result.components),
             component_values=list(result.components.values()),
             tracking_error=result.components['tracking_error'], num_steps=ep.num_steps)
+
+
+    def destroy_node(self):
+        self.hot_path.stop()
+        super().destroy_node()
 
 
 def main(args=None):

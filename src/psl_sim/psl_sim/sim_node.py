@@ -27,7 +27,6 @@ from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
@@ -36,13 +35,10 @@ from std_msgs.msg import Float64MultiArray
 from psl_msgs.msg import TaskInstance
 from psl_msgs.srv import ResetTask
 from psl_sim.arm_model import ArmModel
+from psl_sim.hot_path import HotPath
 from psl_sim.task import TaskError, load_task
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-# Per-step topics skip rclpy's default QoS-event handlers: each is a waitable that every
-# executor spin adds to its wait set, and the lockstep loop is bound by that overhead.
-HOT_PUB = {'event_callbacks': PublisherEventCallbacks(use_default_callbacks=False)}
-HOT_SUB = {'event_callbacks': SubscriptionEventCallbacks(use_default_callbacks=False)}
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -74,13 +70,14 @@ class SimNode(Node):
         self.pending: np.ndarray | None = None   # command answering the last state
         self.episode = {}
 
-        self.pub_joints = self.create_publisher(JointState, 'joint_states', RELIABLE, **HOT_PUB)
-        self.pub_pose = self.create_publisher(PoseStamped, 'ee_pose', RELIABLE, **HOT_PUB)
-        self.pub_clock = self.create_publisher(Clock, '/clock', 10, **HOT_PUB)
+        self.pub_joints = self.create_publisher(JointState, 'joint_states', RELIABLE)
+        self.pub_pose = self.create_publisher(PoseStamped, 'ee_pose', RELIABLE)
+        self.pub_clock = self.create_publisher(Clock, '/clock', 10)
         self.pub_task = self.create_publisher(TaskInstance, 'task_instance', LATCHED)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_subscription(Float64MultiArray, 'effort_command', self.on_command, RELIABLE,
-                                 **HOT_SUB)
+        self.hot_path = HotPath(self)
+        self.hot_path.subscribe(Float64MultiArray, 'effort_command', self.on_command, RELIABLE)
+        self.hot_path.start()
         self.create_service(ResetTask, '~/reset', self.on_reset)
         if self.mode == 'realtime':
             self._stop = threading.Event()
@@ -202,17 +199,21 @@ class SimNode(Node):
         js.position = arm.q.tolist()
         js.velocity = arm.qd.tolist()
         js.effort = self.applied.tolist()
-        pose = PoseStamped()
-        pose.header.stamp, pose.header.frame_id = t, 'world'
-        pos, quat = arm.end_effector_pose()
-        pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = pos.tolist()
-        (pose.pose.orientation.w, pose.pose.orientation.x,
-         pose.pose.orientation.y, pose.pose.orientation.z) = quat.tolist()
-        self.pub_clock.publish(Clock(clock=t))
-        self.pub_pose.publish(pose)
+        # building and serialising a message costs more than asking whether anyone listens
+        if self.pub_clock.get_subscription_count():
+            self.pub_clock.publish(Clock(clock=t))
+        if self.pub_pose.get_subscription_count():
+            pose = PoseStamped()
+            pose.header.stamp, pose.header.frame_id = t, 'world'
+            pos, quat = arm.end_effector_pose()
+            pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = pos.tolist()
+            (pose.pose.orientation.w, pose.pose.orientation.x,
+             pose.pose.orientation.y, pose.pose.orientation.z) = quat.tolist()
+            self.pub_pose.publish(pose)
         self.pub_joints.publish(js)
 
     def destroy_node(self):
+        self.hot_path.stop()
         if self.mode == 'realtime':
             self._stop.set()
             self._thread.join(timeout=1.0)
