@@ -35,14 +35,27 @@ def pid_alive(pid: int) -> bool:
         return False
 
 
+def _prefixes() -> list[Path]:
+    return [Path(p) for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+
+
 def find_executable(package: str, executable: str) -> Path:
-    for prefix in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep):
-        path = Path(prefix) / 'lib' / package / executable
+    for prefix in _prefixes():
+        path = prefix / 'lib' / package / executable
         if path.is_file() and os.access(path, os.X_OK):
             return path
     raise FileNotFoundError(
         f'executable {executable!r} of package {package!r} not found on AMENT_PREFIX_PATH; '
         'did you source scripts/env.sh?')
+
+
+def find_params_file(package: str, node: str) -> Path | None:
+    """The node's parameter file, ``share/<package>/config/<node>.yaml``, if it has one."""
+    for prefix in _prefixes():
+        path = prefix / 'share' / package / 'config' / f'{node}.yaml'
+        if path.is_file():
+            return path
+    return None
 
 
 @dataclasses.dataclass
@@ -93,6 +106,9 @@ class Graph:
         try:
             for name, package, executable in self.nodes_spec:
                 cmd = [str(find_executable(package, executable)), '--ros-args']
+                params_file = find_params_file(package, name)
+                if params_file is not None:
+                    cmd += ['--params-file', str(params_file)]
                 if self.namespace:
                     cmd += ['-r', f'__ns:={self.namespace}']
                 for key, value in self.params(name).items():

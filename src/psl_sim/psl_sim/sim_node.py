@@ -24,7 +24,7 @@ import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -51,6 +51,7 @@ class SimNode(Node):
 
     def __init__(self):
         super().__init__('sim')
+        self.add_on_set_parameters_callback(self.on_set_parameters)   # also checks declarations
         self.declare_parameter('task', 'reach_over_obstacle', ParameterDescriptor(
             description='task loaded at start (name or YAML path); a reset may name another',
             read_only=True))
@@ -87,6 +88,13 @@ class SimNode(Node):
             f'{self.mode} simulation of task {self.arm.task.name!r} '
             f'({len(self.arm.joint_names)} joints, {self.arm.task.control_rate:g} Hz); '
             f'waiting for {self.resolve_service_name("~/reset")}')
+
+    def on_set_parameters(self, params) -> SetParametersResult:
+        for p in params:
+            if p.name == 'episode_duration' and not p.value >= 0.0:
+                return SetParametersResult(successful=False,
+                                           reason='episode_duration must be >= 0 seconds')
+        return SetParametersResult(successful=True)
 
     def _arm(self, task_name: str) -> ArmModel:
         task = load_task(task_name)
