@@ -29,6 +29,17 @@ def start_up(tmp_path):
     return proc, pids, log
 
 
+def wait_for_line(log, text: str, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        log.seek(0)
+        if text in log.read():
+            return
+        time.sleep(0.1)
+    log.seek(0)
+    raise AssertionError(f'{text!r} not printed; psl up printed: {log.read()}')
+
+
 def end(proc, pids):
     """Whatever a test did, leave nothing behind (by PID)."""
     if proc.poll() is None:
@@ -42,6 +53,7 @@ def end(proc, pids):
 def test_up_serves_rollouts_and_ends_its_processes_on_sigterm(tmp_path):
     proc, pids, log = start_up(tmp_path)
     try:
+        wait_for_line(log, 'graph ready')
         assert all(pid_alive(pid) for pid in pids.values())
         out = subprocess.run(PSL + ['rollout', '--json', '--timeout', '60'],
                              capture_output=True, text=True, timeout=120)

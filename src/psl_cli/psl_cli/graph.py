@@ -132,21 +132,24 @@ class Graph:
         why = f'signal {signal.Signals(-code).name}' if code < 0 else f'exit code {code}'
         return f'{node.name} (pid {node.pid}) ended with {why}; its last output:\n{node.tail()}'
 
-    def wait_ready(self, timeout: float = 30.0) -> None:
-        """Block until the executor's action server and the simulator's reset service are
-        discoverable; raise RuntimeError (naming a dead node, if any) otherwise."""
+    def wait_ready(self, timeout: float = 30.0, stop=None) -> None:
+        """Block until the loop is connected (action server, reset service, every topic's
+        endpoints) or `stop` (a threading.Event) is set; raise RuntimeError naming a dead
+        node, or what is missing, otherwise."""
         from psl_cli.ros_client import RosClient
 
         with RosClient(self.namespace) as client:
             deadline = time.monotonic() + timeout
-            while time.monotonic() < deadline:
+            while time.monotonic() < deadline and not (stop is not None and stop.is_set()):
                 dead = self.dead()
                 if dead:
                     raise RuntimeError(self.describe_death(dead[0]))
                 if client.graph_ready(timeout=0.5):
                     return
-            raise RuntimeError(f'the graph was not ready within {timeout:.0f} s '
-                               f'(logs in {self.log_dir})')
+            if stop is not None and stop.is_set():
+                return
+            raise RuntimeError(f'the graph was not ready within {timeout:.0f} s: missing '
+                               f'{client.missing_endpoints()} (logs in {self.log_dir})')
 
     def stop(self, timeout: float = 5.0) -> None:
         """End every process this graph started, by PID."""

@@ -37,6 +37,13 @@ def cmd_up(args) -> int:
         for p in graph.processes:
             print(f'started {p.name:18s} pid {p.pid}')
         print(f'logs in {graph.log_dir}; Ctrl-C ends the graph', flush=True)
+        try:
+            graph.wait_ready(timeout=60, stop=stop)
+        except RuntimeError as exc:
+            print(exc, file=sys.stderr)
+            return 1
+        if not stop.is_set():
+            print('graph ready', flush=True)
         while not stop.wait(0.2):
             dead = graph.dead()
             if dead:

@@ -26,6 +26,7 @@ class RosClient:
                          context=self.context)
         self.rollout_client = ActionClient(self.node, ExecuteRollout, 'execute_rollout')
         self.reset_client = self.node.create_client(ResetTask, 'sim/reset')
+        self._ready = False      # the loop was seen complete once
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, daemon=True)
@@ -60,13 +61,24 @@ class RosClient:
         if not (self.rollout_client.wait_for_server(timeout_sec=timeout)
                 and self.reset_client.wait_for_service(timeout_sec=timeout)):
             return False
-        for topic, (pubs, subs) in self.LOOP_TOPICS.items():
-            if (self.node.count_publishers(topic) < pubs
-                    or self.node.count_subscribers(topic) < subs):
-                time.sleep(timeout)
-                return False
+        if self.missing_endpoints():
+            time.sleep(timeout)
+            return False
         time.sleep(0.2)   # discovery seen from here; give the pairwise matching a moment
         return True
+
+    def missing_endpoints(self) -> str:
+        """What the loop still lacks, as text ('' when complete)."""
+        missing = []
+        if not self.rollout_client.server_is_ready():
+            missing.append('execute_rollout action server')
+        if not self.reset_client.service_is_ready():
+            missing.append('sim/reset service')
+        for topic, (pubs, subs) in self.LOOP_TOPICS.items():
+            p, s = self.node.count_publishers(topic), self.node.count_subscribers(topic)
+            if p < pubs or s < subs:
+                missing.append(f'{topic} ({p}/{pubs} publishers, {s}/{subs} subscribers)')
+        return ', '.join(missing)
 
     def wait_for_subscribers(self, topics, extra: int = 1, timeout: float = 15.0) -> None:
         """Wait until each topic of the loop has `extra` more subscribers than the graph's
@@ -99,8 +111,12 @@ class RosClient:
                 feedback=None) -> ExecuteRollout.Result:
         """One rollout through the graph; returns the action result (success, message,
         evaluation). Raises TimeoutError when the executor does not answer."""
-        if not self.rollout_client.wait_for_server(timeout_sec=min(timeout, 10.0)):
-            raise TimeoutError('the execute_rollout action server is not available')
+        if not self._ready:
+            deadline = time.monotonic() + min(timeout, 30.0)
+            while not self.graph_ready(timeout=0.5):
+                if time.monotonic() > deadline:
+                    raise TimeoutError('the graph is not up: ' + self.missing_endpoints())
+            self._ready = True
         goal = ExecuteRollout.Goal(task=task, tau=[float(x) for x in np.ravel(tau)],
                                    theta=[float(x) for x in np.ravel(theta)])
         start = time.monotonic()
