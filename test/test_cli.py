@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from psl_cli.graph import pid_alive
+from psl_cli.graph import NODES, pid_alive
 
 PSL = [sys.executable, '-m', 'psl_cli.main']
 
@@ -21,11 +21,11 @@ def start_up(tmp_path):
                             start_new_session=True, text=True)
     deadline = time.monotonic() + 30
     pids = {}
-    while time.monotonic() < deadline and len(pids) < 4:
+    while time.monotonic() < deadline and len(pids) < len(NODES):
         log.seek(0)
         pids = {m[0]: int(m[1]) for m in re.findall(r'started (\w+)\s+pid (\d+)', log.read())}
         time.sleep(0.1)
-    assert len(pids) == 4, f'psl up printed: {(tmp_path / "up.log").read_text()}'
+    assert len(pids) == len(NODES), f'psl up printed: {(tmp_path / "up.log").read_text()}'
     return proc, pids, log
 
 

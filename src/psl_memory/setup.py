@@ -22,7 +22,7 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-
+            'skill_memory = psl_memory.skill_memory_node:main',
         ],
     },
 )

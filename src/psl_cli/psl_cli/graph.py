@@ -19,6 +19,7 @@ NODES = (  # (name, package, executable)
     ('pd_controller', 'psl_controller', 'pd_controller'),
     ('dmp_executor', 'psl_controller', 'dmp_executor'),
     ('reward_evaluator', 'psl_optimizer', 'reward_evaluator'),
+    ('skill_memory', 'psl_memory', 'skill_memory'),
 )
 
 
@@ -98,6 +99,8 @@ class Graph:
             common['mode'] = self.mode
         if name in ('dmp_executor', 'reward_evaluator'):
             common = {}
+        if name == 'skill_memory':
+            common = {'tasks': f'[{self.task}]'}
         common.update(self.extra_params.get(name, {}))
         return common
 

@@ -87,6 +87,69 @@ def cmd_rollout(args) -> int:
     return 0
 
 
+def _floats(values) -> list[float]:
+    return [float(v) for v in values]
+
+
+def cmd_memory(args) -> int:
+    """psl query / psl memory add|complete|save|load|info: one call to the skill memory."""
+    from psl_cli.ros_client import RosClient
+
+    action = 'query' if args.command == 'query' else args.action
+    if action == 'query':
+        service, fields = 'query', {'skill': args.skill, 'tau': _floats(args.tau)}
+    elif action == 'add':
+        service, fields = 'add_sample', {'skill': args.skill, 'tau': _floats(args.tau),
+                                         'theta': _floats(_load_values(args))}
+    elif action == 'complete':
+        pattern = _floats(args.pattern)
+        known = [c == '1' for c in args.known]
+        if set(args.known) - {'0', '1'}:
+            print('psl memory complete: --known is a string of 0 and 1, one per entry',
+                  file=sys.stderr)
+            return 2
+        service, fields = 'complete', {'skill': args.skill, 'pattern': pattern, 'known': known}
+    elif action in ('save', 'load'):
+        service, fields = action, {'path': str(Path(args.path).resolve())}
+    else:
+        service, fields = 'info', {}
+    with RosClient(args.namespace) as client:
+        try:
+            response = client.memory(service, timeout=args.timeout, **fields)
+        except TimeoutError as exc:
+            print(f'psl: {exc}', file=sys.stderr)
+            return 1
+    if not response.success:
+        print(f'psl: {response.message}', file=sys.stderr)
+        return 1
+    result = {'message': response.message}
+    for key in ('theta', 'variance', 'pattern', 'num_samples'):
+        if hasattr(response, key):
+            value = getattr(response, key)
+            result[key] = value if isinstance(value, int) else list(value)
+    if service == 'info':
+        result = json.loads(response.message)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        for key, value in result.items():
+            print(f'{key}: {value}')
+    return 0
+
+
+def _load_values(args) -> list[float]:
+    if args.theta is not None:
+        return args.theta
+    if args.theta_file is not None:
+        file = Path(args.theta_file)
+        if file.suffix == '.npy':
+            return np.load(file).ravel().tolist()
+        if file.suffix == '.json':
+            return np.asarray(json.loads(file.read_text()), dtype=float).ravel().tolist()
+        return np.loadtxt(file, ndmin=1).ravel().tolist()
+    raise ValueError('give --theta or --theta-file')
+
+
 def cmd_record(args) -> int:
     from psl_cli.bag_recorder import record
 
@@ -132,6 +195,34 @@ def build_parser() -> argparse.ArgumentParser:
     ro.add_argument('--timeout', type=float, default=120.0)
     ro.add_argument('--json', action='store_true')
     ro.set_defaults(func=cmd_rollout)
+
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument('--namespace', default='')
+    common.add_argument('--timeout', type=float, default=10.0)
+    common.add_argument('--json', action='store_true')
+
+    query = sub.add_parser('query', parents=[common], help='theta = PS(tau) and its variance')
+    query.add_argument('--skill', required=True)
+    query.add_argument('--tau', type=float, nargs='+', required=True)
+    query.set_defaults(func=cmd_memory)
+
+    memory = sub.add_parser('memory', help='the skill memory: add, complete, save, load, info')
+    actions = memory.add_subparsers(dest='action', required=True)
+    add = actions.add_parser('add', parents=[common], help='add one sample (tau, theta)')
+    add.add_argument('--skill', required=True)
+    add.add_argument('--tau', type=float, nargs='+', required=True)
+    add.add_argument('--theta', type=float, nargs='+')
+    add.add_argument('--theta-file')
+    complete = actions.add_parser('complete', parents=[common],
+                                  help='complete [tau, theta] with the known entries clamped')
+    complete.add_argument('--skill', required=True)
+    complete.add_argument('--pattern', type=float, nargs='+', required=True)
+    complete.add_argument('--known', required=True, help="e.g. 11000: one 0/1 per entry")
+    for name in ('save', 'load'):
+        p = actions.add_parser(name, parents=[common], help=f'{name} the whole memory')
+        p.add_argument('path')
+    actions.add_parser('info', parents=[common], help='the skills and their sample counts')
+    memory.set_defaults(func=cmd_memory)
 
     rec = sub.add_parser('record', help='record topics into a rosbag2 (MCAP) bag')
     rec.add_argument('-o', '--output', required=True)

@@ -12,7 +12,12 @@ from rclpy.node import Node
 
 from psl_msgs.action import ExecuteRollout
 from psl_msgs.msg import RolloutEvaluation
-from psl_msgs.srv import ResetTask
+from psl_msgs.srv import (AddSample, CompletePattern, LoadMemory, QuerySkill, ResetTask,
+                          SaveMemory)
+from std_srvs.srv import Trigger
+
+MEMORY_SERVICES = {'query': QuerySkill, 'add_sample': AddSample, 'complete': CompletePattern,
+                   'save': SaveMemory, 'load': LoadMemory, 'info': Trigger}
 
 
 class RosClient:
@@ -26,6 +31,8 @@ class RosClient:
                          context=self.context)
         self.rollout_client = ActionClient(self.node, ExecuteRollout, 'execute_rollout')
         self.reset_client = self.node.create_client(ResetTask, 'sim/reset')
+        self.memory_clients = {name: self.node.create_client(srv, f'skill_memory/{name}')
+                               for name, srv in MEMORY_SERVICES.items()}
         self._ready = False      # the loop was seen complete once
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
@@ -100,6 +107,16 @@ class RosClient:
         if not event.wait(timeout):
             raise TimeoutError(f'no answer to {what} within {timeout:.0f} s')
         return future.result()
+
+    def memory(self, service: str, timeout: float = 10.0, **fields):
+        """Call one of the skill memory's services (query, add_sample, complete, save, load,
+        info) with the request fields given; returns the response."""
+        client = self.memory_clients[service]
+        if not client.wait_for_service(timeout_sec=timeout):
+            raise TimeoutError(f'the skill memory service skill_memory/{service} is not '
+                               'available')
+        request = MEMORY_SERVICES[service].Request(**fields)
+        return self._wait(client.call_async(request), timeout, f'skill_memory/{service}')
 
     def reset(self, task: str, tau, timeout: float = 10.0) -> ResetTask.Response:
         if not self.reset_client.wait_for_service(timeout_sec=timeout):

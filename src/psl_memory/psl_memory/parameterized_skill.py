@@ -1,0 +1,166 @@
+"""A parameterized skill PS: tau -> theta (eq. 2.1-2.14) with an associative memory beside it.
+
+`ParameterizedSkill` composes:
+- `ELMFeatures` on tau (fixed random hidden layer, eq. 2.2) and one of the readouts
+  (`make_readout`: ridge, rls, incremental_ridge, bayes) learning normalised theta from h(tau);
+- an associative memory over v = [tau, theta] (AELM, eq. 2.20-2.21, or ARBF, eq. 2.22) that
+  completes a partial pattern in either direction (tau -> theta, theta -> tau);
+- the samples themselves, so the skill can be saved, inspected and refitted.
+
+Normalisation: tau by its ranges (the task YAML's, or around the first sample for a skill
+created ad hoc); theta around a reference vector (the task's default theta, or the first
+sample) with one common spread (the largest magnitude in the reference, at least 1), since all
+entries of theta share their units. Values outside the ranges are allowed.
+Imports no ROS.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from psl_memory.aelm import AELM
+from psl_memory.arbf import ARBF
+from psl_memory.elm import ELMFeatures, RangeScaler
+from psl_memory.readout import make_readout
+
+READOUTS = ('ridge', 'rls', 'incremental_ridge', 'bayes')
+ASSOCIATIVE = ('aelm', 'arbf')
+
+
+@dataclasses.dataclass(frozen=True)
+class SkillConfig:
+    """Hyper-parameters of a skill (the skill_memory node's ROS parameters)."""
+
+    readout: str = 'bayes'
+    n_hidden: int = 100
+    regularization: float = 1e-3     # ridge factor; the Bayesian prior precision alpha
+    forgetting: float = 1.0          # RLS only, 0 < lambda <= 1
+    seed: int = 0
+    alpha: float = 1.0               # slope of the hidden sigmoid
+    associative: str = 'aelm'        # aelm: O(1) per sample; arbf: one centre per sample
+
+    def __post_init__(self):
+        if self.readout not in READOUTS:
+            raise ValueError(f'unknown readout {self.readout!r}; known: {", ".join(READOUTS)}')
+        if self.associative not in ASSOCIATIVE:
+            raise ValueError(f'unknown associative memory {self.associative!r}; known: '
+                             f'{", ".join(ASSOCIATIVE)}')
+        if not 0.0 < self.forgetting <= 1.0:
+            raise ValueError(f'forgetting must be in (0, 1], got {self.forgetting}')
+        if int(self.n_hidden) < 1:
+            raise ValueError('n_hidden must be >= 1')
+
+    def readout_options(self) -> dict:
+        if self.readout == 'rls':
+            return {'forgetting': self.forgetting, 'regularization': self.regularization}
+        if self.readout == 'bayes':
+            return {'alpha': self.regularization, 'estimate': True}
+        return {'regularization': self.regularization}
+
+
+def scaler_around(reference: np.ndarray) -> RangeScaler:
+    """reference +- one common spread (the largest magnitude in it, at least 1)."""
+    reference = np.asarray(reference, dtype=float)
+    spread = max(1.0, float(np.max(np.abs(reference)))) if reference.size else 1.0
+    return RangeScaler(reference - spread, reference + spread)
+
+
+class ParameterizedSkill:
+    """theta = PS(tau) with predictive variance, learned one sample at a time."""
+
+    def __init__(self, name: str, tau_scaler: RangeScaler, theta_scaler: RangeScaler,
+                 config: SkillConfig = SkillConfig()):
+        self.name, self.config = name, config
+        self.tau_scaler, self.theta_scaler = tau_scaler, theta_scaler
+        self.features = ELMFeatures(tau_scaler, config.n_hidden, config.seed, config.alpha)
+        self.readout = make_readout(config.readout, config.n_hidden, theta_scaler.dim,
+                                    **config.readout_options())
+        v_scaler = RangeScaler(np.r_[tau_scaler.low, theta_scaler.low],
+                               np.r_[tau_scaler.high, theta_scaler.high])
+        sizes = (tau_scaler.dim, theta_scaler.dim)
+        if config.associative == 'aelm':
+            self.associative = AELM(v_scaler, n_hidden=max(config.n_hidden, 100),
+                                    seed=config.seed, modality_sizes=sizes)
+        else:
+            self.associative = ARBF(v_scaler, modality_sizes=sizes)
+        self.taus = np.zeros((0, self.tau_dim))        # (N, E)
+        self.thetas = np.zeros((0, self.theta_dim))    # (N, F)
+
+    @property
+    def tau_dim(self) -> int:
+        return self.tau_scaler.dim
+
+    @property
+    def theta_dim(self) -> int:
+        return self.theta_scaler.dim
+
+    @property
+    def num_samples(self) -> int:
+        return len(self.taus)
+
+    def _vector(self, value, size: int, name: str) -> np.ndarray:
+        array = np.asarray(value, dtype=float)
+        if array.ndim != 1 or array.size != size:
+            raise ValueError(f'skill {self.name!r} takes {name} with {size} entries, got '
+                             f'{array.size}')
+        if not np.all(np.isfinite(array)):
+            raise ValueError(f'{name} contains NaN or inf')
+        return array
+
+    def add(self, tau, theta) -> int:
+        """Consolidate one sample (eq. 2.5-2.11 depending on the readout); returns the number
+        of samples. Raises ValueError and changes nothing for a bad sample."""
+        tau = self._vector(tau, self.tau_dim, 'tau')
+        theta = self._vector(theta, self.theta_dim, 'theta')
+        self.readout.update(self.features.transform(tau), self.theta_scaler.to_unit(theta))
+        self.associative.add(np.r_[tau, theta])
+        self.taus = np.vstack([self.taus, tau])
+        self.thetas = np.vstack([self.thetas, theta])
+        return self.num_samples
+
+    def query(self, tau) -> tuple[np.ndarray, np.ndarray | None]:
+        """theta = PS(tau) (eq. 2.1) and its per-dimension predictive variance (eq. 2.14) in
+        theta's units, or None when the readout has none. With no sample yet, theta is the
+        centre of the theta range (the task's default policy)."""
+        tau = self._vector(tau, self.tau_dim, 'tau')
+        h = self.features.transform(tau)
+        theta = self.theta_scaler.from_unit(self.readout.predict(h))
+        var = self.readout.predict_variance(h)
+        return theta, (None if var is None else self.theta_scaler.variance_from_unit(var))
+
+    def complete(self, pattern, known, tol: float = 1e-6, max_iter: int = 200):
+        """Associative completion of v = [tau, theta] with the known dimensions clamped."""
+        if self.num_samples == 0:
+            raise ValueError(f'skill {self.name!r} has no samples to complete from')
+        return self.associative.complete(
+            self._vector(pattern, self.tau_dim + self.theta_dim, 'pattern'), known,
+            tol=tol, max_iter=max_iter)
+
+    # -- persistence --------------------------------------------------------------------------
+    def get_state(self) -> dict[str, np.ndarray]:
+        """Everything that makes this skill, as named numpy arrays (see memory_file)."""
+        state = {'tau_low': self.tau_scaler.low, 'tau_high': self.tau_scaler.high,
+                 'theta_low': self.theta_scaler.low, 'theta_high': self.theta_scaler.high,
+                 'w_inp': self.features.w_inp, 'bias': self.features.bias,
+                 'taus': self.taus, 'thetas': self.thetas}
+        state.update({f'readout.{k}': np.asarray(v) for k, v in self.readout.get_state().items()})
+        state.update({f'associative.{k}': np.asarray(v)
+                      for k, v in self.associative.get_state().items()})
+        return state
+
+    @classmethod
+    def from_state(cls, name: str, config: SkillConfig, state: dict) -> 'ParameterizedSkill':
+        """Rebuild a skill saved with get_state. Raises ValueError if anything disagrees."""
+        skill = cls(name, RangeScaler(state['tau_low'], state['tau_high']),
+                    RangeScaler(state['theta_low'], state['theta_high']), config)
+        if not (np.array_equal(skill.features.w_inp, state['w_inp'])
+                and np.array_equal(skill.features.bias, state['bias'])):
+            raise ValueError(f'skill {name!r}: the saved random weights differ from those of '
+                             f'seed {config.seed} (saved by another numpy version?)')
+        skill.readout.set_state({k[8:]: v for k, v in state.items() if k.startswith('readout.')})
+        skill.associative.set_state({k[12:]: v for k, v in state.items()
+                                     if k.startswith('associative.')})
+        skill.taus = np.asarray(state['taus'], dtype=float).reshape(-1, skill.tau_dim)
+        skill.thetas = np.asarray(state['thetas'], dtype=float).reshape(-1, skill.theta_dim)
+        return skill

@@ -1,0 +1,135 @@
+"""The skill memory: named parameterized skills, saved and loaded as one versioned file.
+
+Skills come from task definitions (tau ranges from the task YAML, theta around the task's
+default policy) or are created by their first sample, whose sizes then fix the skill's
+dimensions. `save` writes atomically (temporary file + rename); `load` checks the file's format
+and version and every array before it replaces anything, so a corrupt, truncated or
+other-version file is refused with a clear error and the memory in use stays as it was.
+Imports no ROS.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from psl_memory.elm import RangeScaler
+from psl_memory.parameterized_skill import ParameterizedSkill, SkillConfig, scaler_around
+
+FORMAT = 'psl-skill-memory'
+VERSION = 1
+
+
+class MemoryFileError(ValueError):
+    """A memory file that cannot be read: missing, corrupt, truncated or another version."""
+
+
+class SkillMemory:
+    """Named skills with one configuration (hyper-parameters) for all of them."""
+
+    def __init__(self, config: SkillConfig = SkillConfig()):
+        self.config = config
+        self.skills: dict[str, ParameterizedSkill] = {}
+
+    def create(self, name: str, tau_low, tau_high, theta_reference) -> ParameterizedSkill:
+        """A skill with known tau ranges (e.g. a task's) and a theta reference (its default)."""
+        if name in self.skills:
+            raise ValueError(f'skill {name!r} exists already')
+        skill = ParameterizedSkill(name, RangeScaler(tau_low, tau_high),
+                                   scaler_around(theta_reference), self.config)
+        self.skills[name] = skill
+        return skill
+
+    def get(self, name: str) -> ParameterizedSkill:
+        if name not in self.skills:
+            known = ', '.join(sorted(self.skills)) or 'none yet'
+            raise KeyError(f'unknown skill {name!r}; known skills: {known}')
+        return self.skills[name]
+
+    def add(self, name: str, tau, theta) -> int:
+        """Add a sample; an unknown skill is created by it (ranges around this sample)."""
+        if name not in self.skills:
+            if not name or not name.strip():
+                raise ValueError('a skill needs a name')
+            tau = np.asarray(tau, dtype=float)
+            theta = np.asarray(theta, dtype=float)
+            if tau.ndim != 1 or theta.ndim != 1 or tau.size == 0 or theta.size == 0:
+                raise ValueError('the first sample of a skill needs non-empty tau and theta')
+            if not (np.all(np.isfinite(tau)) and np.all(np.isfinite(theta))):
+                raise ValueError('tau and theta must be finite')
+            skill = ParameterizedSkill(name, scaler_around(tau), scaler_around(theta),
+                                       self.config)
+            count = skill.add(tau, theta)
+            self.skills[name] = skill
+            return count
+        return self.skills[name].add(tau, theta)
+
+    def info(self) -> dict:
+        return {name: {'tau_dim': s.tau_dim, 'theta_dim': s.theta_dim,
+                       'num_samples': s.num_samples, 'readout': s.config.readout,
+                       'associative': s.config.associative}
+                for name, s in sorted(self.skills.items())}
+
+    # -- persistence --------------------------------------------------------------------------
+    def save(self, path: str | Path) -> None:
+        """Write every skill to one file, atomically (temp file in the same folder + rename)."""
+        path = Path(path)
+        meta = {'format': FORMAT, 'version': VERSION,
+                'config': dataclass_dict(self.config), 'skills': sorted(self.skills)}
+        arrays = {'__meta__': np.array(json.dumps(meta))}
+        for name, skill in self.skills.items():
+            for key, value in skill.get_state().items():
+                arrays[f'{name}/{key}'] = np.asarray(value)
+        if not path.parent.is_dir():
+            raise OSError(f'cannot save to {path}: folder {path.parent} does not exist')
+        fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.tmp', dir=path.parent)
+        try:
+            with os.fdopen(fd, 'wb') as f:
+                np.savez(f, **arrays)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+
+    @classmethod
+    def read(cls, path: str | Path) -> 'SkillMemory':
+        """A new memory from a file; raises MemoryFileError saying what is wrong with it."""
+        path = Path(path)
+        if not path.is_file():
+            raise MemoryFileError(f'{path}: no such file')
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {key: data[key] for key in data.files}
+        except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
+            raise MemoryFileError(f'{path}: not a readable psl memory file ({exc})') from exc
+        if '__meta__' not in arrays:
+            raise MemoryFileError(f'{path}: not a psl memory file (no header)')
+        try:
+            meta = json.loads(str(arrays.pop('__meta__')))
+        except json.JSONDecodeError as exc:
+            raise MemoryFileError(f'{path}: corrupt header ({exc})') from exc
+        if meta.get('format') != FORMAT:
+            raise MemoryFileError(f'{path}: format {meta.get("format")!r} is not {FORMAT!r}')
+        if meta.get('version') != VERSION:
+            raise MemoryFileError(f'{path}: version {meta.get("version")!r}; this psl reads '
+                                  f'version {VERSION}')
+        try:
+            memory = cls(SkillConfig(**meta['config']))
+            for name in meta['skills']:
+                prefix = f'{name}/'
+                state = {k[len(prefix):]: v for k, v in arrays.items() if k.startswith(prefix)}
+                memory.skills[name] = ParameterizedSkill.from_state(name, memory.config, state)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MemoryFileError(f'{path}: inconsistent content ({exc})') from exc
+        return memory
+
+
+def dataclass_dict(config: SkillConfig) -> dict:
+    import dataclasses
+    return dataclasses.asdict(config)

@@ -1,0 +1,158 @@
+"""The skill memory node: named parameterized skills behind services.
+
+Serves ``~/query`` (psl_msgs/QuerySkill: theta = PS(tau) and its per-dimension predictive
+variance), ``~/add_sample`` (AddSample), ``~/complete`` (CompletePattern: associative completion
+of [tau, theta] with the known dimensions clamped), ``~/save`` and ``~/load`` (SaveMemory,
+LoadMemory: one versioned file) and ``~/info`` (std_srvs/Trigger: the skills as JSON).
+Skills come from the task YAMLs named in the ``tasks`` parameter or are created by their first
+sample. Every bad request gets ``success=false`` and a message saying what was wrong; the memory
+is unchanged and the node keeps serving. With ``autosave_path`` set, the memory is loaded from
+that file at start (if it exists) and written back after every added sample, so a killed node
+restarts with everything it had learned.
+"""
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from std_srvs.srv import Trigger
+
+from psl_msgs.srv import AddSample, CompletePattern, LoadMemory, QuerySkill, SaveMemory
+from psl_memory.parameterized_skill import SkillConfig
+from psl_memory.skill_memory import MemoryFileError, SkillMemory
+
+
+class SkillMemoryNode(Node):
+
+    def __init__(self):
+        super().__init__('skill_memory')
+        defaults = SkillConfig()
+        for name, default, text in (
+                ('readout', defaults.readout, 'ridge | rls | incremental_ridge | bayes'),
+                ('n_hidden', defaults.n_hidden, 'hidden neurons of the ELM'),
+                ('regularization', defaults.regularization, 'ridge factor / prior precision'),
+                ('forgetting', defaults.forgetting, 'RLS forgetting factor, 0 < lambda <= 1'),
+                ('seed', defaults.seed, 'seed of the random hidden layer'),
+                ('associative', defaults.associative, 'aelm | arbf'),
+                ('tasks', ['reach_over_obstacle'], 'tasks whose skills exist from the start'),
+                ('autosave_path', '', 'memory file loaded at start and written after every '
+                                      'sample; empty = no autosave')):
+            self.declare_parameter(name, default, ParameterDescriptor(description=text,
+                                                                      read_only=True))
+        p = {name: self.get_parameter(name).value for name in (
+            'readout', 'n_hidden', 'regularization', 'forgetting', 'seed', 'associative')}
+        self.config = SkillConfig(**p)
+        self.autosave = self.get_parameter('autosave_path').value
+        self._lock = threading.Lock()
+        self.memory = self._initial_memory()
+        for name, srv, callback in (('~/query', QuerySkill, self.on_query),
+                                    ('~/add_sample', AddSample, self.on_add),
+                                    ('~/complete', CompletePattern, self.on_complete),
+                                    ('~/save', SaveMemory, self.on_save),
+                                    ('~/load', LoadMemory, self.on_load),
+                                    ('~/info', Trigger, self.on_info)):
+            self.create_service(srv, name, callback)
+        self.get_logger().info(f'skills: {json.dumps(self.memory.info())}')
+
+    def _initial_memory(self) -> SkillMemory:
+        if self.autosave and Path(self.autosave).is_file():
+            memory = SkillMemory.read(self.autosave)      # a corrupt file stops the node here
+            self.get_logger().info(f'restored the memory from {self.autosave}')
+            return memory
+        memory = SkillMemory(self.config)
+        from psl_controller.policy import policy_for     # the task's default theta
+        from psl_sim.task import load_task
+        for task_name in self.get_parameter('tasks').value:
+            task = load_task(task_name)
+            memory.create(task.name, task.tau_low, task.tau_high,
+                          policy_for(task).default_theta)
+        return memory
+
+    # -- services -----------------------------------------------------------------------------
+    def _serve(self, response, work):
+        """Run `work` under the lock; any error becomes success=false with its message."""
+        try:
+            with self._lock:
+                message = work()
+            response.success, response.message = True, message or 'ok'
+        except (KeyError, ValueError, OSError, RuntimeError) as exc:
+            text = exc.args[0] if isinstance(exc, KeyError) and exc.args else str(exc)
+            response.success, response.message = False, str(text)
+        return response
+
+    def on_query(self, request, response):
+        def work():
+            theta, var = self.memory.get(request.skill).query(np.asarray(request.tau))
+            response.theta = theta.tolist()
+            response.variance = [] if var is None else var.tolist()
+            return '' if var is not None else 'this readout has no predictive variance'
+        return self._serve(response, work)
+
+    def on_add(self, request, response):
+        def work():
+            response.num_samples = self.memory.add(request.skill, np.asarray(request.tau),
+                                                   np.asarray(request.theta))
+            if self.autosave:
+                self.memory.save(self.autosave)
+            return f'{response.num_samples} samples'
+        return self._serve(response, work)
+
+    def on_complete(self, request, response):
+        def work():
+            skill = self.memory.get(request.skill)
+            size = skill.tau_dim + skill.theta_dim
+            if len(request.known) != size:
+                raise ValueError(f'known needs {size} entries (tau then theta), got '
+                                 f'{len(request.known)}')
+            result = skill.complete(np.asarray(request.pattern), np.asarray(request.known))
+            response.pattern = result.pattern.tolist()
+            state = 'converged' if result.converged else 'did NOT converge'
+            return f'{state} after {result.iterations} iterations (residual {result.residual:.2e})'
+        return self._serve(response, work)
+
+    def on_save(self, request, response):
+        def work():
+            if not request.path:
+                raise ValueError('give a path to save to')
+            self.memory.save(request.path)
+            return f'saved {len(self.memory.skills)} skills to {request.path}'
+        return self._serve(response, work)
+
+    def on_load(self, request, response):
+        def work():
+            try:
+                memory = SkillMemory.read(request.path)
+            except MemoryFileError as exc:
+                raise ValueError(f'{exc}; the memory in use is unchanged') from exc
+            self.memory = memory
+            return f'loaded {len(memory.skills)} skills from {request.path}'
+        return self._serve(response, work)
+
+    def on_info(self, request, response):
+        with self._lock:
+            response.success, response.message = True, json.dumps(self.memory.info())
+        return response
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = SkillMemoryNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,177 @@
+"""The skill_memory node as a separate process: services, bad requests, concurrency, restart."""
+import json
+import math
+import os
+import signal
+import threading
+
+import numpy as np
+import pytest
+
+from psl_cli.graph import Graph, pid_alive
+from psl_cli.ros_client import RosClient
+
+MEMORY_NODE = (('skill_memory', 'psl_memory', 'skill_memory'),)
+TASK_SKILL = 'reach_over_obstacle'
+
+
+def start_memory(log_dir, autosave):
+    graph = Graph(nodes=MEMORY_NODE, log_dir=log_dir,
+                  extra_params={'skill_memory': {'autosave_path': str(autosave)}})
+    graph.start()
+    return graph
+
+
+def stop(graph):
+    graph.stop()
+    assert not [p.name for p in graph.processes if pid_alive(p.pid)]
+
+
+@pytest.fixture(scope='module')
+def autosave(tmp_path_factory):
+    return tmp_path_factory.mktemp('memory') / 'autosave.npz'
+
+
+@pytest.fixture(scope='module')
+def memory_node(tmp_path_factory, autosave):
+    graph = start_memory(tmp_path_factory.mktemp('memory_logs'), autosave)
+    try:
+        yield graph
+    finally:
+        stop(graph)
+
+
+@pytest.fixture(scope='module')
+def client(memory_node):
+    with RosClient() as c:
+        assert c.memory('info', timeout=30).success
+        yield c
+
+
+def info(client) -> dict:
+    response = client.memory('info')
+    assert response.success
+    return json.loads(response.message)
+
+
+def test_task_skill_exists_from_the_start(client):
+    skills = info(client)
+    assert skills[TASK_SKILL]['tau_dim'] == 2 and skills[TASK_SKILL]['theta_dim'] == 24
+    response = client.memory('query', skill=TASK_SKILL, tau=[0.6, 0.2])
+    assert response.success and len(response.theta) == 24 and len(response.variance) == 24
+
+
+def test_add_query_complete_round_trip(client):
+    rng = np.random.default_rng(1)
+    taus = np.linspace(0.0, 1.0, 12)
+    for i, tau in enumerate(taus):
+        theta = [math.sin(2 * tau), tau ** 2, math.cos(tau)]
+        response = client.memory('add_sample', skill='curve', tau=[float(tau)], theta=theta)
+        assert response.success, response.message
+        assert response.num_samples == i + 1
+    tau = 0.45
+    response = client.memory('query', skill='curve', tau=[tau])
+    assert response.success
+    assert np.allclose(response.theta, [math.sin(2 * tau), tau ** 2, math.cos(tau)], atol=0.05)
+    # theta -> tau through the associative memory
+    theta = [math.sin(2 * tau), tau ** 2, math.cos(tau)]
+    response = client.memory('complete', skill='curve', pattern=[float(rng.uniform())] + theta,
+                             known=[False, True, True, True])
+    assert response.success, response.message
+    assert list(response.pattern[1:]) == theta                # clamped entries untouched
+    assert abs(response.pattern[0] - tau) < 0.05
+
+
+BAD_REQUESTS = [
+    ('query', {'skill': 'nope', 'tau': [0.5]}, 'unknown skill'),
+    ('query', {'skill': 'curve', 'tau': [0.5, 0.1]}, 'tau with 1 entries, got 2'),
+    ('query', {'skill': 'curve', 'tau': [float('nan')]}, 'NaN'),
+    ('add_sample', {'skill': 'curve', 'tau': [0.5], 'theta': [1.0, 2.0]},
+     'theta with 3 entries, got 2'),
+    ('add_sample', {'skill': 'curve', 'tau': [float('inf')], 'theta': [1.0, 2.0, 3.0]}, 'NaN or inf'),
+    ('add_sample', {'skill': 'fresh', 'tau': [], 'theta': [1.0]}, 'non-empty'),
+    ('add_sample', {'skill': '', 'tau': [1.0], 'theta': [1.0]}, 'needs a name'),
+    ('complete', {'skill': 'curve', 'pattern': [0.1, 0.2, 0.3, 0.4], 'known': [True, False]},
+     'known needs 4 entries'),
+    ('complete', {'skill': 'curve', 'pattern': [0.1, 0.2], 'known': [True, False]},
+     'known needs 4 entries'),
+    ('complete', {'skill': 'nope', 'pattern': [0.1], 'known': [True]}, 'unknown skill'),
+    ('save', {'path': '/nonexistent_folder/memory.npz'}, 'does not exist'),
+    ('save', {'path': ''}, 'give a path'),
+    ('load', {'path': '/nonexistent_folder/memory.npz'}, 'no such file'),
+]
+
+
+@pytest.mark.parametrize('service, fields, words', BAD_REQUESTS)
+def test_bad_requests_get_clear_errors_and_change_nothing(client, service, fields, words):
+    before = info(client)
+    query_before = client.memory('query', skill='curve', tau=[0.3]).theta
+    response = client.memory(service, **fields)
+    assert not response.success
+    assert words in response.message, response.message
+    assert info(client) == before
+    assert list(client.memory("query", skill="curve", tau=[0.3]).theta) == list(query_before)
+
+
+def test_corrupt_file_is_refused_and_memory_kept(client, tmp_path):
+    before = info(client)
+    good = tmp_path / 'good.npz'
+    assert client.memory('save', path=str(good)).success
+    data = good.read_bytes()
+    truncated = tmp_path / 'truncated.npz'
+    truncated.write_bytes(data[: len(data) // 2])
+    garbage = tmp_path / 'garbage.npz'
+    garbage.write_bytes(os.urandom(4096))
+    for path in (truncated, garbage):
+        response = client.memory('load', path=str(path))
+        assert not response.success and 'unchanged' in response.message
+        assert info(client) == before
+    assert client.memory('load', path=str(good)).success
+    assert info(client) == before
+
+
+def test_four_concurrent_clients_lose_no_sample(client):
+    start = info(client).get('concurrent', {}).get('num_samples', 0)
+    per_client, errors = 15, []
+
+    def work(k: int):
+        try:
+            with RosClient(name=f'worker{k}') as c:
+                for i in range(per_client):
+                    tau = [k + i / per_client]
+                    r = c.memory('add_sample', skill='concurrent', tau=tau,
+                                 theta=[float(k), float(i)], timeout=30)
+                    if not r.success:
+                        errors.append(r.message)
+                    q = c.memory('query', skill='concurrent', tau=tau, timeout=30)
+                    if not q.success:
+                        errors.append(q.message)
+        except Exception as exc:  # noqa: BLE001 - reported below
+            errors.append(repr(exc))
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+    assert not errors
+    assert info(client)['concurrent']['num_samples'] == start + 4 * per_client
+
+
+def test_killed_node_restarts_with_what_it_learned(memory_node, client, autosave, tmp_path):
+    before = info(client)
+    answer = client.memory('query', skill='curve', tau=[0.37])
+    assert autosave.is_file()
+    node = memory_node.processes[0]
+    os.kill(node.pid, signal.SIGKILL)
+    node.process.wait(timeout=10)
+    restarted = start_memory(tmp_path / 'logs', autosave)
+    try:
+        with RosClient() as fresh:
+            assert fresh.memory('info', timeout=30).success
+            assert info(fresh) == before
+            again = fresh.memory('query', skill='curve', tau=[0.37])
+            assert list(again.theta) == list(answer.theta)
+            assert list(again.variance) == list(answer.variance)
+    finally:
+        stop(restarted)
