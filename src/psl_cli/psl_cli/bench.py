@@ -3,6 +3,8 @@
 ``psl bench graph``: lockstep control steps per second through the real node graph, beside
 the bare publish/answer round trip between two processes measured in the same run, and the
 deadline misses of the realtime mode at 500 Hz over a long episode.
+``psl bench memory``: per-sample update and query time of each readout against the number of
+stored samples, and the query service round trip beside a bare DDS round trip.
 """
 from __future__ import annotations
 
@@ -28,12 +30,82 @@ def add_arguments(parser) -> None:
     graph.add_argument('--realtime-seconds', type=float, default=60.0,
                        help='length of the realtime episode (0 skips it)')
     graph.add_argument('--json', action='store_true')
+    memory = sub.add_parser('memory', help='readout update/query time against N; service '
+                            'round trip of query beside a bare DDS round trip')
+    memory.add_argument('--sizes', type=int, nargs='+', default=[10, 100, 1000, 10000])
+    memory.add_argument('--n-hidden', type=int, default=100)
+    memory.add_argument('--service-samples', type=int, default=1000)
+    memory.add_argument('--round-trips', type=int, default=1000)
+    memory.add_argument('--json', action='store_true')
 
 
 def main(args) -> int:
     if args.bench == 'graph':
         return bench_graph(args)
+    if args.bench == 'memory':
+        return bench_memory(args)
     raise ValueError(f'unknown benchmark {args.bench!r}')
+
+
+def measure_query_service(n_samples: int, n_calls: int) -> list[float]:
+    """Round-trip times [s] of QuerySkill calls to a skill_memory process holding a skill
+    with n_samples samples (restored from a memory file at start)."""
+    import tempfile
+    from pathlib import Path
+
+    from psl_cli.graph import Graph
+    from psl_cli.ros_client import RosClient
+    from psl_memory.skill_memory import SkillMemory
+
+    rng = np.random.default_rng(0)
+    memory = SkillMemory()
+    memory.create('bench', [0.0, 0.0], [1.0, 1.0], np.zeros(24))
+    taus = rng.uniform(0.0, 1.0, (n_samples, 2))
+    for tau in taus:
+        memory.add('bench', tau, np.r_[np.sin(3 * tau), np.cos(2 * tau), np.zeros(20)])
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / 'bench_memory.npz'
+        memory.save(path)
+        graph = Graph(nodes=(('skill_memory', 'psl_memory', 'skill_memory'),),
+                      extra_params={'skill_memory': {'autosave_path': str(path),
+                                                     'tasks': '[]'}})
+        with graph, RosClient() as client:
+            info = json.loads(client.memory('info', timeout=60).message)
+            if info['bench']['num_samples'] != n_samples:
+                raise RuntimeError(f'the memory node holds {info}')
+            times = []
+            for i in range(n_calls + 50):
+                start = time.perf_counter()
+                response = client.memory('query', skill='bench', tau=taus[i % n_samples].tolist())
+                elapsed = time.perf_counter() - start
+                if not response.success:
+                    raise RuntimeError(response.message)
+                if i >= 50:
+                    times.append(elapsed)
+    return times
+
+
+def bench_memory(args) -> int:
+    from psl_cli.bench_memory import format_table, measure_readouts
+
+    report = {'readouts': measure_readouts(sizes=tuple(args.sizes), n_hidden=args.n_hidden)}
+    service = measure_query_service(args.service_samples, args.round_trips)
+    bare = measure_round_trip(args.round_trips)
+    report['service'] = {
+        'samples': args.service_samples,
+        'query_ms': {'p50': 1e3 * statistics.median(service),
+                     'p99': 1e3 * float(np.percentile(service, 99))},
+        'bare_round_trip_ms': {'p50': 1e3 * statistics.median(bare),
+                               'p99': 1e3 * float(np.percentile(bare, 99))}}
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        print(format_table(report['readouts']))
+        q, b = report['service']['query_ms'], report['service']['bare_round_trip_ms']
+        print(f"query service round trip with {args.service_samples} samples: p50 "
+              f"{q['p50']:.3f} ms, p99 {q['p99']:.3f} ms (bare DDS round trip in the same run: "
+              f"p50 {b['p50']:.3f} ms, p99 {b['p99']:.3f} ms)")
+    return 0
 
 
 # -- bare round trip ------------------------------------------------------------------------

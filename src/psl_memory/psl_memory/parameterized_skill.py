@@ -39,6 +39,10 @@ class SkillConfig:
     seed: int = 0
     alpha: float = 1.0               # slope of the hidden sigmoid
     associative: str = 'aelm'        # aelm: O(1) per sample; arbf: one centre per sample
+    estimate_precisions: bool = True  # bayes: evidence maximisation of alpha and beta
+    noise_precision: float = 1.0     # bayes: beta (the initial value when estimated)
+    completion_tolerance: float = 1e-6    # recall stops when no entry moves more (normalised)
+    completion_max_iterations: int = 200
 
     def __post_init__(self):
         if self.readout not in READOUTS:
@@ -55,7 +59,8 @@ class SkillConfig:
         if self.readout == 'rls':
             return {'forgetting': self.forgetting, 'regularization': self.regularization}
         if self.readout == 'bayes':
-            return {'alpha': self.regularization, 'estimate': True}
+            return {'alpha': self.regularization, 'beta': self.noise_precision,
+                    'estimate': self.estimate_precisions}
         return {'regularization': self.regularization}
 
 
@@ -129,13 +134,16 @@ class ParameterizedSkill:
         var = self.readout.predict_variance(h)
         return theta, (None if var is None else self.theta_scaler.variance_from_unit(var))
 
-    def complete(self, pattern, known, tol: float = 1e-6, max_iter: int = 200):
-        """Associative completion of v = [tau, theta] with the known dimensions clamped."""
+    def complete(self, pattern, known):
+        """Associative completion of v = [tau, theta] with the known dimensions clamped,
+        iterated until no entry moves more than the configured tolerance or the iteration cap
+        (the result says which)."""
         if self.num_samples == 0:
             raise ValueError(f'skill {self.name!r} has no samples to complete from')
         return self.associative.complete(
             self._vector(pattern, self.tau_dim + self.theta_dim, 'pattern'), known,
-            tol=tol, max_iter=max_iter)
+            tol=self.config.completion_tolerance,
+            max_iter=self.config.completion_max_iterations)
 
     # -- persistence --------------------------------------------------------------------------
     def get_state(self) -> dict[str, np.ndarray]:

@@ -12,6 +12,7 @@ restarts with everything it had learned.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 from pathlib import Path
@@ -40,14 +41,20 @@ class SkillMemoryNode(Node):
                 ('forgetting', defaults.forgetting, 'RLS forgetting factor, 0 < lambda <= 1'),
                 ('seed', defaults.seed, 'seed of the random hidden layer'),
                 ('associative', defaults.associative, 'aelm | arbf'),
+                ('estimate_precisions', defaults.estimate_precisions,
+                 'bayes: estimate the prior and noise precisions by evidence maximisation'),
+                ('noise_precision', defaults.noise_precision, 'bayes: noise precision beta'),
+                ('completion_tolerance', defaults.completion_tolerance,
+                 'recall stops when no entry moves more than this (normalised units)'),
+                ('completion_max_iterations', defaults.completion_max_iterations,
+                 'recall iteration cap'),
                 ('tasks', ['reach_over_obstacle'], 'tasks whose skills exist from the start'),
                 ('autosave_path', '', 'memory file loaded at start and written after every '
                                       'sample; empty = no autosave')):
             self.declare_parameter(name, default, ParameterDescriptor(description=text,
                                                                       read_only=True))
-        p = {name: self.get_parameter(name).value for name in (
-            'readout', 'n_hidden', 'regularization', 'forgetting', 'seed', 'associative')}
-        self.config = SkillConfig(**p)
+        self.config = SkillConfig(**{field.name: self.get_parameter(field.name).value
+                                     for field in dataclasses.fields(SkillConfig)})
         self.autosave = self.get_parameter('autosave_path').value
         self._lock = threading.Lock()
         self.memory = self._initial_memory()
