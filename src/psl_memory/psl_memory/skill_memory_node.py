@@ -40,6 +40,7 @@ class SkillMemoryNode(Node):
                 ('regularization', defaults.regularization, 'ridge factor / prior precision'),
                 ('forgetting', defaults.forgetting, 'RLS forgetting factor, 0 < lambda <= 1'),
                 ('seed', defaults.seed, 'seed of the random hidden layer'),
+                ('alpha', defaults.alpha, 'slope of the hidden sigmoid'),
                 ('associative', defaults.associative, 'aelm | arbf'),
                 ('estimate_precisions', defaults.estimate_precisions,
                  'bayes: estimate the prior and noise precisions by evidence maximisation'),
