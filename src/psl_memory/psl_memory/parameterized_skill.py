@@ -25,6 +25,7 @@ from psl_memory.elm import ELMFeatures, RangeScaler
 from psl_memory.readout import make_readout
 
 READOUTS = ('ridge', 'rls', 'incremental_ridge', 'bayes')
+MAX_SPREADS = 1e6    # a sample this many ranges away from the skill is a units error
 ASSOCIATIVE = ('aelm', 'arbf')
 
 
@@ -89,8 +90,8 @@ class ParameterizedSkill:
                                     seed=config.seed, modality_sizes=sizes)
         else:
             self.associative = ARBF(v_scaler, modality_sizes=sizes)
-        self.taus = np.zeros((0, self.tau_dim))        # (N, E)
-        self.thetas = np.zeros((0, self.theta_dim))    # (N, F)
+        self._taus: list[np.ndarray] = []               # N x (E,)
+        self._thetas: list[np.ndarray] = []             # N x (F,)
 
     @property
     def tau_dim(self) -> int:
@@ -102,7 +103,7 @@ class ParameterizedSkill:
 
     @property
     def num_samples(self) -> int:
-        return len(self.taus)
+        return len(self._taus)
 
     def _vector(self, value, size: int, name: str) -> np.ndarray:
         array = np.asarray(value, dtype=float)
@@ -118,11 +119,26 @@ class ParameterizedSkill:
         of samples. Raises ValueError and changes nothing for a bad sample."""
         tau = self._vector(tau, self.tau_dim, 'tau')
         theta = self._vector(theta, self.theta_dim, 'theta')
-        self.readout.update(self.features.transform(tau), self.theta_scaler.to_unit(theta))
+        unit = self.theta_scaler.to_unit(theta)
+        if np.max(np.abs(unit)) > MAX_SPREADS or np.max(np.abs(self.tau_scaler.to_unit(tau))) \
+                > MAX_SPREADS:
+            raise ValueError(f'sample lies more than {MAX_SPREADS:g} ranges outside skill '
+                             f'{self.name!r}: refused as a units or scaling error')
+        self.readout.update(self.features.transform(tau), unit)
         self.associative.add(np.r_[tau, theta])
-        self.taus = np.vstack([self.taus, tau])
-        self.thetas = np.vstack([self.thetas, theta])
+        self._taus.append(tau)
+        self._thetas.append(theta)
         return self.num_samples
+
+    @property
+    def taus(self) -> np.ndarray:
+        """The samples' task parameters (N, E)."""
+        return np.array(self._taus).reshape(-1, self.tau_dim)
+
+    @property
+    def thetas(self) -> np.ndarray:
+        """The samples' policy parameters (N, F)."""
+        return np.array(self._thetas).reshape(-1, self.theta_dim)
 
     def query(self, tau) -> tuple[np.ndarray, np.ndarray | None]:
         """theta = PS(tau) (eq. 2.1) and its per-dimension predictive variance (eq. 2.14) in
@@ -169,6 +185,10 @@ class ParameterizedSkill:
         skill.readout.set_state({k[8:]: v for k, v in state.items() if k.startswith('readout.')})
         skill.associative.set_state({k[12:]: v for k, v in state.items()
                                      if k.startswith('associative.')})
-        skill.taus = np.asarray(state['taus'], dtype=float).reshape(-1, skill.tau_dim)
-        skill.thetas = np.asarray(state['thetas'], dtype=float).reshape(-1, skill.theta_dim)
+        skill._taus = list(np.asarray(state['taus'], dtype=float).reshape(-1, skill.tau_dim))
+        skill._thetas = list(np.asarray(state['thetas'], dtype=float).reshape(-1,
+                                                                              skill.theta_dim))
+        if not len(skill._taus) == len(skill._thetas) == skill.readout.num_samples:
+            raise ValueError(f'skill {name!r}: {len(skill._taus)} samples stored but the '
+                             f'readout learned {skill.readout.num_samples}')
         return skill

@@ -81,9 +81,9 @@ class SkillMemory:
         meta = {'format': FORMAT, 'version': VERSION,
                 'config': dataclass_dict(self.config), 'skills': sorted(self.skills)}
         arrays = {'__meta__': np.array(json.dumps(meta))}
-        for name, skill in self.skills.items():
-            for key, value in skill.get_state().items():
-                arrays[f'{name}/{key}'] = np.asarray(value)
+        for index, name in enumerate(meta['skills']):      # by index: any name is safe
+            for key, value in self.skills[name].get_state().items():
+                arrays[f'skill{index}/{key}'] = np.asarray(value)
         if not path.parent.is_dir():
             raise OSError(f'cannot save to {path}: folder {path.parent} does not exist')
         fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.tmp', dir=path.parent)
@@ -104,16 +104,21 @@ class SkillMemory:
         if not path.is_file():
             raise MemoryFileError(f'{path}: no such file')
         try:
+            with zipfile.ZipFile(path) as archive:
+                archive.testzip()                      # every member's CRC
             with np.load(path, allow_pickle=False) as data:
                 arrays = {key: data[key] for key in data.files}
-        except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
-            raise MemoryFileError(f'{path}: not a readable psl memory file ({exc})') from exc
+        except Exception as exc:  # noqa: BLE001 - numpy/zipfile raise many kinds for bad bytes
+            raise MemoryFileError(f'{path}: not a readable psl memory file '
+                                  f'({type(exc).__name__}: {exc})') from exc
         if '__meta__' not in arrays:
             raise MemoryFileError(f'{path}: not a psl memory file (no header)')
         try:
             meta = json.loads(str(arrays.pop('__meta__')))
         except json.JSONDecodeError as exc:
             raise MemoryFileError(f'{path}: corrupt header ({exc})') from exc
+        if not isinstance(meta, dict):
+            raise MemoryFileError(f'{path}: corrupt header (not a JSON object)')
         if meta.get('format') != FORMAT:
             raise MemoryFileError(f'{path}: format {meta.get("format")!r} is not {FORMAT!r}')
         if meta.get('version') != VERSION:
@@ -121,11 +126,12 @@ class SkillMemory:
                                   f'version {VERSION}')
         try:
             memory = cls(SkillConfig(**meta['config']))
-            for name in meta['skills']:
-                prefix = f'{name}/'
+            for index, name in enumerate(meta['skills']):
+                prefix = f'skill{index}/'
                 state = {k[len(prefix):]: v for k, v in arrays.items() if k.startswith(prefix)}
-                memory.skills[name] = ParameterizedSkill.from_state(name, memory.config, state)
-        except (KeyError, TypeError, ValueError) as exc:
+                memory.skills[str(name)] = ParameterizedSkill.from_state(str(name),
+                                                                         memory.config, state)
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
             raise MemoryFileError(f'{path}: inconsistent content ({exc})') from exc
         return memory
 
