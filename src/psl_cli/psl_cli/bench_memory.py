@@ -184,7 +184,7 @@ def _measure_skill(sizes, data: _Data, n_hidden: int, seed: int, repeats: int,
             skill.readout.update(skill.features.transform(taus),
                                  skill.theta_scaler.to_unit(thetas))
             skill.associative.add(np.hstack([taus, thetas]))
-            skill.taus, skill.thetas = taus.copy(), thetas.copy()
+            skill._taus, skill._thetas = list(taus), list(thetas)
         update = _timed(lambda i: skill.add(data.taus[i], data.thetas[i]),
                         range(n - 1, n - 1 + repeats))
         query = _timed(lambda i: skill.query(data.taus[i % len(data.taus)]),
