@@ -30,6 +30,7 @@ def add_arguments(parser) -> None:
     graph.add_argument('--realtime-seconds', type=float, default=60.0,
                        help='length of the realtime episode (0 skips it)')
     graph.add_argument('--json', action='store_true')
+    add_rollout_arguments(sub)
     memory = sub.add_parser('memory', help='readout update/query time against N; service '
                             'round trip of query beside a bare DDS round trip')
     memory.add_argument('--sizes', type=int, nargs='+', default=[10, 100, 1000, 10000])
@@ -39,7 +40,58 @@ def add_arguments(parser) -> None:
     memory.add_argument('--json', action='store_true')
 
 
+def add_rollout_arguments(sub) -> None:
+    rollout = sub.add_parser('rollout', help='batch-mode steps/s beside raw mujoco.rollout')
+    rollout.add_argument('--task', default='reach_over_obstacle')
+    rollout.add_argument('--population', type=int, default=32)
+    rollout.add_argument('--repeats', type=int, default=7)
+    rollout.add_argument('--json', action='store_true')
+
+
+def bench_rollout(args) -> int:
+    """Batch mode (references, controls, mujoco.rollout, rewards) against mujoco.rollout
+    alone on the same model with the same controls, in the same run."""
+    from mujoco import rollout as mj_rollout
+
+    from psl_optimizer.batch_rollout import CONTROL, BatchRollout
+    from psl_sim.task import load_task
+
+    task = load_task(args.task)
+    batch = BatchRollout(task)
+    rng = np.random.default_rng(0)
+    default = batch.policy.default_theta
+    thetas = default + rng.normal(0.0, 0.1 * np.abs(default).max(), (args.population,
+                                                                      default.size))
+    taus = np.array([task.sample_tau(rng) for _ in range(args.population)])
+    control = batch.controls([batch.policy.reference(t) for t in thetas], taus)
+    steps = args.population * control.shape[1]
+    raw, full = [], []
+    for _ in range(args.repeats):
+        start = time.perf_counter()
+        mj_rollout.rollout(batch.model, batch.datas, batch.initial_state[None], control,
+                           control_spec=CONTROL)
+        raw.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        batch.run(thetas, taus)
+        full.append(time.perf_counter() - start)
+    report = {'task': task.name, 'population': args.population, 'steps_per_rollout':
+              control.shape[1], 'threads': len(batch.datas),
+              'raw_steps_per_second': steps / statistics.median(raw),
+              'batch_steps_per_second': steps / statistics.median(full)}
+    report['ratio'] = report['batch_steps_per_second'] / report['raw_steps_per_second']
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        print(f"raw mujoco.rollout: {report['raw_steps_per_second']:.0f} steps/s; batch mode "
+              f"(DMP references, controls, rollout, rewards): "
+              f"{report['batch_steps_per_second']:.0f} steps/s; ratio {report['ratio']:.2f} "
+              f"(population {args.population}, {report['threads']} threads)")
+    return 0
+
+
 def main(args) -> int:
+    if args.bench == 'rollout':
+        return bench_rollout(args)
     if args.bench == 'graph':
         return bench_graph(args)
     if args.bench == 'memory':

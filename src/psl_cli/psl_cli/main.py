@@ -150,6 +150,49 @@ def _load_values(args) -> list[float]:
     raise ValueError('give --theta or --theta-file')
 
 
+def cmd_learn(args) -> int:
+    """psl learn: one learning session in batch mode, resumable from its output folder."""
+    from psl_optimizer.learning import Learner, LearnSettings
+    from psl_optimizer.policy_search import STRATEGIES, SearchSettings
+    from psl_sim.task import TaskError, load_task
+
+    if args.strategy not in STRATEGIES:
+        print(f'psl learn: unknown strategy {args.strategy!r}; known: {", ".join(STRATEGIES)}',
+              file=sys.stderr)
+        return 2
+    try:
+        task = load_task(args.task)
+    except TaskError as exc:
+        print(f'psl learn: {exc}', file=sys.stderr)
+        return 2
+    out = Path(args.out or f'runs/{task.name}-{args.strategy}-seed{args.seed}')
+    settings = LearnSettings(strategy=args.strategy, num_tasks=args.tasks, seed=args.seed,
+                             num_test=args.test_tasks,
+                             search=SearchSettings(max_rollouts=args.budget))
+    total = [0]
+
+    def progress(record: dict) -> None:
+        total[0] += record['rollouts']
+        done = record['index'] + 1
+        bar = '#' * int(30 * done / args.tasks)
+        print(f"\r[{bar:30s}] task {done}/{args.tasks}: {record['rollouts']:4d} rollouts, "
+              f"{'fulfilled' if record['fulfilled'] else 'NOT fulfilled'}, best reward "
+              f"{record['best_reward']:.3f}   ", end='\n' if args.verbose else '', flush=True)
+
+    try:
+        metrics = Learner(task, settings, out).run(progress=progress)
+    except ValueError as exc:
+        print(f'\npsl learn: {exc}', file=sys.stderr)
+        return 2
+    print()
+    if 'summary' in metrics:
+        s = metrics['summary']
+        print(f"{s['total_rollouts']} rollouts over {args.tasks} tasks; held-out zero-shot "
+              f"success {100 * s['zero_shot_success_rate']:.0f} % (mean reward "
+              f"{s['zero_shot_mean_reward']:.3f}); metrics in {out / 'metrics.json'}")
+    return 0
+
+
 def cmd_record(args) -> int:
     from psl_cli.bag_recorder import record
 
@@ -223,6 +266,19 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument('path')
     actions.add_parser('info', parents=[common], help='the skills and their sample counts')
     memory.set_defaults(func=cmd_memory)
+
+    learn = sub.add_parser('learn', help='learn a skill over random task instances (batch '
+                           'mode; resumes from the checkpoint in --out)')
+    learn.add_argument('--task', default='reach_over_obstacle')
+    learn.add_argument('--strategy', default='bootstrap',
+                       help='scratch | bootstrap | bootstrap_cost | hybrid')
+    learn.add_argument('--tasks', type=int, default=30)
+    learn.add_argument('--budget', type=int, default=200, help='rollouts per task at most')
+    learn.add_argument('--seed', type=int, default=0)
+    learn.add_argument('--test-tasks', type=int, default=20)
+    learn.add_argument('--out', help='output folder (default runs/TASK-STRATEGY-seedK)')
+    learn.add_argument('--verbose', action='store_true', help='one line per task')
+    learn.set_defaults(func=cmd_learn)
 
     rec = sub.add_parser('record', help='record topics into a rosbag2 (MCAP) bag')
     rec.add_argument('-o', '--output', required=True)

@@ -98,7 +98,7 @@ def score(components: dict[str, float], weights: dict[str, float],
 
 def evaluate_rollout(arm: ArmModel, tau: np.ndarray, q: np.ndarray, torque: np.ndarray,
                      q_ref: np.ndarray) -> RewardResult:
-    """Score one rollout of the arm's task.
+    """Score one rollout of the arm's task (graph mode: geometry from a kinematic replay).
 
     Args:
         arm: the task's model (used for end-effector positions and obstacle distances).
@@ -111,20 +111,58 @@ def evaluate_rollout(arm: ArmModel, tau: np.ndarray, q: np.ndarray, torque: np.n
     Raises:
         ValueError: non-finite data or inconsistent shapes.
     """
+    q = _finite('q', q)
+    if q.ndim != 2 or q.shape[1] != len(arm.joint_names):
+        raise ValueError(f'q {q.shape} must be (T, {len(arm.joint_names)})')
+    ee, dist = arm.replay(q, tau)
+    return evaluate_arrays(arm, q, torque, q_ref, ee[-1],
+                           dist if np.isfinite(dist).all() else None)
+
+
+def evaluate_arrays(arm: ArmModel, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,
+                    ee_final: np.ndarray, distance: np.ndarray | None) -> RewardResult:
+    """Score a rollout from its arrays; `distance` (T,) is the smallest arm-obstacle signed
+    distance per state, None when the task has no obstacle. Shared by graph and batch mode."""
     task = arm.task
     q, torque = _finite('q', q), _finite('torque', torque)
     if q.ndim != 2 or q.shape[1] != len(arm.joint_names) or torque.shape != q.shape:
         raise ValueError(f'q {q.shape} and torque {torque.shape} must both be '
                          f'(T, {len(arm.joint_names)})')
-    ee, dist = arm.replay(q, tau)
     cfg = task.reward
     components = {
-        'goal_error': goal_error(ee[-1], arm.ee_goal),
-        'penetration': penetration(dist) if np.isfinite(dist).all() else 0.0,
-        'clearance': (clearance(dist, float(cfg.get('clearance_margin', 0.0)))
-                      if np.isfinite(dist).all() else 0.0),
+        'goal_error': goal_error(ee_final, arm.ee_goal),
+        'penetration': penetration(distance) if distance is not None else 0.0,
+        'clearance': (clearance(distance, float(cfg.get('clearance_margin', 0.0)))
+                      if distance is not None else 0.0),
         'smoothness': smoothness(q, task.control_period),
         'effort': effort(torque),
         'tracking_error': tracking_error(q, q_ref),
     }
     return score(components, cfg['weights'], float(cfg['success_threshold']))
+
+
+def evaluate_population(arm: ArmModel, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,
+                        ee_final: np.ndarray, distance: np.ndarray | None) -> list[RewardResult]:
+    """`evaluate_arrays` for a whole population at once (batch mode): q, torque, q_ref
+    (B, T, n), ee_final (B, 3), distance (B, T) or None. Same components, vectorised."""
+    q, torque, q_ref = _finite('q', q), _finite('torque', torque), _finite('q_ref', q_ref)
+    if q.ndim != 3 or torque.shape != q.shape or q_ref.shape != q.shape:
+        raise ValueError(f'q {q.shape}, torque {torque.shape}, q_ref {q_ref.shape} must all be '
+                         '(B, T, n)')
+    task, cfg = arm.task, arm.task.reward
+    dt = task.control_period
+    acc = np.diff(q, n=2, axis=1) / dt**2
+    columns = {
+        'goal_error': np.linalg.norm(_finite('ee_final', ee_final) - arm.ee_goal, axis=1),
+        'penetration': (np.maximum(0.0, -_finite('distance', distance).min(axis=1))
+                        if distance is not None else np.zeros(len(q))),
+        'clearance': (np.mean(np.maximum(0.0, float(cfg.get('clearance_margin', 0.0))
+                                         - distance), axis=1)
+                      if distance is not None else np.zeros(len(q))),
+        'smoothness': (np.mean(acc**2, axis=(1, 2)) if q.shape[1] >= 3
+                       else np.zeros(len(q))),
+        'effort': np.mean(torque**2, axis=(1, 2)),
+        'tracking_error': np.sqrt(np.mean((q_ref - q) ** 2, axis=(1, 2))),
+    }
+    return [score({name: float(values[b]) for name, values in columns.items()},
+                  cfg['weights'], float(cfg['success_threshold'])) for b in range(len(q))]

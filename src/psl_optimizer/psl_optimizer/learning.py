@@ -1,0 +1,150 @@
+"""The learning loop: for each new task instance, search theta starting from the skill, add the
+solution to the memory at once, go on; then measure zero-shot success on held-out instances.
+
+Task sequences come from a seed (`task_sequence`); the held-out test instances come from a
+separate stream and are never trained on. After every task the loop writes a checkpoint
+(memory file + progress JSON) into its output folder, and `Learner.run` resumes from it, so a
+crash or a cancel loses no finished task. Imports no ROS; the learner node and ``psl learn``
+wrap it.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from psl_memory.parameterized_skill import SkillConfig
+from psl_memory.skill_memory import SkillMemory
+from psl_optimizer.batch_rollout import BatchRollout
+from psl_optimizer.policy_search import SearchSettings, search
+from psl_sim.task import TaskDefinition
+
+TEST_SEED_OFFSET = 1_000_003     # held-out instances: a stream no training sequence uses
+
+
+def task_sequence(task: TaskDefinition, count: int, seed: int) -> np.ndarray:
+    """`count` training instances (count, E), uniform over the task's ranges."""
+    rng = np.random.default_rng(seed)
+    return np.array([task.sample_tau(rng) for _ in range(count)]).reshape(count, -1)
+
+
+def held_out_tasks(task: TaskDefinition, count: int, seed: int) -> np.ndarray:
+    return task_sequence(task, count, seed + TEST_SEED_OFFSET)
+
+
+@dataclasses.dataclass(frozen=True)
+class LearnSettings:
+    strategy: str = 'bootstrap'
+    num_tasks: int = 30
+    seed: int = 0
+    num_test: int = 20
+    search: SearchSettings = SearchSettings()
+    skill: SkillConfig = SkillConfig(readout='incremental_ridge')
+    add_only_fulfilled: bool = True     # a failed search's best theta would teach the skill a miss
+
+
+class Learner:
+    """Runs one learning session of one task in batch mode, checkpointing into `out`."""
+
+    def __init__(self, task: TaskDefinition, settings: LearnSettings, out: str | Path,
+                 evaluator: BatchRollout | None = None):
+        self.task, self.settings, self.out = task, settings, Path(out)
+        self.evaluator = evaluator or BatchRollout(task)
+        self.default_theta = self.evaluator.policy.default_theta
+
+    # -- checkpoints --------------------------------------------------------------------------
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.out / 'checkpoint.json'
+
+    @property
+    def memory_path(self) -> Path:
+        return self.out / 'memory.npz'
+
+    def _fresh_memory(self) -> SkillMemory:
+        memory = SkillMemory(self.settings.skill)
+        memory.create(self.task.name, self.task.tau_low, self.task.tau_high, self.default_theta)
+        return memory
+
+    def _load_checkpoint(self) -> tuple[SkillMemory, list[dict]]:
+        if not self.checkpoint_path.is_file():
+            return self._fresh_memory(), []
+        state = json.loads(self.checkpoint_path.read_text())
+        mine = {'task': self.task.name, 'strategy': self.settings.strategy,
+                'seed': self.settings.seed}
+        if any(state.get(k) != v for k, v in mine.items()):
+            raise ValueError(f'{self.out} holds a checkpoint of another session '
+                             f'({ {k: state.get(k) for k in mine} }); use another folder')
+        return SkillMemory.read(self.memory_path), state['tasks']
+
+    def _save_checkpoint(self, memory: SkillMemory, done: list[dict]) -> None:
+        memory.save(self.memory_path)             # atomic
+        state = {'task': self.task.name, 'strategy': self.settings.strategy,
+                 'seed': self.settings.seed, 'tasks': done}
+        tmp = self.checkpoint_path.with_suffix('.tmp')
+        tmp.write_text(json.dumps(state))
+        os.replace(tmp, self.checkpoint_path)
+
+    # -- the loop -----------------------------------------------------------------------------
+    def evaluate(self, tau: np.ndarray) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+        def rollouts(thetas: np.ndarray):
+            results = self.evaluator.run(thetas, tau)
+            return (np.array([r.evaluation.reward for r in results]),
+                    np.array([r.evaluation.fulfilled for r in results]))
+        return rollouts
+
+    def run(self, progress: Callable[[dict], None] | None = None,
+            should_stop: Callable[[], bool] | None = None) -> dict:
+        """Train on the task sequence (resuming from a checkpoint), then test zero-shot.
+        Returns the metrics (also written to out/metrics.json)."""
+        self.out.mkdir(parents=True, exist_ok=True)
+        s = self.settings
+        memory, done = self._load_checkpoint()
+        skill = memory.get(self.task.name)
+        scaler = skill.theta_scaler
+        centre, scale = 0.5 * (scaler.high + scaler.low), 0.5 * (scaler.high - scaler.low)
+        taus = task_sequence(self.task, s.num_tasks, s.seed)
+        for index in range(len(done), s.num_tasks):
+            if should_stop is not None and should_stop():
+                break
+            tau = taus[index]
+            start = time.perf_counter()
+            result = search(s.strategy, self.evaluate(tau), tau, self.default_theta,
+                            lambda t: skill.query(t)[0], centre, scale, self.task.tau_low,
+                            self.task.tau_high, s.search, seed=s.seed * 100_003 + index)
+            if result.fulfilled or not s.add_only_fulfilled:
+                skill.add(tau, result.theta)
+            done.append({'index': index, 'tau': tau.tolist(), 'rollouts': result.rollouts,
+                         'fulfilled': result.fulfilled, 'best_reward': result.reward,
+                         'start_reward': result.rewards[0],
+                         'seconds': time.perf_counter() - start})
+            self._save_checkpoint(memory, done)
+            if progress is not None:
+                progress(done[-1])
+        metrics = {'task': self.task.name, 'strategy': s.strategy, 'seed': s.seed,
+                   'settings': dataclasses.asdict(s), 'tasks': done,
+                   'complete': len(done) == s.num_tasks}
+        if metrics['complete']:
+            metrics['summary'] = self.summary(done, skill)
+        (self.out / 'metrics.json').write_text(json.dumps(metrics, indent=1))
+        return metrics
+
+    def summary(self, done: list[dict], skill) -> dict:
+        test = held_out_tasks(self.task, self.settings.num_test, self.settings.seed)
+        thetas = np.array([skill.query(t)[0] for t in test])
+        results = self.evaluator.run(thetas, test)
+        rollouts = [d['rollouts'] for d in done]
+        return {
+            'total_rollouts': int(sum(rollouts)),
+            'rollouts_per_task': rollouts,
+            'fulfilled_tasks': int(sum(d['fulfilled'] for d in done)),
+            'test_taus': test.tolist(),
+            'test_rewards': [r.evaluation.reward for r in results],
+            'zero_shot_success_rate': float(np.mean([r.evaluation.fulfilled for r in results])),
+            'zero_shot_mean_reward': float(np.mean([r.evaluation.reward for r in results])),
+        }

@@ -1,0 +1,97 @@
+"""Batch mode against a second implementation: the same law stepped in Python, step by step."""
+import numpy as np
+import pytest
+
+from psl_controller.pd_law import pd_feedforward
+from psl_controller.policy import policy_for
+from psl_optimizer.batch_rollout import BatchRollout
+from psl_optimizer.reward import evaluate_rollout
+from psl_sim.arm_model import ArmModel
+from psl_sim.task import TaskError, load_task
+
+Q_TOLERANCE = 1e-12        # rad; only the order of floating-point additions differs
+REWARD_TOLERANCE = 1e-9
+
+
+@pytest.fixture(scope='module')
+def task():
+    return load_task('reach_over_obstacle')
+
+
+@pytest.fixture(scope='module')
+def batch(task):
+    return BatchRollout(task)
+
+
+def step_by_step(task, theta, tau):
+    """The graph's semantics in one process: PD + feed-forward on each state, one mj_step."""
+    arm = ArmModel(task)
+    ref = policy_for(task).reference(theta)
+    arm.reset(tau)
+    limit = np.maximum(-arm.torque_low, arm.torque_high)
+    q, torque = [arm.q], [np.zeros(len(arm.joint_names))]
+    for k in range(task.num_steps):
+        u = pd_feedforward(arm.q, arm.qd, ref.q[k], ref.qd[k], ref.u_ffwd[k], task.kp, task.kd,
+                           limit)
+        torque.append(arm.step(u))
+        q.append(arm.q)
+    q, torque = np.array(q), np.array(torque)
+    return q, torque, evaluate_rollout(arm, tau, q, torque, ref.q)
+
+
+def test_batch_equals_step_by_step_simulation(task, batch):
+    rng = np.random.default_rng(3)
+    default = policy_for(task).default_theta
+    thetas = default + rng.normal(0.0, 0.2 * np.abs(default).max(), (4, default.size))
+    thetas[0] *= 6.0          # a violent policy: its torques saturate
+    taus = np.array([task.sample_tau(rng) for _ in range(4)])
+    results = batch.run(thetas, taus)
+    saturated = 0
+    for theta, tau, result in zip(thetas, taus, results):
+        q, torque, evaluation = step_by_step(task, theta, tau)
+        assert np.abs(result.q - q).max() < Q_TOLERANCE
+        assert np.abs(result.torque - torque).max() < 1e-9
+        assert result.evaluation.reward == pytest.approx(evaluation.reward, abs=REWARD_TOLERANCE)
+        for name, value in evaluation.components.items():
+            assert result.evaluation.components[name] == pytest.approx(value, rel=1e-9,
+                                                                       abs=1e-12)
+        saturated += np.any(np.abs(torque) >= 40.0 - 1e-9)
+    assert saturated > 0, 'the perturbed policies should hit the torque limit somewhere'
+
+
+def test_each_member_sees_its_own_task_instance(task, batch):
+    theta = policy_for(task).default_theta
+    low, high = task.tau_low, task.tau_high
+    results = batch.run(np.tile(theta, (2, 1)), np.array([low, high]))
+    # same motion, different obstacles: only the obstacle terms differ
+    assert np.array_equal(results[0].q, results[1].q)
+    assert results[0].evaluation.components != results[1].evaluation.components
+
+
+def test_bad_inputs_are_refused(task, batch):
+    theta = policy_for(task).default_theta
+    with pytest.raises(TaskError):
+        batch.run(theta[None], np.array([10.0, 10.0]))
+    with pytest.raises(ValueError):
+        batch.run(theta[None, :5], task.tau_default)
+    bad = theta.copy()
+    bad[0] = np.nan
+    with pytest.raises(ValueError):
+        batch.run(bad[None], task.tau_default)
+
+
+def test_population_reward_equals_member_by_member(task, batch):
+    """The vectorised reward against evaluate_arrays, one member at a time."""
+    from psl_optimizer.reward import evaluate_arrays
+    rng = np.random.default_rng(5)
+    default = policy_for(task).default_theta
+    thetas = default + rng.normal(0.0, 0.3 * np.abs(default).max(), (6, default.size))
+    taus = np.array([task.sample_tau(rng) for _ in range(6)])
+    for result, tau in zip(batch.run(thetas, taus), taus):
+        ee, distance = batch.arm.replay(result.q, tau)
+        single = evaluate_arrays(batch.arm, result.q, result.torque, result.q_ref, ee[-1],
+                                 distance)
+        assert result.evaluation.fulfilled == single.fulfilled
+        for name, value in single.components.items():
+            assert result.evaluation.components[name] == pytest.approx(value, rel=1e-9,
+                                                                       abs=1e-12)
