@@ -140,7 +140,7 @@ def test_joint_names(arm, task):
 
 
 # -- obstacle distance ------------------------------------------------------------------------
-@pytest.mark.parametrize('tau', [[0.55, 0.15], [0.675, 0.25], [0.8, 0.35]])
+@pytest.mark.parametrize('tau', [[0.55, 0.10], [0.675, 0.16], [0.8, 0.22]])
 def test_replay_distance_arm_straight_up_is_gap_minus_radii(arm, tau):
     """Arm vertical along x = 0, obstacle vertical at x = tau[0] and overlapping in height:
     the capsules are parallel, distance = gap - radii."""
@@ -148,7 +148,7 @@ def test_replay_distance_arm_straight_up_is_gap_minus_radii(arm, tau):
     np.testing.assert_allclose(dist, [tau[0] - ARM_RADIUS - OBSTACLE_RADIUS], atol=TOL_DISTANCE)
 
 
-@pytest.mark.parametrize('tau', [[0.55, 0.15], [0.675, 0.25], [0.8, 0.35]])
+@pytest.mark.parametrize('tau', [[0.55, 0.10], [0.675, 0.16], [0.8, 0.22]])
 def test_replay_distance_arm_through_obstacle_is_negative(arm, tau):
     """Arm flat along +x at height 0 crosses the pillar (which spans z = 0): the segments
     intersect, so the signed distance is minus both radii."""
@@ -161,8 +161,8 @@ def test_replay_distance_grazing_the_top():
     """Arm at angle a passes at perpendicular distance |z_top cos a - x sin a| from the top
     end of the obstacle segment (x, z_top): a partial overlap with a known depth."""
     arm = ArmModel(load_task(DEFAULT_TASK))
-    x, height = 0.7, 0.25
-    angle = 0.3
+    x, height = 0.7, 0.20
+    angle = 0.28          # the arm passes just above the top end (0.7 tan 0.28 > 0.16)
     z_top = height - OBSTACLE_RADIUS
     expected = abs(z_top * np.cos(angle) - x * np.sin(angle)) - ARM_RADIUS - OBSTACLE_RADIUS
     _, dist = arm.replay(np.array([[angle, 0.0, 0.0]]), [x, height])
@@ -200,7 +200,7 @@ def test_replay_rejects_tau_out_of_range(arm):
 
 
 # -- tau binding ------------------------------------------------------------------------------
-@pytest.mark.parametrize('tau', [[0.55, 0.15], [0.675, 0.25], [0.8, 0.35], [0.61, 0.33]])
+@pytest.mark.parametrize('tau', [[0.55, 0.10], [0.675, 0.16], [0.8, 0.22], [0.61, 0.2]])
 def test_tau_moves_mocap_obstacle(arm, tau):
     x, height = tau
     arm.reset(np.array(tau))

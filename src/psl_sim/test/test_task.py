@@ -16,9 +16,9 @@ EMBEDDED_XML = EMBEDDED_TASKS / f'{DEFAULT_TASK}.xml'
 
 # Hand-copied from reach_over_obstacle.yaml (an independent reference, not read back).
 TAU_NAMES = ['obstacle_x', 'obstacle_height']
-TAU_LOW = np.array([0.55, 0.15])
-TAU_HIGH = np.array([0.80, 0.35])
-TAU_DEFAULT = np.array([0.675, 0.25])
+TAU_LOW = np.array([0.55, 0.10])
+TAU_HIGH = np.array([0.80, 0.22])
+TAU_DEFAULT = np.array([0.675, 0.16])
 NUM_STEPS = 1000  # (duration 1.5 s + settle 0.5 s) * 500 Hz
 
 N_SAMPLES = 2000
@@ -120,7 +120,7 @@ def test_validate_tau_non_finite(bad, index):
 
 
 @pytest.mark.parametrize('index, value', [
-    (0, 0.55 - 1e-6), (0, 0.80 + 1e-6), (1, 0.15 - 1e-6), (1, 0.35 + 1e-6), (1, -5.0)])
+    (0, 0.55 - 1e-6), (0, 0.80 + 1e-6), (1, 0.10 - 1e-6), (1, 0.22 + 1e-6), (1, -5.0)])
 def test_validate_tau_out_of_range(index, value):
     task = load_task(DEFAULT_TASK)
     tau = TAU_DEFAULT.copy()
@@ -133,7 +133,7 @@ def test_validate_tau_out_of_range(index, value):
     assert f'{TAU_LOW[index]:g}' in message and f'{TAU_HIGH[index]:g}' in message
 
 
-@pytest.mark.parametrize('tau', [TAU_DEFAULT, TAU_LOW, TAU_HIGH, [0.6, 0.3], (0.8, 0.15)])
+@pytest.mark.parametrize('tau', [TAU_DEFAULT, TAU_LOW, TAU_HIGH, [0.6, 0.2], (0.8, 0.15)])
 def test_validate_tau_in_range_returns_float_array(tau):
     task = load_task(DEFAULT_TASK)
     result = task.validate_tau(tau)
