@@ -1,0 +1,123 @@
+"""The learning loop on the embedded task, in batch mode: it improves, and it resumes."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from psl_memory.skill_memory import SkillMemory
+from psl_optimizer.batch_rollout import BatchRollout
+from psl_optimizer.learning import Learner, LearnSettings, held_out_tasks, task_sequence
+from psl_optimizer.policy_search import SearchSettings
+from psl_sim.task import load_task
+
+TASK = 'reach_over_obstacle'
+SETTINGS = LearnSettings(strategy='bootstrap', num_tasks=6, seed=3, num_test=12,
+                         search=SearchSettings(max_rollouts=120))
+
+
+@pytest.fixture(scope='module')
+def task():
+    return load_task(TASK)
+
+
+@pytest.fixture(scope='module')
+def evaluator(task):
+    return BatchRollout(task)
+
+
+@pytest.fixture(scope='module')
+def finished(task, evaluator, tmp_path_factory):
+    out = tmp_path_factory.mktemp('learn_full')
+    return out, Learner(task, SETTINGS, out, evaluator).run()
+
+
+def memory_arrays(path):
+    skill = next(iter(SkillMemory.read(path).skills.values()))
+    return skill.get_state()
+
+
+def without_time(records):
+    return [{k: v for k, v in r.items() if k != 'seconds'} for r in records]
+
+
+def test_sequences_are_seeded_and_held_out_tasks_are_new(task):
+    np.testing.assert_array_equal(task_sequence(task, 5, 1), task_sequence(task, 5, 1))
+    assert not np.array_equal(task_sequence(task, 5, 1), task_sequence(task, 5, 2))
+    train, test = task_sequence(task, 50, 1), held_out_tasks(task, 20, 1)
+    assert not any(np.any(np.all(np.isclose(train, t), axis=1)) for t in test)
+
+
+def test_a_short_session_improves_over_the_demonstration(task, evaluator, finished):
+    out, metrics = finished
+    assert metrics['complete'] and len(metrics['tasks']) == SETTINGS.num_tasks
+    summary = metrics['summary']
+    assert summary['total_rollouts'] == sum(r['rollouts'] for r in metrics['tasks'])
+    # the skill, queried zero-shot on held-out instances, beats the demonstration there
+    test = np.array(summary['test_taus'])
+    demo = evaluator.run(np.tile(evaluator.policy.default_theta, (len(test), 1)), test)
+    demo_success = np.mean([r.evaluation.fulfilled for r in demo])
+    demo_reward = np.mean([r.evaluation.reward for r in demo])
+    assert summary['zero_shot_success_rate'] > demo_success
+    assert summary['zero_shot_mean_reward'] > demo_reward
+    # every fulfilled task is in the memory
+    skill = SkillMemory.read(out / 'memory.npz').get(TASK)
+    assert skill.num_samples == sum(r['fulfilled'] for r in metrics['tasks'])
+
+
+def test_stopped_session_resumes_to_the_same_result(task, evaluator, finished, tmp_path):
+    full_out, full = finished
+    calls = []
+
+    def stop_after_two():
+        calls.append(1)
+        return len(calls) > 2
+
+    partial = Learner(task, SETTINGS, tmp_path, evaluator).run(should_stop=stop_after_two)
+    assert not partial['complete'] and len(partial['tasks']) == 2
+    resumed = Learner(task, SETTINGS, tmp_path, evaluator).run()
+    assert without_time(resumed['tasks']) == without_time(full['tasks'])
+    assert resumed['summary'] == full['summary']
+    a, b = memory_arrays(tmp_path / 'memory.npz'), memory_arrays(full_out / 'memory.npz')
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def test_a_killed_learner_process_resumes_from_its_checkpoint(finished, tmp_path):
+    """SIGKILL `psl learn` after its second task, start it again: same memory, same tasks."""
+    full_out, full = finished
+    cmd = [sys.executable, '-m', 'psl_cli.main', 'learn', '--strategy', SETTINGS.strategy,
+           '--tasks', str(SETTINGS.num_tasks), '--seed', str(SETTINGS.seed),
+           '--budget', str(SETTINGS.search.max_rollouts), '--test-tasks',
+           str(SETTINGS.num_test), '--out', str(tmp_path)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            checkpoint = tmp_path / 'checkpoint.json'
+            if checkpoint.is_file() and len(json.loads(checkpoint.read_text())['tasks']) >= 2:
+                break
+            time.sleep(0.01)
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    done_before = len(json.loads((tmp_path / 'checkpoint.json').read_text())['tasks'])
+    assert 2 <= done_before < SETTINGS.num_tasks, 'killed too late to test a resume'
+    assert subprocess.run(cmd, capture_output=True, timeout=300).returncode == 0
+    metrics = json.loads((tmp_path / 'metrics.json').read_text())
+    assert without_time(metrics['tasks']) == without_time(full['tasks'])
+    a, b = memory_arrays(tmp_path / 'memory.npz'), memory_arrays(full_out / 'memory.npz')
+    assert all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def test_a_checkpoint_of_another_session_is_refused(task, evaluator, finished):
+    out, _ = finished
+    other = LearnSettings(strategy='scratch', num_tasks=6, seed=3)
+    with pytest.raises(ValueError, match='another session'):
+        Learner(task, other, out, evaluator).run()
