@@ -9,16 +9,32 @@ import os
 os.environ['ROS_DOMAIN_ID'] = os.environ.get('PSL_TEST_DOMAIN_ID', str(1 + os.getpid() % 100))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from psl_cli.graph import Graph, pid_alive  # noqa: E402
-from psl_cli.ros_client import RosClient  # noqa: E402
+from psl_cli.ros_client import RosClient, evaluation_dict  # noqa: E402
+
+# graph mode against batch mode: the same law on the same states, only the order of the
+# floating-point additions differs
+Q_TOLERANCE = 1e-9          # rad, joint angles at every control period
+REWARD_TOLERANCE = 1e-9     # reward, absolute
+COMPONENT_RTOL, COMPONENT_ATOL = 1e-9, 1e-12
 
 
 @pytest.fixture(scope='module')
-def graph(tmp_path_factory):
+def graph_task():
+    """The task (name or YAML path) the module's graph starts with; a module overrides this
+    fixture to run the graph on another task or robot."""
+    return 'reach_over_obstacle'
+
+
+@pytest.fixture(scope='module')
+def graph(tmp_path_factory, graph_task):
     """The robot loop in lockstep, one process per node; ended by PID whatever happens."""
-    g = Graph(log_dir=tmp_path_factory.mktemp('graph_logs'))
+    g = Graph(task=graph_task, log_dir=tmp_path_factory.mktemp('graph_logs'))
     try:
         g.start()
         g.wait_ready(timeout=60)
@@ -33,3 +49,44 @@ def graph(tmp_path_factory):
 def client(graph):
     with RosClient() as c:
         yield c
+
+
+@pytest.fixture(scope='module')
+def graph_matches_batch(client):
+    """A check: roll out theta on (task, tau) through the graph (recording its joint_states)
+    and in batch mode; assert that the joint trajectories, the rewards and every reward
+    component agree; return (graph evaluation, batch result)."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import JointState
+
+    from psl_optimizer.batch_rollout import BatchRollout
+    from psl_sim.task import task_id
+
+    def check(task, tau, theta):
+        states = {}
+        sub = client.node.create_subscription(
+            JointState, 'joint_states',
+            lambda m: states.__setitem__(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, m),
+            QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE))
+        try:
+            client.wait_for_subscribers(['joint_states'])
+            result = client.rollout(task_id(task), tau, theta)
+            time.sleep(0.3)
+        finally:
+            client.node.destroy_subscription(sub)
+        assert result.success, result.message
+        stamp = result.evaluation.stamp
+        t0 = stamp.sec * 10**9 + stamp.nanosec
+        q_graph = np.array([states[t0 + k * task.control_period_ns].position
+                            for k in range(task.num_steps + 1)])
+        batch = BatchRollout(task).run(np.asarray(theta)[None], tau)[0]
+        assert q_graph.shape == batch.q.shape == (task.num_steps + 1, task.n_joints)
+        assert np.abs(q_graph - batch.q).max() < Q_TOLERANCE
+        assert result.evaluation.reward == pytest.approx(batch.evaluation.reward,
+                                                         abs=REWARD_TOLERANCE)
+        graph_components = evaluation_dict(result.evaluation)['components']
+        for name, value in batch.evaluation.components.items():
+            assert graph_components[name] == pytest.approx(value, rel=COMPONENT_RTOL,
+                                                           abs=COMPONENT_ATOL)
+        return result.evaluation, batch
+    return check

@@ -160,36 +160,9 @@ def test_recorded_bag_reads_back(client, task, theta, tmp_path, reference_result
     assert (bag / 'metadata.yaml').read_text().count('storage_identifier: mcap') == 1
 
 
-def test_graph_and_batch_mode_agree(client, task, theta):
+def test_graph_and_batch_mode_agree(graph_matches_batch, task, theta):
     """The same policy and task instance in graph mode (separate processes, lockstep) and in
     batch mode (mujoco.rollout, PD inside the model): same joint trajectory and reward."""
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import JointState
-
-    from psl_optimizer.batch_rollout import BatchRollout
-
     rng = np.random.default_rng(7)
     perturbed = theta + rng.normal(0.0, 0.1 * np.abs(theta).max(), theta.size)
-    tau = task.sample_tau(rng)
-    states = {}
-    sub = client.node.create_subscription(
-        JointState, 'joint_states',
-        lambda m: states.__setitem__(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, m),
-        QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE))
-    try:
-        client.wait_for_subscribers(['joint_states'])
-        result = client.rollout(TASK, tau, perturbed)
-        time.sleep(0.3)
-    finally:
-        client.node.destroy_subscription(sub)
-    assert result.success, result.message
-    stamp = result.evaluation.stamp
-    t0 = stamp.sec * 10**9 + stamp.nanosec
-    q_graph = np.array([states[t0 + k * task.control_period_ns].position
-                        for k in range(task.num_steps + 1)])
-    batch = BatchRollout(task).run(perturbed[None], tau)[0]
-    assert np.abs(q_graph - batch.q).max() < 1e-9
-    assert result.evaluation.reward == pytest.approx(batch.evaluation.reward, abs=1e-9)
-    graph_components = components(result.evaluation)
-    for name, value in batch.evaluation.components.items():
-        assert graph_components[name] == pytest.approx(value, rel=1e-9, abs=1e-12)
+    graph_matches_batch(task, task.sample_tau(rng), perturbed)

@@ -18,11 +18,12 @@ setup(
     zip_safe=True,
     maintainer='psl developers',
     maintainer_email='psl@example.com',
-    description='Reward evaluation and (later) policy search of psl.',
+    description='Reward evaluation, policy search (CMA-ES) and the learning loop of psl.',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
             'reward_evaluator = psl_optimizer.reward_evaluator_node:main',
+            'learner = psl_optimizer.learner_node:main',
         ],
     },
 )

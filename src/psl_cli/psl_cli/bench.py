@@ -5,6 +5,7 @@ the bare publish/answer round trip between two processes measured in the same ru
 deadline misses of the realtime mode at 500 Hz over a long episode.
 ``psl bench memory``: per-sample update and query time of each readout against the number of
 stored samples, and the query service round trip beside a bare DDS round trip.
+``psl bench learn``: policy-search strategies over task instances (`psl_cli.bench_learn`).
 """
 from __future__ import annotations
 
@@ -38,6 +39,8 @@ def add_arguments(parser) -> None:
     memory.add_argument('--service-samples', type=int, default=1000)
     memory.add_argument('--round-trips', type=int, default=1000)
     memory.add_argument('--json', action='store_true')
+    from psl_cli import bench_learn
+    bench_learn.add_arguments(sub)
 
 
 def add_rollout_arguments(sub) -> None:
@@ -96,6 +99,9 @@ def main(args) -> int:
         return bench_graph(args)
     if args.bench == 'memory':
         return bench_memory(args)
+    if args.bench == 'learn':
+        from psl_cli import bench_learn
+        return bench_learn.main(args)
     raise ValueError(f'unknown benchmark {args.bench!r}')
 
 
@@ -253,7 +259,7 @@ def bench_graph(args) -> int:
     from psl_cli.graph import Graph
     from psl_cli.ros_client import RosClient
     from psl_controller.policy import policy_for
-    from psl_sim.task import load_task
+    from psl_sim.task import load_task, task_id
 
     task = load_task(args.task)
     theta = policy_for(task).default_theta
@@ -264,7 +270,7 @@ def bench_graph(args) -> int:
     report['round_trip_ms'] = {'p50': 1e3 * statistics.median(rtt),
                                'p99': 1e3 * float(np.percentile(rtt, 99)), 'n': len(rtt)}
 
-    with Graph(task=task.name, mode='lockstep') as graph:
+    with Graph(task=task_id(task), mode='lockstep') as graph:
         graph.wait_ready()
         with RosClient() as client:
             stats = EpisodeStats(client.node)
@@ -272,7 +278,7 @@ def bench_graph(args) -> int:
             rollout_wall = []
             for _ in range(args.rollouts):
                 start = time.perf_counter()
-                result = client.rollout(task.name, task.sample_tau(rng), theta)
+                result = client.rollout(task_id(task), task.sample_tau(rng), theta)
                 rollout_wall.append(time.perf_counter() - start)
                 if not result.success:
                     raise RuntimeError(result.message)
@@ -292,7 +298,7 @@ def bench_graph(args) -> int:
 
     if args.realtime_seconds > 0:
         seconds = args.realtime_seconds
-        graph = Graph(task=task.name, mode='realtime',
+        graph = Graph(task=task_id(task), mode='realtime',
                       nodes=(('sim', 'psl_sim', 'sim'), ('pd_controller', 'psl_controller',
                                                          'pd_controller')),
                       extra_params={'sim': {'episode_duration': seconds}})
@@ -307,7 +313,7 @@ def bench_graph(args) -> int:
                         raise RuntimeError('controller did not come up')
                     time.sleep(0.1)
                 time.sleep(1.0)
-                response = client.reset(task.name, task.tau_default)
+                response = client.reset(task_id(task), task.tau_default)
                 if not response.success:
                     raise RuntimeError(response.message)
                 if not stats.event.wait(timeout=seconds * 1.5 + 30):

@@ -16,7 +16,7 @@ from psl_cli.bag_recorder import read_bag_summary, record
 from psl_cli.graph import Graph
 from psl_cli.ros_client import RosClient, evaluation_dict
 from psl_controller.policy import policy_for
-from psl_sim.task import load_task
+from psl_sim.task import load_task, task_id
 
 TOPICS = ['joint_states', 'ee_pose', 'effort_command', 'reference', 'joint_trajectory',
           'task_instance', 'rollout_evaluation', '/clock']
@@ -40,7 +40,7 @@ def run_demo(task: str, out: Path, positions: int = 5) -> int:
     out.mkdir(parents=True, exist_ok=True)
     bag = out / time.strftime('bag-%Y%m%d-%H%M%S')
     rows = []
-    with Graph(task=definition.name, mode='lockstep') as graph:
+    with Graph(task=task_id(definition), mode='lockstep') as graph:
         print('started ' + ', '.join(f'{p.name} (pid {p.pid})' for p in graph.processes),
               flush=True)
         graph.wait_ready()
@@ -52,7 +52,7 @@ def run_demo(task: str, out: Path, positions: int = 5) -> int:
             with RosClient() as client:
                 client.wait_for_subscribers([t for t in TOPICS if t in client.LOOP_TOPICS])
                 for tau in placements(definition, positions):
-                    result = client.rollout(definition.name, tau, theta)
+                    result = client.rollout(task_id(definition), tau, theta)
                     if not result.success:
                         print(f'rollout at tau={tau.tolist()} failed: {result.message}')
                         return 1

@@ -20,6 +20,7 @@ NODES = (  # (name, package, executable)
     ('dmp_executor', 'psl_controller', 'dmp_executor'),
     ('reward_evaluator', 'psl_optimizer', 'reward_evaluator'),
     ('skill_memory', 'psl_memory', 'skill_memory'),
+    ('learner', 'psl_optimizer', 'learner'),
 )
 
 
@@ -97,7 +98,7 @@ class Graph:
         common = {'task': self.task}
         if name == 'sim':
             common['mode'] = self.mode
-        if name in ('dmp_executor', 'reward_evaluator'):
+        if name in ('dmp_executor', 'reward_evaluator', 'learner'):
             common = {}
         if name == 'skill_memory':
             common = {'tasks': f'[{self.task}]'}

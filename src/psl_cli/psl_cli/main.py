@@ -64,7 +64,7 @@ def format_evaluation(ev: dict) -> str:
 
 def cmd_rollout(args) -> int:
     from psl_cli.ros_client import RosClient, evaluation_dict
-    from psl_sim.task import TaskError, load_task
+    from psl_sim.task import TaskError, load_task, task_id
 
     try:
         task = load_task(args.task)
@@ -75,7 +75,8 @@ def cmd_rollout(args) -> int:
         return 2
     with RosClient(args.namespace) as client:
         try:
-            result = client.rollout(args.task, tau, theta, timeout=args.timeout)
+            # by name, or by absolute path: the graph's processes have their own working dir
+            result = client.rollout(task_id(task), tau, theta, timeout=args.timeout)
         except (TimeoutError, RuntimeError) as exc:
             print(f'psl rollout: {exc}', file=sys.stderr)
             return 1
@@ -151,9 +152,9 @@ def _load_values(args) -> list[float]:
 
 
 def cmd_learn(args) -> int:
-    """psl learn: one learning session in batch mode, resumable from its output folder."""
-    from psl_optimizer.learning import Learner, LearnSettings
-    from psl_optimizer.policy_search import STRATEGIES, SearchSettings
+    """psl learn: one learning session, resumable from its output folder. Batch mode runs
+    in this process; graph mode sends the session to the running graph's learner node."""
+    from psl_optimizer.policy_search import STRATEGIES
     from psl_sim.task import TaskError, load_task
 
     if args.strategy not in STRATEGIES:
@@ -165,31 +166,104 @@ def cmd_learn(args) -> int:
     except TaskError as exc:
         print(f'psl learn: {exc}', file=sys.stderr)
         return 2
-    out = Path(args.out or f'runs/{task.name}-{args.strategy}-seed{args.seed}')
-    settings = LearnSettings(strategy=args.strategy, num_tasks=args.tasks, seed=args.seed,
-                             num_test=args.test_tasks,
-                             search=SearchSettings(max_rollouts=args.budget))
-    total = [0]
-
-    def progress(record: dict) -> None:
-        total[0] += record['rollouts']
-        done = record['index'] + 1
-        bar = '#' * int(30 * done / args.tasks)
-        print(f"\r[{bar:30s}] task {done}/{args.tasks}: {record['rollouts']:4d} rollouts, "
-              f"{'fulfilled' if record['fulfilled'] else 'NOT fulfilled'}, best reward "
-              f"{record['best_reward']:.3f}   ", end='\n' if args.verbose else '', flush=True)
-
+    out = Path(args.out or f'runs/{task.name}-{args.strategy}-seed{args.seed}').resolve()
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
-        metrics = Learner(task, settings, out).run(progress=progress)
-    except ValueError as exc:
-        print(f'\npsl learn: {exc}', file=sys.stderr)
-        return 2
+        learn = _learn_in_graph if args.mode == 'graph' else _learn_in_process
+        return learn(args, task, out, stop)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _progress_line(args, index: int, rollouts: int, best: float, fulfilled: bool,
+                   final: bool) -> None:
+    done = index + 1 if final else index
+    bar = '#' * int(30 * done / args.tasks)
+    state = 'fulfilled' if fulfilled else ('NOT fulfilled' if final else 'searching')
+    print(f"\r[{bar:30s}] task {index + 1}/{args.tasks}: {rollouts:4d} rollouts, {state}, "
+          f"best reward {best:.3f}   ", end='\n' if (args.verbose and final) else '',
+          flush=True)
+
+
+def _print_summary(args, metrics: dict, out: Path) -> None:
     print()
     if 'summary' in metrics:
         s = metrics['summary']
         print(f"{s['total_rollouts']} rollouts over {args.tasks} tasks; held-out zero-shot "
               f"success {100 * s['zero_shot_success_rate']:.0f} % (mean reward "
               f"{s['zero_shot_mean_reward']:.3f}); metrics in {out / 'metrics.json'}")
+
+
+def _learn_in_process(args, task, out: Path, stop: threading.Event) -> int:
+    from psl_optimizer.learning import Learner, LearnSettings
+    from psl_optimizer.policy_search import SearchSettings
+
+    settings = LearnSettings(strategy=args.strategy, num_tasks=args.tasks, seed=args.seed,
+                             num_test=args.test_tasks,
+                             search=SearchSettings(max_rollouts=args.budget))
+
+    def progress(record: dict) -> None:
+        _progress_line(args, record['index'], record['rollouts'], record['best_reward'],
+                       record['fulfilled'], final=True)
+
+    try:
+        metrics = Learner(task, settings, out).run(progress=progress, should_stop=stop.is_set)
+    except ValueError as exc:
+        print(f'\npsl learn: {exc}', file=sys.stderr)
+        return 2
+    if not metrics['complete']:
+        print(f"\npsl learn: stopped after {len(metrics['tasks'])} of {args.tasks} tasks; the "
+              f'same command resumes from {out}', file=sys.stderr)
+        return 130
+    _print_summary(args, metrics, out)
+    return 0
+
+
+def _learn_in_graph(args, task, out: Path, stop: threading.Event) -> int:
+    from psl_cli.ros_client import RosClient
+    from psl_sim.task import task_id
+
+    def feedback(message) -> None:
+        fb = message.feedback
+        _progress_line(args, fb.task_index, fb.rollouts, fb.best_reward, fb.fulfilled,
+                       final=False)
+
+    with RosClient(args.namespace) as client:
+        try:
+            handle = client.send_learn_goal(
+                feedback=feedback, task=task_id(task), strategy=args.strategy,
+                num_tasks=args.tasks, max_rollouts_per_task=args.budget, seed=args.seed,
+                mode='graph', output_dir=str(out))
+            future = handle.get_result_async()
+            while not future.done():
+                if stop.wait(0.1):
+                    print('\npsl learn: cancelling (finished tasks stay in the checkpoint)',
+                          file=sys.stderr)
+                    handle.cancel_goal_async()
+                    stop.clear()
+            result = future.result().result
+        except (TimeoutError, RuntimeError) as exc:
+            print(f'\npsl learn: {exc}', file=sys.stderr)
+            return 1
+    if not result.success:
+        print(f'\npsl learn: {result.message}', file=sys.stderr)
+        return 1
+    _print_summary(args, json.loads(Path(result.metrics_path).read_text()), out)
+    return 0
+
+
+def cmd_plot(args) -> int:
+    """psl plot DIR...: rollouts per task, reward over tau, predictive variance over tau."""
+    from psl_cli.plot import plot_runs
+
+    out = Path(args.out) if args.out else Path(args.dirs[0]) / 'learning.png'
+    try:
+        path = plot_runs(args.dirs, out)
+    except (ValueError, OSError) as exc:
+        print(f'psl plot: {exc}', file=sys.stderr)
+        return 2
+    print(path)
     return 0
 
 
@@ -267,8 +341,8 @@ def build_parser() -> argparse.ArgumentParser:
     actions.add_parser('info', parents=[common], help='the skills and their sample counts')
     memory.set_defaults(func=cmd_memory)
 
-    learn = sub.add_parser('learn', help='learn a skill over random task instances (batch '
-                           'mode; resumes from the checkpoint in --out)')
+    learn = sub.add_parser('learn', help='learn a skill over random task instances (resumes '
+                           'from the checkpoint in --out)')
     learn.add_argument('--task', default='reach_over_obstacle')
     learn.add_argument('--strategy', default='bootstrap',
                        help='scratch | bootstrap | bootstrap_cost | hybrid')
@@ -277,8 +351,19 @@ def build_parser() -> argparse.ArgumentParser:
     learn.add_argument('--seed', type=int, default=0)
     learn.add_argument('--test-tasks', type=int, default=20)
     learn.add_argument('--out', help='output folder (default runs/TASK-STRATEGY-seedK)')
+    learn.add_argument('--mode', choices=('batch', 'graph'), default='batch',
+                       help='batch: rollouts in this process with mujoco.rollout (fast); graph: '
+                       "the running graph's learner node, rollouts through execute_rollout")
+    learn.add_argument('--namespace', default='', help='graph mode: namespace of the graph')
     learn.add_argument('--verbose', action='store_true', help='one line per task')
     learn.set_defaults(func=cmd_learn)
+
+    plot = sub.add_parser('plot', help='plot learning runs (output folders of psl learn) '
+                          'into one PNG')
+    plot.add_argument('dirs', nargs='+', metavar='DIR', help='run folders; several seeds of a '
+                      'strategy are drawn as mean and min-max band')
+    plot.add_argument('--out', help='PNG file (default: DIR/learning.png of the first DIR)')
+    plot.set_defaults(func=cmd_plot)
 
     rec = sub.add_parser('record', help='record topics into a rosbag2 (MCAP) bag')
     rec.add_argument('-o', '--output', required=True)

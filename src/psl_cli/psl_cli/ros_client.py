@@ -6,14 +6,14 @@ import time
 
 import numpy as np
 import rclpy
-from rclpy.action import ActionClient
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-from psl_msgs.action import ExecuteRollout
+from psl_msgs.action import ExecuteRollout, LearnSkill
 from psl_msgs.msg import RolloutEvaluation
 from psl_msgs.srv import (AddSample, CompletePattern, LoadMemory, QuerySkill, ResetTask,
                           SaveMemory)
+from psl_sim.action_client import ActionClient
 from std_srvs.srv import Trigger
 
 MEMORY_SERVICES = {'query': QuerySkill, 'add_sample': AddSample, 'complete': CompletePattern,
@@ -30,6 +30,7 @@ class RosClient:
         self.node = Node(f'{name}_{id(self) % 100000}', namespace=namespace or '/',
                          context=self.context)
         self.rollout_client = ActionClient(self.node, ExecuteRollout, 'execute_rollout')
+        self.learn_client = ActionClient(self.node, LearnSkill, 'learn_skill')
         self.reset_client = self.node.create_client(ResetTask, 'sim/reset')
         self.memory_clients = {name: self.node.create_client(srv, f'skill_memory/{name}')
                                for name, srv in MEMORY_SERVICES.items()}
@@ -143,6 +144,23 @@ class RosClient:
             raise RuntimeError('the rollout goal was rejected')
         remaining = max(1.0, timeout - (time.monotonic() - start))
         return self._wait(handle.get_result_async(), remaining, 'execute_rollout result').result
+
+    def send_learn_goal(self, timeout: float = 30.0, feedback=None, **fields):
+        """Send a learn_skill goal (fields of psl_msgs/LearnSkill.Goal) to the learner node;
+        returns the accepted goal handle (`.get_result_async()`, `.cancel_goal_async()`)."""
+        if not self.learn_client.wait_for_server(timeout_sec=timeout):
+            raise TimeoutError('the learner action server learn_skill is not available '
+                               '(is the graph up?)')
+        handle = self._wait(self.learn_client.send_goal_async(
+            LearnSkill.Goal(**fields), feedback_callback=feedback), timeout, 'learn_skill goal')
+        if not handle.accepted:
+            raise RuntimeError('the learn_skill goal was rejected')
+        return handle
+
+    def learn(self, timeout: float = 3600.0, feedback=None, **fields) -> LearnSkill.Result:
+        """One learning session through the learner node; returns its result."""
+        handle = self.send_learn_goal(feedback=feedback, **fields)
+        return self._wait(handle.get_result_async(), timeout, 'learn_skill result').result
 
 
 def evaluation_dict(evaluation: RolloutEvaluation) -> dict:

@@ -6,12 +6,15 @@ bias ``[0, -Kp, -Kd]``) clipped to the model's torque limits (``forcerange``), a
 of step k is ``ctrl_k = Kp q_ref(t_k) + Kd qd_ref(t_k) + u_ffwd(t_k)`` from the policy's reference
 on the control grid. That is the graph's controller law evaluated on the same state at the same
 step; only the order of the floating-point additions differs. The task parameters that move
-things (mocap bodies) enter through the control vector (``mjSTATE_MOCAP_POS``); the obstacle
-distances and the end-effector position are MuJoCo sensors of the batch model, so the reward
-needs no Python loop over steps either. Imports no ROS.
+things (mocap bodies) enter through the control vector (``mjSTATE_MOCAP_POS``); those that
+change the model (body masses) get a copy of the batch model per task instance. The obstacle
+distances and the end-effector position are MuJoCo sensors appended to the batch model (after
+any sensors of the task's own model), so the reward needs no Python loop over steps either.
+Imports no ROS.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import mujoco
@@ -73,6 +76,7 @@ class BatchRollout:
         self.model = batch_model(task, self.arm)
         self.datas = [mujoco.MjData(self.model) for _ in range(max(1, n_threads))]
         self.n_pairs = len(self.arm.arm_geoms) * len(self.arm.obstacle_geoms)
+        self.sensor_start = self.arm.model.nsensordata   # ours follow the model's own sensors
         self.n_steps = task.num_steps
         data = self.datas[0]
         mujoco.mj_resetData(self.model, data)
@@ -89,11 +93,25 @@ class BatchRollout:
         for b, tau in enumerate(taus):
             data = self.datas[0]
             data.mocap_pos[:] = self.mocap_template
-            self.arm.apply_tau(tau, data)
+            self.arm.move_bodies(tau, data)
             mocap[b] = data.mocap_pos
-        mocap = np.broadcast_to(mocap.reshape(len(taus), 1, -1),
-                                (len(taus), ctrl.shape[1], mocap.shape[1] * 3))
+        n_mocap = 3 * self.model.nmocap
+        mocap = np.broadcast_to(mocap.reshape(len(taus), 1, n_mocap),
+                                (len(taus), ctrl.shape[1], n_mocap))
         return np.concatenate([ctrl, mocap], axis=2)
+
+    def models(self, taus: np.ndarray) -> mujoco.MjModel | list[mujoco.MjModel]:
+        """The batch model, or one copy per rollout when task parameters change the model
+        (e.g. a payload mass); rollouts of the same instance share a copy."""
+        if not self.arm.changes_model:
+            return self.model
+        copies: dict[tuple, mujoco.MjModel] = {}
+        for tau in taus:
+            if tuple(tau) not in copies:
+                model = copy.copy(self.model)
+                self.arm.apply_tau(tau, self.datas[0], model)
+                copies[tuple(tau)] = model
+        return [copies[tuple(tau)] for tau in taus]
 
     def run(self, thetas: np.ndarray, taus: np.ndarray) -> list[BatchResult]:
         """Roll out thetas (B, F) on task instances taus (B, E) or one tau (E,)."""
@@ -105,8 +123,9 @@ class BatchRollout:
         control = self.controls(references, taus)
         # N+1 steps: the sensors of step k see state k, so step N gives state N's sensors;
         # the state after that extra step is not used.
-        state, sensors = mj_rollout.rollout(self.model, self.datas, self.initial_state[None],
-                                            control, control_spec=CONTROL)
+        state, sensors = mj_rollout.rollout(self.models(taus), self.datas,
+                                            self.initial_state[None], control,
+                                            control_spec=CONTROL)
         n = len(self.arm.joint_names)
         qpos = state[:, :, 1 + self.arm.qpos_adr]                    # states 1..N+1
         qvel = state[:, :, 1 + self.model.nq + self.arm.dof_adr]
@@ -120,8 +139,9 @@ class BatchRollout:
         u = np.clip(self.task.kp * (q_ref - q) + self.task.kd * (qd_ref - qd) + u_ffwd,
                     self.arm.torque_low, self.arm.torque_high)
         torque = np.concatenate([np.zeros((len(thetas), 1, n)), u[:, :-1]], axis=1)
-        distance = sensors[:, :, :self.n_pairs].min(axis=2) if self.n_pairs else None
-        ee_final = sensors[:, -1, self.n_pairs:self.n_pairs + 3]
+        start, n_pairs = self.sensor_start, self.n_pairs
+        distance = sensors[:, :, start:start + n_pairs].min(axis=2) if n_pairs else None
+        ee_final = sensors[:, -1, start + n_pairs:start + n_pairs + 3]
         evaluations = evaluate_population(self.arm, q, torque, q_ref, ee_final, distance)
         return [BatchResult(q=q[b], torque=torque[b], q_ref=q_ref[b], evaluation=evaluations[b])
                 for b in range(len(thetas))]

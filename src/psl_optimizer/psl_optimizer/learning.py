@@ -101,6 +101,7 @@ class Learner:
             evaluate = batch_evaluator(evaluator or BatchRollout(task))
         self.evaluate = evaluate
         self.skill = skill or InProcessSkill(task, settings.skill, self.default_theta)
+        self.done: list[dict] = []      # finished tasks' records (from the checkpoint, then run)
 
     # -- checkpoints --------------------------------------------------------------------------
     @property
@@ -139,7 +140,7 @@ class Learner:
         Returns the metrics (also written to out/metrics.json)."""
         self.out.mkdir(parents=True, exist_ok=True)
         s = self.settings
-        done = self._load_checkpoint()
+        done = self.done = self._load_checkpoint()
         scaler = scaler_around(self.default_theta)      # the skill's own theta scaling
         centre, scale = 0.5 * (scaler.high + scaler.low), 0.5 * (scaler.high - scaler.low)
         taus = task_sequence(self.task, s.num_tasks, s.seed)

@@ -7,6 +7,11 @@ Strategies (Queißer et al. 2016; reference chapter section 2.2.1):
   (normalised theta units), which prefers solutions the skill can represent;
 - ``hybrid``: first a coarse search over tau' in the E-dimensional task space with
   theta = PS(tau'), then refinement in the full F-dimensional policy space from the best theta.
+  The coarse phase is only worth its rollouts when the skill already maps the task space to
+  distinct policies and the search makes headway, so it is skipped while PS(tau') stays within
+  one fine step of PS(tau) around tau (a young skill: with no sample PS is constant), and it
+  ends once `hybrid_patience` generations in a row raise the best reward by no more than
+  `hybrid_min_gain` of its magnitude (see `hybrid_search`).
 Every search stops as soon as a rollout fulfils the task instance or the rollout budget is
 spent; every rollout is counted. CMA-ES works in normalised coordinates
 (theta = centre + scale * z) so one step size fits every task. Imports no ROS.
@@ -33,6 +38,15 @@ class SearchSettings:
     cost_weight: float = 0.05       # beta of bootstrap_cost, per normalised unit squared
     hybrid_rollouts: float = 0.3    # share of the budget for the coarse task-space search
     hybrid_sigma0: float = 0.3      # initial step size of the task-space search, share of range
+    hybrid_patience: int = 1        # coarse generations in a row without progress before refining
+    hybrid_min_gain: float = 0.01   # progress: best reward up by more than this share of |best|
+    hybrid_min_reach: float = 1.0   # coarse phase only if PS moves theta >= this many sigma0
+
+    def __post_init__(self):
+        if self.hybrid_patience < 1:
+            raise ValueError(f'hybrid_patience must be >= 1, got {self.hybrid_patience}')
+        if self.hybrid_min_gain < 0.0 or self.hybrid_min_reach < 0.0:
+            raise ValueError('hybrid_min_gain and hybrid_min_reach must be >= 0')
 
 
 @dataclasses.dataclass
@@ -82,11 +96,18 @@ def _cma(x0: np.ndarray, sigma0: float, popsize: int, seed: int, bounds=None):
 
 def cma_search(budget: _Budget, x0: np.ndarray, to_theta: Callable[[np.ndarray], np.ndarray],
                sigma0: float, popsize: int, seed: int, max_rollouts: int,
-               penalty: Callable[[np.ndarray], float] | None = None, bounds=None) -> None:
-    """Minimise -reward (+ penalty) over x with CMA-ES until done or max_rollouts used."""
+               penalty: Callable[[np.ndarray], float] | None = None, bounds=None,
+               patience: int | None = None, min_gain: float = 0.0) -> None:
+    """Minimise -reward (+ penalty) over x with CMA-ES until done or max_rollouts used.
+
+    With `patience`, also stop after that many generations in a row none of which raised the
+    budget's best reward by more than ``min_gain * |best before the generation|`` (the first
+    generation is measured against the best before the search, e.g. its start)."""
     es = _cma(x0, sigma0, popsize, seed, bounds)
     stop_at = len(budget.rewards) + max_rollouts
+    idle = 0                                # generations in a row without progress
     while not budget.done and len(budget.rewards) < stop_at:
+        best_before = budget.best_reward
         xs = np.array(es.ask())
         xs = xs[: max(1, stop_at - len(budget.rewards))]
         rewards = budget(np.array([to_theta(x) for x in xs]))
@@ -94,6 +115,61 @@ def cma_search(budget: _Budget, x0: np.ndarray, to_theta: Callable[[np.ndarray],
             break
         costs = -rewards + (np.array([penalty(x) for x in xs]) if penalty else 0.0)
         es.tell(list(xs), costs.tolist())
+        if patience is not None:
+            progress = (not np.isfinite(best_before)
+                        or budget.best_reward - best_before > min_gain * abs(best_before))
+            idle = 0 if progress else idle + 1
+            if idle >= patience:
+                break
+
+
+def task_space_reach(skill_estimate: Callable[[np.ndarray], np.ndarray], tau: np.ndarray,
+                     tau_low: np.ndarray, tau_high: np.ndarray, theta_scale: np.ndarray,
+                     step: float) -> float:
+    """How far the skill moves theta when tau moves: the largest RMS over theta's normalised
+    coordinates of PS(tau') - PS(tau), over the probes tau' = tau +- step * (high - low) along
+    each task axis, clipped to the ranges. Costs skill queries only, no rollout."""
+    centre = skill_estimate(tau)
+    span = tau_high - tau_low
+    reach = 0.0
+    for axis in np.eye(tau.size):
+        for sign in (-1.0, 1.0):
+            probe = np.clip(tau + sign * step * span * axis, tau_low, tau_high)
+            moved = (skill_estimate(probe) - centre) / theta_scale
+            reach = max(reach, float(np.sqrt(np.mean(moved ** 2))))
+    return reach
+
+
+def hybrid_search(budget: _Budget, tau: np.ndarray, skill_estimate, to_theta, to_z,
+                  theta_scale: np.ndarray, tau_low: np.ndarray, tau_high: np.ndarray,
+                  settings: SearchSettings, seed: int) -> None:
+    """Coarse CMA-ES over u = (tau' - low) / span with theta = PS(tau'), then CMA-ES in the
+    full normalised theta space from the best theta found (budget's start already evaluated).
+
+    The coarse phase runs only when the skill reaches at least ``hybrid_min_reach * sigma0``
+    (`task_space_reach` with probes 2 hybrid_sigma0 away, where its first generations land):
+    otherwise every PS(tau') lies within the step the refinement's first generation takes
+    anyway. It gets at most ``hybrid_rollouts`` of the budget and stops early on stagnation
+    (``hybrid_patience``, ``hybrid_min_gain``; see `cma_search`)."""
+    span = tau_high - tau_low
+    if not budget.done and task_space_reach(skill_estimate, tau, tau_low, tau_high, theta_scale,
+                                            2.0 * settings.hybrid_sigma0) \
+            >= settings.hybrid_min_reach * settings.sigma0:
+        coarse = max(settings.popsize, int(settings.hybrid_rollouts * settings.max_rollouts))
+        u0 = (tau - tau_low) / span
+
+        def task_theta(u):
+            return skill_estimate(tau_low + np.clip(u, 0.0, 1.0) * span)
+        if tau.size == 1:   # cma needs >= 2 dimensions: search a duplicated coordinate
+            x0, to_coarse_theta = np.r_[u0, u0], lambda u: task_theta(u[:1])
+        else:
+            x0, to_coarse_theta = u0, task_theta
+        cma_search(budget, x0, to_coarse_theta, settings.hybrid_sigma0, settings.popsize, seed,
+                   coarse - 1, patience=settings.hybrid_patience,
+                   min_gain=settings.hybrid_min_gain)
+    if not budget.done:
+        cma_search(budget, to_z(budget.best_theta), to_theta, settings.sigma0,
+                   settings.popsize, seed + 7, budget.left)
 
 
 def search(strategy: str, evaluate: Evaluate, tau: np.ndarray, default_theta: np.ndarray,
@@ -125,24 +201,9 @@ def search(strategy: str, evaluate: Evaluate, tau: np.ndarray, default_theta: np
         def penalty(z):
             return settings.cost_weight * float(np.sum((z - z_start) ** 2))
     if strategy == 'hybrid':
-        span = tau_high - tau_low
-        coarse = max(settings.popsize, int(settings.hybrid_rollouts * settings.max_rollouts))
-        # the start itself is the first coarse candidate: theta = PS(tau)
-        budget(start[None])
-        if not budget.done:
-            u0 = (tau - tau_low) / span
-
-            def task_theta(u):
-                return skill_estimate(tau_low + np.clip(u, 0.0, 1.0) * span)
-            if tau.size == 1:   # cma needs >= 2 dimensions: search a duplicated coordinate
-                cma_search(budget, np.r_[u0, u0], lambda u: task_theta(u[:1]),
-                           settings.hybrid_sigma0, settings.popsize, seed, coarse - 1)
-            else:
-                cma_search(budget, u0, task_theta, settings.hybrid_sigma0, settings.popsize,
-                           seed, coarse - 1)
-        if not budget.done:
-            cma_search(budget, to_z(budget.best_theta), to_theta, settings.sigma0,
-                       settings.popsize, seed + 7, budget.left)
+        budget(start[None])     # the start is the first coarse candidate: theta = PS(tau)
+        hybrid_search(budget, tau, skill_estimate, to_theta, to_z, theta_scale, tau_low,
+                      tau_high, settings, seed)
     else:
         budget(start[None])       # the start is a candidate too: zero-shot success counts
         if not budget.done:

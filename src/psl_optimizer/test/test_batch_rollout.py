@@ -1,13 +1,14 @@
 """Batch mode against a second implementation: the same law stepped in Python, step by step."""
 import numpy as np
 import pytest
+import yaml
 
 from psl_controller.pd_law import pd_feedforward
 from psl_controller.policy import policy_for
 from psl_optimizer.batch_rollout import BatchRollout
 from psl_optimizer.reward import evaluate_rollout
 from psl_sim.arm_model import ArmModel
-from psl_sim.task import TaskError, load_task
+from psl_sim.task import EMBEDDED_TASKS, TaskError, load_task
 
 Q_TOLERANCE = 1e-12        # rad; only the order of floating-point additions differs
 REWARD_TOLERANCE = 1e-9
@@ -95,3 +96,48 @@ def test_population_reward_equals_member_by_member(task, batch):
         for name, value in single.components.items():
             assert result.evaluation.components[name] == pytest.approx(value, rel=1e-9,
                                                                        abs=1e-12)
+
+
+# -- a model unlike reach_over_obstacle's ------------------------------------------------------
+def payload_task(folder):
+    """The 4-joint arm of reach_4dof without its post (no mocap body, no obstacle), with
+    sensors of its own, and a payload mass on the hand as the task parameter."""
+    xml = (EMBEDDED_TASKS / 'reach_4dof.xml').read_text()
+    start = xml.index('<body name="post"')
+    end = xml.index('</body>', start) + len('</body>')
+    xml = xml[:start] + xml[end:].replace('</actuator>', """</actuator>
+  <sensor>
+    <jointpos joint="elbow"/>
+    <framepos objtype="site" objname="tool_tip"/>
+  </sensor>""")
+    (folder / 'payload_arm.xml').write_text(xml)
+    data = yaml.safe_load((EMBEDDED_TASKS / 'reach_4dof.yaml').read_text())
+    data.update(name='payload_reach', model='payload_arm.xml', task_parameters=[
+        {'name': 'payload', 'unit': 'kg', 'low': 0.1, 'high': 3.0, 'default': 0.25,
+         'binds': {'kind': 'body_mass', 'body': 'hand'}}])
+    data['reward'] = dict(data['reward'], obstacle_geoms=[])
+    path = folder / 'payload_reach.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return load_task(str(path))
+
+
+def test_mass_parameters_own_sensors_and_no_mocap(tmp_path):
+    """A task parameter that changes the model (a payload mass) reaches every rollout of the
+    population; the model's own sensors and its lack of mocap bodies change nothing."""
+    task = payload_task(tmp_path)
+    batch = BatchRollout(task)
+    assert batch.model.nmocap == 0 and batch.arm.model.nsensor == 2
+    theta = policy_for(task).default_theta
+    taus = np.array([[0.1], [3.0], [0.1]])
+    results = batch.run(np.tile(theta, (3, 1)), taus)
+    assert not np.allclose(results[0].q, results[1].q, atol=1e-4)    # the payload matters
+    np.testing.assert_array_equal(results[0].q, results[2].q)
+    for tau, result in zip(taus, results):
+        q, torque, evaluation = step_by_step(task, theta, tau)
+        assert np.abs(result.q - q).max() < Q_TOLERANCE
+        assert np.abs(result.torque - torque).max() < 1e-9
+        assert result.evaluation.reward == pytest.approx(evaluation.reward, abs=REWARD_TOLERANCE)
+        for name, value in evaluation.components.items():
+            assert result.evaluation.components[name] == pytest.approx(value, rel=1e-9,
+                                                                       abs=1e-12)
+    np.testing.assert_array_equal(batch.model.body_mass, batch.arm.model.body_mass)

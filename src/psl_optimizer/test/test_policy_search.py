@@ -81,18 +81,57 @@ def test_cost_term_changes_the_objective():
     assert spread['bootstrap_cost'] < 0.5 * spread['bootstrap']
 
 
+def on_skill_image(thetas, atol=1e-9):
+    """Per theta: is it PS(tau') = A tau' + B for some tau' in the task ranges?"""
+    thetas = np.asarray(thetas)
+    taus, *_ = np.linalg.lstsq(A, (thetas - B).T, rcond=None)       # (E, n)
+    residual = np.abs(A @ taus + B[:, None] - thetas.T).max(axis=0)
+    inside = np.all((taus >= -atol) & (taus <= 1 + atol), axis=0)
+    return (residual <= atol) & inside
+
+
 def test_hybrid_searches_the_task_space_first():
-    """Coarse phase: every theta is PS(tau') for some tau' within the task ranges."""
-    recorder = Recorder()
-    settings = SearchSettings(max_rollouts=40, popsize=6, hybrid_rollouts=0.5)
+    """Coarse phase: every theta is PS(tau') for some tau' within the task ranges, and it makes
+    progress when the optimum lies on the skill's image; then the full policy space."""
+    tau_best = np.array([0.9, 0.9])
+    recorder = Recorder(target=skill(tau_best))
+    # patience 2: a single unlucky generation does not end the phase (it does for some seeds
+    # with patience 1, which is the point of the patience)
+    settings = SearchSettings(max_rollouts=40, popsize=6, hybrid_rollouts=0.5, hybrid_patience=2)
     run('hybrid', recorder, settings)
-    coarse = np.array(recorder.thetas[:20])
-    taus, *_ = np.linalg.lstsq(A, (coarse - B).T, rcond=None)       # (E, n)
-    np.testing.assert_allclose(A @ taus + B[:, None], coarse.T, atol=1e-9)
-    assert np.all(taus >= -1e-9) and np.all(taus <= 1 + 1e-9)
-    fine = np.array(recorder.thetas[20:])
-    residual = fine.T - (A @ np.linalg.lstsq(A, (fine - B).T, rcond=None)[0] + B[:, None])
-    assert np.abs(residual).max() > 1e-3        # then the full policy space
+    image = on_skill_image(recorder.thetas)
+    coarse = int(np.argmin(image))              # length of the on-image prefix
+    assert 1 + settings.popsize <= coarse <= 20             # at most its share of the budget
+    assert not image[coarse:].any()             # then the full policy space, never back
+    rewards = -np.sum((np.array(recorder.thetas) - skill(tau_best)) ** 2, axis=1)
+    assert rewards[1:coarse].max() > rewards[0]
+
+
+def test_hybrid_skips_the_task_space_of_a_flat_skill():
+    """A young skill maps every tau' to the same theta (no sample: the default): a coarse
+    search could only repeat the start, so no rollout is spent on it."""
+    recorder = Recorder()
+    result = search('hybrid', recorder, TAU, DEFAULT, lambda tau: B.copy(), np.zeros(F),
+                    np.ones(F), LOW, HIGH, SearchSettings(max_rollouts=60, popsize=6))
+    np.testing.assert_array_equal(recorder.thetas[0], B)
+    assert not any(np.array_equal(theta, B) for theta in recorder.thetas[1:])
+    assert result.rollouts == 60
+
+
+@pytest.mark.parametrize('patience', [1, 2])
+def test_hybrid_stops_the_task_space_phase_without_progress(patience):
+    """The optimum lies off the skill's image, straight 'above' PS(tau): no tau' can beat the
+    start, so the coarse phase ends after `patience` generations and the refinement gets the
+    rest of the budget (before, it took its whole share)."""
+    normal = np.linalg.svd(A)[0][:, E]          # orthogonal to every PS(tau') - PS(tau)
+    recorder = Recorder(target=skill(TAU) + 0.3 * normal)
+    settings = SearchSettings(max_rollouts=60, popsize=6, hybrid_rollouts=0.9,
+                              hybrid_patience=patience)
+    result = run('hybrid', recorder, settings)
+    image = on_skill_image(recorder.thetas)
+    coarse = 1 + patience * settings.popsize
+    assert image[:coarse].all() and not image[coarse:].any()
+    assert result.rollouts == 60
 
 
 def test_unknown_strategy():

@@ -38,14 +38,25 @@ class ArmModel:
         if abs(m.opt.timestep * task.control_rate - 1.0) > 1e-9:
             raise TaskError(f'{task.path}: control_rate {task.control_rate:g} Hz must equal '
                             f'1 / model timestep ({1.0 / m.opt.timestep:g} Hz)')
+        self._check_motors()
         self.joint_names = [m.joint(m.actuator_trnid[i, 0]).name for i in range(m.nu)]
         self.joint_ids = np.array([m.actuator_trnid[i, 0] for i in range(m.nu)])
+        if len(set(self.joint_ids.tolist())) != m.nu:
+            raise TaskError(f'{task.model_path}: every joint needs exactly one actuator')
         self.qpos_adr = m.jnt_qposadr[self.joint_ids]
         self.dof_adr = m.jnt_dofadr[self.joint_ids]
-        self.torque_low = m.actuator_ctrlrange[:, 0].copy()
-        self.torque_high = m.actuator_ctrlrange[:, 1].copy()
         if not np.all(m.actuator_ctrllimited):
             raise TaskError(f'{task.model_path}: every actuator needs a ctrlrange (torque limit)')
+        # the torque that reaches the joint: ctrlrange, narrowed by the actuator's forcerange
+        # and the joint's actuatorfrcrange where the model sets them
+        self.torque_low = m.actuator_ctrlrange[:, 0].copy()
+        self.torque_high = m.actuator_ctrlrange[:, 1].copy()
+        for limited, limits in ((m.actuator_forcelimited, m.actuator_forcerange),
+                                (m.jnt_actfrclimited[self.joint_ids],
+                                 m.jnt_actfrcrange[self.joint_ids])):
+            limited = limited.astype(bool)
+            self.torque_low[limited] = np.maximum(self.torque_low, limits[:, 0])[limited]
+            self.torque_high[limited] = np.minimum(self.torque_high, limits[:, 1])[limited]
         self.ee_site = self._id(mujoco.mjtObj.mjOBJ_SITE, task.end_effector_site)
         reward = task.reward
         self.obstacle_geoms = [self._id(mujoco.mjtObj.mjOBJ_GEOM, g)
@@ -60,6 +71,23 @@ class ArmModel:
         self.ee_goal = self.end_effector_at(task.goal_posture)
 
     # -- set-up -------------------------------------------------------------------------
+    def _check_motors(self) -> None:
+        """psl sends joint torques: every actuator must be a plain motor on a joint (gain 1,
+        no bias, no activation dynamics, gear 1), so that ctrl is the joint torque."""
+        m = self.model
+        plain = ((m.actuator_trntype == mujoco.mjtTrn.mjTRN_JOINT)
+                 & (m.actuator_dyntype == mujoco.mjtDyn.mjDYN_NONE)
+                 & (m.actuator_gaintype == mujoco.mjtGain.mjGAIN_FIXED)
+                 & (m.actuator_gainprm[:, 0] == 1.0)
+                 & (m.actuator_biastype == mujoco.mjtBias.mjBIAS_NONE)
+                 & (m.actuator_gear[:, 0] == 1.0))
+        if not np.all(plain):
+            names = [m.actuator(i).name or f'#{i}' for i in np.flatnonzero(~plain)]
+            raise TaskError(
+                f'{self.task.model_path}: actuators {names} are not plain joint motors; psl '
+                'needs <motor joint="..." ctrlrange="-limit limit"/> (gear 1) on every joint, '
+                'ctrl = joint torque')
+
     def _id(self, kind: mujoco.mjtObj, name: str) -> int:
         idx = mujoco.mj_name2id(self.model, kind, name)
         if idx < 0:
@@ -83,11 +111,28 @@ class ArmModel:
             model.body_mass[body] = value + offset
         return apply_mass
 
-    def apply_tau(self, tau: np.ndarray, data: mujoco.MjData | None = None) -> None:
-        """Place the task instance in the model (obstacle position, payload mass, ...)."""
+    @property
+    def changes_model(self) -> bool:
+        """True when some task parameter changes the model itself (e.g. a payload mass),
+        not only the data (mocap positions)."""
+        return not all(self._kinematic)
+
+    def apply_tau(self, tau: np.ndarray, data: mujoco.MjData | None = None,
+                  model: mujoco.MjModel | None = None) -> None:
+        """Place the task instance in the model (obstacle position, payload mass, ...); by
+        default in this arm's own model and data, else in the given ones (same bodies)."""
         self.tau = self.task.validate_tau(tau)
         for apply, value in zip(self._bindings, self.tau):
-            apply(self.model, self.data if data is None else data, value)
+            apply(self.model if model is None else model, self.data if data is None else data,
+                  value)
+
+    def move_bodies(self, tau: np.ndarray, data: mujoco.MjData) -> None:
+        """Apply only the task parameters that move things (mocap positions) to data; the
+        model, and so the dynamics, stay as they are."""
+        tau = self.task.validate_tau(tau)
+        for apply, kinematic, value in zip(self._bindings, self._kinematic, tau):
+            if kinematic:
+                apply(self.model, data, value)
 
     # -- simulation ---------------------------------------------------------------------
     def reset(self, tau: np.ndarray) -> None:
@@ -131,10 +176,7 @@ class ArmModel:
         along joint positions q (T, n_joints) for the task instance tau. The distance is
         +inf when the task names no obstacle."""
         d = self._replay_data
-        tau = self.task.validate_tau(tau)
-        for apply, kinematic, value in zip(self._bindings, self._kinematic, tau):
-            if kinematic:
-                apply(self.model, d, value)
+        self.move_bodies(tau, d)
         ee = np.empty((len(q), 3))
         dist = np.full(len(q), np.inf)
         fromto = np.empty(6)

@@ -5,7 +5,11 @@ led to the state), ``ee_pose`` (geometry_msgs/PoseStamped), ``/clock`` and, on e
 ``task_instance`` (psl_msgs/TaskInstance, latched). Applies ``effort_command``
 (std_msgs/Float64MultiArray, the forward_command_controller convention) clipped to the
 model's torque limits. ``~/reset`` (psl_msgs/ResetTask) starts an episode of the task's
-length; between episodes the simulation is paused.
+length; between episodes the simulation is paused. A reset may name another task of the same
+robot (the same actuated joints); one of another robot is refused, since the controller and
+every other node of the graph are set up for the joints of the robot the simulator started with.
+``task_instance`` names the task so that any node can load it: by name, or by its YAML's
+absolute path when the name does not find it (`psl_sim.task.task_id`).
 
 Modes:
 - ``lockstep``: after publishing a state the simulation waits for the command that answers it,
@@ -18,6 +22,7 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import rclpy
@@ -36,7 +41,7 @@ from psl_msgs.msg import TaskInstance
 from psl_msgs.srv import ResetTask
 from psl_sim.arm_model import ArmModel
 from psl_sim.hot_path import HotPath
-from psl_sim.task import TaskError, load_task
+from psl_sim.task import TaskError, load_task, task_id
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -63,7 +68,7 @@ class SimNode(Node):
         if self.mode not in ('lockstep', 'realtime'):
             raise ValueError(f"mode must be 'lockstep' or 'realtime', got {self.mode!r}")
         self._lock = threading.Lock()
-        self._arms: dict[str, ArmModel] = {}
+        self._arms: dict[Path, ArmModel] = {}      # by task YAML
         self.arm = self._arm(self.get_parameter('task').value)
         self.t_ns = 0                 # simulation time, monotonic over episodes
         self.steps_left = 0           # control periods left in the episode; 0 = paused
@@ -98,9 +103,16 @@ class SimNode(Node):
 
     def _arm(self, task_name: str) -> ArmModel:
         task = load_task(task_name)
-        if task.name not in self._arms:
-            self._arms[task.name] = ArmModel(task)
-        return self._arms[task.name]
+        if task.path not in self._arms:
+            arm = ArmModel(task)
+            robot = getattr(self, 'arm', arm)       # the robot of the task loaded at start
+            if arm.joint_names != robot.joint_names:
+                raise TaskError(
+                    f'task {task.name!r} drives the joints {arm.joint_names}; this simulator '
+                    f'runs the robot of task {robot.task.name!r} with the joints '
+                    f'{robot.joint_names}: start a graph for it (psl up --task ...)')
+            self._arms[task.path] = arm
+        return self._arms[task.path]
 
     # -- services -----------------------------------------------------------------------
     def on_reset(self, request: ResetTask.Request, response: ResetTask.Response):
@@ -123,7 +135,7 @@ class SimNode(Node):
             self.episode = {'t0': self.t_ns, 'misses': 0, 'start': time.perf_counter(),
                             'steps': num_steps}
             self.pub_task.publish(TaskInstance(
-                stamp=stamp(self.t_ns), task=arm.task.name, tau=tau.tolist(),
+                stamp=stamp(self.t_ns), task=task_id(arm.task), tau=tau.tolist(),
                 num_steps=num_steps, control_period=arm.task.control_period))
             self._publish_state()
         response.success, response.message = True, f'episode of {num_steps} steps started'

@@ -5,6 +5,8 @@ is applied to the model), the start and goal postures, the controller gains, the
 representation, the demonstration the default policy is fitted to, the reward weights and
 the success threshold. Tasks are found by name in the embedded ``tasks/`` folder and in the
 folders listed in ``PSL_TASK_PATH`` (colon-separated), or given as a path to a YAML file.
+The ``model`` key is a path to the MJCF file: absolute (``~`` expanded), or relative to the
+folder of the YAML file (not to the working directory).
 
 Imports no ROS: usable from the nodes, the batch rollouts, tests and notebooks.
 """
@@ -140,6 +142,18 @@ def find_task_file(name_or_path: str) -> Path:
     raise TaskError(f'unknown task {name_or_path!r}; known tasks: {", ".join(list_tasks())}')
 
 
+def task_id(task: TaskDefinition) -> str:
+    """The string another process passes to `load_task` to get this task: its name when the
+    name finds this very file on the search path, otherwise the YAML's absolute path (a task
+    loaded from a file elsewhere, or whose name differs from its file name)."""
+    try:
+        if find_task_file(task.name) == task.path:
+            return task.name
+    except TaskError:
+        pass
+    return str(task.path)
+
+
 _CACHE: dict[tuple[Path, float], TaskDefinition] = {}
 
 
@@ -184,7 +198,8 @@ def _parse(path: Path) -> TaskDefinition:
 def _build(path: Path, data: Any) -> TaskDefinition:
     if not isinstance(data, dict):
         raise TaskError(f'{path}: a task file is a mapping of keys')
-    model_path = (path.parent / _require(data, 'model', path)).resolve()
+    # absolute (or ~/...) as given; a relative path is relative to the YAML file's folder
+    model_path = (path.parent / Path(str(_require(data, 'model', path))).expanduser()).resolve()
     if not model_path.is_file():
         raise TaskError(f'{path}: model file {model_path} does not exist')
     start = _vector(_require(data, 'start_posture', path), 'start_posture', None, path)

@@ -484,3 +484,46 @@ def test_replay_with_mass_parameter_leaves_dynamics_alone(tmp_path):
         arm.step(u)
         states.append(arm.q)
     np.testing.assert_array_equal(np.array(states), undisturbed)
+
+
+# -- what the MJCF must offer: one plain torque motor per joint ------------------------------
+def _rewrite_model(folder, old, new):
+    path = folder / 'planar4.xml'
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new))
+
+
+@pytest.mark.parametrize('actuator, name', [
+    ('<position joint="j2" kp="50" ctrlrange="-1 1"/>', 'a position servo'),
+    ('<motor joint="j2" gear="2" ctrlrange="-30 30"/>', 'a geared motor'),
+    ('<general joint="j2" dyntype="filter" dynprm="0.05" ctrlrange="-30 30"/>', 'a filter'),
+])
+def test_actuators_other_than_plain_joint_motors_are_refused(tmp_path, actuator, name):
+    task = write_arm4_task(tmp_path)
+    _rewrite_model(tmp_path, '<motor joint="j2"/>', actuator)
+    with pytest.raises(TaskError, match='not plain joint motors') as info:
+        ArmModel(task)
+    assert '<motor' in str(info.value), name
+
+
+def test_two_motors_on_one_joint_are_refused(tmp_path):
+    task = write_arm4_task(tmp_path)
+    _rewrite_model(tmp_path, '<motor joint="j2"/>', '<motor joint="j1"/>')
+    with pytest.raises(TaskError, match='exactly one actuator'):
+        ArmModel(task)
+
+
+def test_forcerange_and_joint_actuatorfrcrange_narrow_the_torque_limits(tmp_path):
+    """MuJoCo clamps the force to the actuator's forcerange and the joint's actuatorfrcrange
+    after ctrlrange: the torque limits (and so the applied torques) are the narrowest."""
+    task = write_arm4_task(tmp_path)
+    _rewrite_model(tmp_path, '<motor joint="j2"/>', '<motor joint="j2" forcerange="-12 20"/>')
+    _rewrite_model(tmp_path, '<joint name="j3"/>', '<joint name="j3" actuatorfrcrange="-5 5"/>')
+    arm = ArmModel(task)
+    np.testing.assert_array_equal(arm.torque_low, [-30.0, -12.0, -5.0, -30.0])
+    np.testing.assert_array_equal(arm.torque_high, [30.0, 20.0, 5.0, 30.0])
+    arm.reset(np.array([0.6]))
+    applied = arm.step(np.array([0.0, -50.0, 50.0, 0.0]))
+    np.testing.assert_array_equal(applied, [0.0, -12.0, 5.0, 0.0])
+    np.testing.assert_allclose(arm.data.qfrc_actuator[arm.dof_adr], applied, atol=1e-12)

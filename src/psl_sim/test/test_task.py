@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from psl_sim.task import (EMBEDDED_TASKS, TaskDefinition, TaskError, find_task_file, list_tasks,
-                          load_task)
+                          load_task, task_id)
 
 DEFAULT_TASK = 'reach_over_obstacle'
 EMBEDDED_YAML = EMBEDDED_TASKS / f'{DEFAULT_TASK}.yaml'
@@ -183,6 +183,48 @@ def test_task_path_environment_unset_does_not_find_extra_task(tmp_path, monkeypa
     assert 'hidden_reach' not in list_tasks()
     with pytest.raises(TaskError, match='unknown task'):
         load_task('hidden_reach')
+
+
+# -- the model path: absolute, ~, or relative to the YAML's folder -----------------------------
+def test_model_given_by_absolute_path(tmp_path):
+    data = embedded_data()
+    data['model'] = str(EMBEDDED_XML.resolve())
+    task = load_task(str(write_task(tmp_path / 'elsewhere', data, copy_model=False)))
+    assert task.model_path == EMBEDDED_XML.resolve()
+
+
+def test_relative_model_path_is_relative_to_the_yaml_not_the_working_dir(tmp_path, monkeypatch):
+    (tmp_path / 'robots').mkdir()
+    shutil.copy(EMBEDDED_XML, tmp_path / 'robots' / 'arm.xml')
+    data = embedded_data()
+    data['model'] = '../robots/arm.xml'
+    path = write_task(tmp_path / 'tasks', data, copy_model=False)
+    monkeypatch.chdir(tmp_path)                 # from here '../robots/arm.xml' does not exist
+    task = load_task(str(path))
+    assert task.model_path == (tmp_path / 'robots' / 'arm.xml').resolve()
+
+
+def test_model_path_with_home_folder(tmp_path, monkeypatch):
+    monkeypatch.setenv('HOME', str(tmp_path / 'home'))
+    (tmp_path / 'home').mkdir()
+    shutil.copy(EMBEDDED_XML, tmp_path / 'home' / 'arm.xml')
+    data = embedded_data()
+    data['model'] = '~/arm.xml'
+    task = load_task(str(write_task(tmp_path / 'tasks', data, copy_model=False)))
+    assert task.model_path == (tmp_path / 'home' / 'arm.xml').resolve()
+
+
+def test_task_id_is_the_name_when_the_name_finds_the_file(tmp_path, monkeypatch):
+    monkeypatch.delenv('PSL_TASK_PATH', raising=False)
+    assert task_id(load_task(DEFAULT_TASK)) == DEFAULT_TASK
+    assert task_id(load_task(str(EMBEDDED_YAML))) == DEFAULT_TASK
+    off_path = load_task(str(write_task(tmp_path, embedded_data(), name='my_robot_task')))
+    assert task_id(off_path) == str(off_path.path)            # not on the search path
+    assert load_task(task_id(off_path)) is off_path
+    renamed = dict(embedded_data(), name='other_name')     # name differs from the file stem
+    monkeypatch.setenv('PSL_TASK_PATH', str(tmp_path / 'on_path'))
+    on_path = load_task(str(write_task(tmp_path / 'on_path', renamed, name='file_stem')))
+    assert task_id(on_path) == str(on_path.path)
 
 
 TOP_LEVEL_KEYS = ['model', 'end_effector_site', 'control_rate', 'duration', 'start_posture',

@@ -1,0 +1,285 @@
+"""Learning benchmark behind ``psl bench learn``: policy-search strategies over task instances.
+
+Method, per seed:
+- one training sequence (`task_sequence`) and one held-out set (`held_out_tasks`), both drawn
+  from the seed by the `Learner` itself, so every strategy of a seed sees the same instances in
+  the same order; the bench checks that from the runs' metrics files;
+- per strategy one `Learner` session (batch mode, in-process skill) in its own folder
+  ``OUT/<task>-<strategy>[-<readout>]-seed<k>/`` holding ``metrics.json`` (per-task rollouts,
+  the zero-shot test on the held-out set), the checkpoint and the memory file.
+Every number of the report is read back from those metrics files, never from the running
+session: a run that was done before (same settings, complete) is reused, not repeated.
+
+Per strategy, over seeds (mean, sample standard deviation, min, max):
+- ``total_rollouts``: rollouts over all training tasks;
+- ``late_rollouts``: mean rollouts per new task after ``after`` tasks (tasks after+1 .. N);
+- ``speedup``: scratch's ``late_rollouts`` / this strategy's, per seed (scratch in the run);
+- ``zero_shot_success`` and ``zero_shot_reward``: PS(tau) executed once on each held-out
+  instance after the last training task;
+- ``train_seconds``: wall time of the training tasks (sum of the per-task seconds).
+Plain Python, no ROS.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+import tempfile
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+TARGETS = {'speedup': 5.0, 'zero_shot_success': 0.8}   # bootstrap vs scratch; every strategy
+METRICS = ('total_rollouts', 'late_rollouts', 'speedup', 'zero_shot_success',
+           'zero_shot_reward', 'train_seconds')
+
+
+def run_folder(out: Path, task: str, strategy: str, seed: int, readout: str | None) -> Path:
+    readout_part = f'-{readout}' if readout else ''
+    return Path(out) / f'{task}-{strategy}{readout_part}-seed{seed}'
+
+
+def read_run(folder: Path, after: int) -> dict:
+    """One run's numbers from its metrics.json (see the module docstring).
+
+    Raises:
+        ValueError: the run is incomplete or has no more than `after` tasks.
+    """
+    metrics = json.loads((Path(folder) / 'metrics.json').read_text())
+    if not metrics.get('complete'):
+        raise ValueError(f'{folder}: the learning session is not complete')
+    tasks = metrics['tasks']
+    if len(tasks) <= after:
+        raise ValueError(f'{folder}: {len(tasks)} tasks, need more than after={after}')
+    rollouts = [int(t['rollouts']) for t in tasks]
+    summary = metrics['summary']
+    return {
+        'folder': str(folder),
+        'seed': metrics['seed'],
+        'strategy': metrics['strategy'],
+        'taus': [t['tau'] for t in tasks],
+        'test_taus': summary['test_taus'],
+        'rollouts_per_task': rollouts,
+        'fulfilled_tasks': sum(bool(t['fulfilled']) for t in tasks),
+        'total_rollouts': sum(rollouts),
+        'late_rollouts': float(np.mean(rollouts[after:])),
+        'zero_shot_success': float(summary['zero_shot_success_rate']),
+        'zero_shot_reward': float(summary['zero_shot_mean_reward']),
+        'train_seconds': float(sum(t['seconds'] for t in tasks)),
+    }
+
+
+def _stats(values: Sequence[float]) -> dict:
+    values = np.asarray(values, dtype=float)
+    return {'mean': float(values.mean()),
+            'sd': float(values.std(ddof=1)) if values.size > 1 else 0.0,
+            'min': float(values.min()), 'max': float(values.max()),
+            'values': values.tolist()}
+
+
+def _settings_json(settings) -> dict:
+    return json.loads(json.dumps(dataclasses.asdict(settings)))
+
+
+def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None = None,
+        seeds: Sequence[int] = (0, 1, 2, 3, 4), num_tasks: int = 30, budget: int = 300,
+        num_test: int = 20, after: int = 20, out: str | Path | None = None,
+        readout: str | None = None,
+        progress: Callable[[str], None] | None = None) -> dict:
+    """Learn `task_name` with each strategy for each seed and compare them.
+
+    Args:
+        strategies: policy-search strategies (default: all of `STRATEGIES`).
+        seeds: one task sequence and held-out set per seed, shared by the strategies.
+        num_tasks: training task instances per session.
+        budget: rollouts per task instance at most.
+        num_test: held-out instances for the zero-shot test.
+        after: late tasks are those after this many (0 <= after < num_tasks).
+        out: folder that keeps every run's folder; None: a temporary folder, removed after.
+        readout: the skill's readout (`SkillConfig.readout`); None: `LearnSettings`' default.
+        progress: called with one line of text per finished run.
+
+    Returns:
+        JSON-able dict: ``settings``, ``runs`` (per seed and strategy, see `read_run`),
+        ``strategies`` (per strategy: each metric of `METRICS` as mean/sd/min/max/values),
+        ``targets`` (the targets and whether they are met).
+
+    Raises:
+        ValueError: bad settings, or a run folder holding another session.
+        RuntimeError: strategies of one seed saw different task instances.
+    """
+    from psl_optimizer.batch_rollout import BatchRollout
+    from psl_optimizer.learning import Learner, LearnSettings
+    from psl_optimizer.policy_search import STRATEGIES, SearchSettings
+    from psl_sim.task import load_task
+
+    strategies = tuple(strategies or STRATEGIES)
+    unknown = [s for s in strategies if s not in STRATEGIES]
+    if unknown or not strategies:
+        raise ValueError(f'unknown strategies {unknown}; known: {", ".join(STRATEGIES)}')
+    if len(set(strategies)) != len(strategies) or len(set(seeds)) != len(seeds) or not seeds:
+        raise ValueError('give at least one seed, and each strategy and seed once')
+    if not 0 <= after < num_tasks or budget < 1 or num_test < 1:
+        raise ValueError(f'need 0 <= after < num_tasks, budget >= 1 and num_test >= 1; got '
+                         f'after={after}, num_tasks={num_tasks}, budget={budget}, '
+                         f'num_test={num_test}')
+    base = LearnSettings()
+    skill = base.skill if readout is None else dataclasses.replace(base.skill, readout=readout)
+    task = load_task(task_name)
+    evaluator = BatchRollout(task)
+    temporary = tempfile.TemporaryDirectory(prefix='psl-bench-learn-') if out is None else None
+    root = Path(temporary.name if temporary else out)
+    runs: dict[int, dict[str, dict]] = {}
+    try:
+        for seed in seeds:
+            runs[seed] = {}
+            for strategy in strategies:
+                settings = LearnSettings(strategy=strategy, num_tasks=num_tasks, seed=seed,
+                                         num_test=num_test, skill=skill,
+                                         search=SearchSettings(max_rollouts=budget))
+                folder = run_folder(root, task.name, strategy, seed, readout)
+                reused = _reusable(folder, settings)
+                if not reused:
+                    Learner(task, settings, folder, evaluator=evaluator).run()
+                record = read_run(folder, after)
+                record['reused'] = reused
+                runs[seed][strategy] = record
+                if progress is not None:
+                    progress(f"seed {seed} {strategy}: {record['total_rollouts']} rollouts, "
+                             f"zero-shot {100 * record['zero_shot_success']:.0f} %, "
+                             f"{record['train_seconds']:.1f} s"
+                             f"{' (reused)' if reused else ''}")
+            _check_same_instances(seed, runs[seed])
+    finally:
+        if temporary is not None:
+            temporary.cleanup()
+    report = {'settings': {'task': task.name, 'strategies': list(strategies),
+                           'seeds': list(seeds), 'num_tasks': num_tasks, 'budget': budget,
+                           'num_test': num_test, 'after': after,
+                           'readout': skill.readout, 'out': None if out is None else str(out)},
+              'runs': {str(seed): by_strategy for seed, by_strategy in runs.items()}}
+    report['strategies'] = _aggregate(runs, strategies)
+    report['targets'] = _targets(report['strategies'])
+    return report
+
+
+def _reusable(folder: Path, settings) -> bool:
+    """True if folder holds a complete session with exactly these settings; False if it holds
+    nothing yet. Anything else is refused (a partial or different session would mix in)."""
+    metrics_path, checkpoint = folder / 'metrics.json', folder / 'checkpoint.json'
+    if not metrics_path.is_file() and not checkpoint.is_file():
+        return False
+    if metrics_path.is_file():
+        metrics = json.loads(metrics_path.read_text())
+        if metrics.get('complete') and metrics.get('settings') == _settings_json(settings):
+            return True
+    raise ValueError(f'{folder} holds another or an unfinished learning session; remove it or '
+                     f'give another --out')
+
+
+def _check_same_instances(seed: int, by_strategy: dict[str, dict]) -> None:
+    first = next(iter(by_strategy.values()))
+    for strategy, record in by_strategy.items():
+        if record['taus'] != first['taus'] or record['test_taus'] != first['test_taus']:
+            raise RuntimeError(f'seed {seed}: {strategy} saw other task instances than '
+                               f"{first['strategy']}")
+
+
+def _aggregate(runs: dict[int, dict[str, dict]], strategies: Sequence[str]) -> dict:
+    result = {}
+    for strategy in strategies:
+        records = [runs[seed][strategy] for seed in runs]
+        row = {key: _stats([r[key] for r in records]) for key in METRICS if key != 'speedup'}
+        if 'scratch' in strategies:
+            row['speedup'] = _stats([runs[seed]['scratch']['late_rollouts'] /
+                                     runs[seed][strategy]['late_rollouts'] for seed in runs])
+        row['fulfilled_tasks'] = _stats([r['fulfilled_tasks'] for r in records])
+        result[strategy] = row
+    return result
+
+
+def _targets(rows: dict) -> dict:
+    targets = {'zero_shot_success': {'min': TARGETS['zero_shot_success'], 'met': {
+        strategy: row['zero_shot_success']['mean'] >= TARGETS['zero_shot_success']
+        for strategy, row in rows.items()}}}
+    if 'bootstrap' in rows and 'speedup' in rows['bootstrap']:
+        speedup = rows['bootstrap']['speedup']['mean']
+        targets['speedup'] = {'min': TARGETS['speedup'], 'bootstrap': speedup,
+                              'met': speedup >= TARGETS['speedup']}
+    return targets
+
+
+def format_table(report: dict) -> str:
+    """A Markdown table (mean ± sample SD over seeds) and the targets, for docs/benchmarks.md."""
+    s = report['settings']
+    late = f"tasks {s['after'] + 1}–{s['num_tasks']}"
+    lines = [f"{s['task']}: {s['num_tasks']} training tasks, budget {s['budget']} rollouts "
+             f"per task, readout {s['readout']}, seeds {' '.join(map(str, s['seeds']))}, "
+             f"{s['num_test']} held-out tasks per seed; mean ± SD over seeds", '',
+             f'| strategy | total rollouts | rollouts per task, {late} | scratch / strategy, '
+             f'{late} | zero-shot success | zero-shot reward | training wall time [s] |',
+             '|---|---|---|---|---|---|---|']
+
+    def cell(row, key, digits, factor=1.0, unit=''):
+        if key not in row:
+            return '—'
+        stat = row[key]
+        return f"{factor * stat['mean']:.{digits}f} ± {factor * stat['sd']:.{digits}f}{unit}"
+
+    for strategy, row in report['strategies'].items():
+        lines.append(f"| {strategy} | {cell(row, 'total_rollouts', 1)} | "
+                     f"{cell(row, 'late_rollouts', 2)} | {cell(row, 'speedup', 1, unit='×')} | "
+                     f"{cell(row, 'zero_shot_success', 0, 100.0, ' %')} | "
+                     f"{cell(row, 'zero_shot_reward', 3)} | {cell(row, 'train_seconds', 1)} |")
+    t, rows = report['targets'], report['strategies']
+    lines.append('')
+    if 'speedup' in t:
+        per_seed = ', '.join(f'{v:.1f}' for v in rows['bootstrap']['speedup']['values'])
+        lines.append(f"target scratch / bootstrap ≥ {t['speedup']['min']:g}× ({late}): "
+                     f"{t['speedup']['bootstrap']:.1f}× (per seed {per_seed}) — "
+                     f"{'met' if t['speedup']['met'] else 'MISSED'} on the mean")
+    z = t['zero_shot_success']
+    lines.append(f"target zero-shot success ≥ {100 * z['min']:.0f} % after {s['num_tasks']} "
+                 f"tasks, mean (lowest seed): " + '; '.join(
+                     f"{k} {100 * rows[k]['zero_shot_success']['mean']:.0f} % "
+                     f"({100 * rows[k]['zero_shot_success']['min']:.0f} %) "
+                     f"{'met' if ok else 'MISSED'}" for k, ok in z['met'].items()))
+    return '\n'.join(lines) + '\n'
+
+
+def main(args) -> int:
+    """``psl bench learn`` (arguments from `add_arguments`)."""
+    try:
+        report = run(task_name=args.task, strategies=args.strategies, seeds=args.seeds,
+                     num_tasks=args.tasks, budget=args.budget, num_test=args.test_tasks,
+                     after=args.after, out=args.out, readout=args.readout,
+                     progress=lambda line: print(line, file=sys.stderr, flush=True))
+    except ValueError as exc:
+        print(f'psl bench learn: {exc}', file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        print(format_table(report), end='')
+    return 0
+
+
+def add_arguments(sub) -> None:
+    """The ``learn`` subcommand of ``psl bench`` (names are checked by `run`, so building the
+    parser imports nothing heavy)."""
+    learn = sub.add_parser('learn', help='policy-search strategies over task instances: '
+                           'rollouts per task, zero-shot success on held-out tasks')
+    learn.add_argument('--task', default='reach_over_obstacle')
+    learn.add_argument('--strategies', nargs='+',
+                       help='scratch, bootstrap, bootstrap_cost, hybrid (default: all)')
+    learn.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
+    learn.add_argument('--tasks', type=int, default=30, help='training tasks per session')
+    learn.add_argument('--budget', type=int, default=300, help='rollouts per task at most')
+    learn.add_argument('--test-tasks', type=int, default=20, help='held-out tasks per seed')
+    learn.add_argument('--after', type=int, default=20,
+                       help='rollouts per task are averaged over the tasks after this many')
+    learn.add_argument('--readout', help="the skill's readout: ridge, rls, incremental_ridge, "
+                       "bayes (default: the learner's)")
+    learn.add_argument('--out', help='keep every run folder (metrics.json) here, for psl plot')
+    learn.add_argument('--json', action='store_true')

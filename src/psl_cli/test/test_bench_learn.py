@@ -1,0 +1,103 @@
+"""psl bench learn: the report's numbers are the runs' metrics files, read back; the strategies
+of a seed saw the same task instances; run folders are reused, never mixed."""
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+from psl_cli import bench, bench_learn
+from psl_optimizer.learning import held_out_tasks, task_sequence
+from psl_sim.task import load_task
+
+TASK = 'reach_over_obstacle'
+STRATEGIES = ('scratch', 'bootstrap')
+SEEDS = (0, 1)
+TINY = dict(task_name=TASK, strategies=STRATEGIES, seeds=SEEDS, num_tasks=3, budget=25,
+            num_test=3, after=1)
+
+
+@pytest.fixture(scope='module')
+def bench_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp('bench_learn')
+    return out, bench_learn.run(out=out, **TINY)
+
+
+def metrics_of(out, strategy, seed):
+    folder = bench_learn.run_folder(out, TASK, strategy, seed, None)
+    return json.loads((folder / 'metrics.json').read_text())
+
+
+def test_every_run_keeps_its_metrics_file(bench_run):
+    out, report = bench_run
+    for seed in SEEDS:
+        for strategy in STRATEGIES:
+            metrics = metrics_of(out, strategy, seed)
+            assert metrics['complete'] and metrics['strategy'] == strategy
+            assert metrics['seed'] == seed and len(metrics['tasks']) == 3
+
+
+def test_numbers_are_computed_from_the_metrics_files(bench_run):
+    out, report = bench_run
+    for strategy in STRATEGIES:
+        totals, late, success, reward, seconds = [], [], [], [], []
+        for seed in SEEDS:
+            metrics = metrics_of(out, strategy, seed)
+            rollouts = [t['rollouts'] for t in metrics['tasks']]
+            totals.append(sum(rollouts))
+            late.append(np.mean(rollouts[1:]))                  # after=1: tasks 2-3
+            success.append(metrics['summary']['zero_shot_success_rate'])
+            reward.append(metrics['summary']['zero_shot_mean_reward'])
+            seconds.append(sum(t['seconds'] for t in metrics['tasks']))
+            run = report['runs'][str(seed)][strategy]
+            assert run['total_rollouts'] == sum(rollouts) == metrics['summary']['total_rollouts']
+        row = report['strategies'][strategy]
+        assert row['total_rollouts']['values'] == totals
+        assert row['total_rollouts']['mean'] == pytest.approx(np.mean(totals))
+        assert row['total_rollouts']['sd'] == pytest.approx(np.std(totals, ddof=1))
+        assert row['late_rollouts']['mean'] == pytest.approx(np.mean(late))
+        assert row['zero_shot_success']['mean'] == pytest.approx(np.mean(success))
+        assert row['zero_shot_reward']['mean'] == pytest.approx(np.mean(reward))
+        assert row['train_seconds']['mean'] == pytest.approx(np.mean(seconds))
+    ratios = [report['runs'][str(s)]['scratch']['late_rollouts']
+              / report['runs'][str(s)]['bootstrap']['late_rollouts'] for s in SEEDS]
+    assert report['strategies']['bootstrap']['speedup']['values'] == pytest.approx(ratios)
+    assert report['targets']['speedup']['bootstrap'] == pytest.approx(np.mean(ratios))
+    table = bench_learn.format_table(report)
+    mean, sd = (report['strategies']['bootstrap']['total_rollouts'][k] for k in ('mean', 'sd'))
+    assert f'| bootstrap | {mean:.1f} ± {sd:.1f} |' in table
+
+
+def test_strategies_of_a_seed_saw_the_same_instances(bench_run):
+    out, _ = bench_run
+    task = load_task(TASK)
+    for seed in SEEDS:
+        expected = task_sequence(task, 3, seed).tolist()
+        expected_test = held_out_tasks(task, 3, seed).tolist()
+        for strategy in STRATEGIES:
+            metrics = metrics_of(out, strategy, seed)
+            assert [t['tau'] for t in metrics['tasks']] == expected
+            assert metrics['summary']['test_taus'] == expected_test
+    assert task_sequence(task, 3, SEEDS[0]).tolist() != task_sequence(task, 3, SEEDS[1]).tolist()
+
+
+def test_cli_reuses_finished_runs_and_refuses_other_settings(bench_run, capsys):
+    out, report = bench_run
+    parser = argparse.ArgumentParser()
+    bench.add_arguments(parser)
+    argv = ['learn', '--strategies', *STRATEGIES, '--seeds', *map(str, SEEDS), '--tasks', '3',
+            '--budget', '25', '--test-tasks', '3', '--after', '1', '--out', str(out), '--json']
+    assert bench.main(parser.parse_args(argv)) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert all(run['reused'] for runs in again['runs'].values() for run in runs.values())
+    assert again['strategies'] == report['strategies']
+    argv[argv.index('--budget') + 1] = '26'       # another session into the same folders
+    assert bench.main(parser.parse_args(argv)) == 2
+    assert 'another or an unfinished' in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('override', [dict(after=3), dict(strategies=('magic',)),
+                                      dict(seeds=()), dict(readout='magic')])
+def test_bad_settings(override, tmp_path):
+    with pytest.raises(ValueError):
+        bench_learn.run(out=tmp_path, **{**TINY, **override})

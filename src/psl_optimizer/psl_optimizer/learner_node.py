@@ -1,0 +1,268 @@
+"""The learner node: serves the ``learn_skill`` action (psl_msgs/LearnSkill).
+
+One goal is one learning session of `psl_optimizer.learning.Learner`: for each task instance a
+CMA-ES search started from the skill, the solution added to the skill memory at once. The skill
+lives in the ``skill_memory`` node and is used through its services (query, add_sample, save,
+load), so other clients can query it while it learns. Rollouts run in batch mode (in-process
+``mujoco.rollout``, the default: fast) or, with ``mode: graph``, through the robot loop's
+``execute_rollout`` action, one rollout at a time.
+
+A session writes into ``<output_root>/<task>-<strategy>-seed<seed>``: after every task a
+checkpoint (the memory node's memory saved there + the progress as JSON), at the end
+``metrics.json``. Sending the same goal again, after a cancel, an abort or a crash of this
+node, resumes from the checkpoint: the memory node is loaded from it, no finished task is
+lost. Feedback comes after every batch of rollouts. A bad goal (unknown task or strategy, zero
+tasks, a skill the memory does not hold) ends with success=false and the reason.
+"""
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+
+from psl_msgs.action import ExecuteRollout, LearnSkill
+from psl_msgs.srv import AddSample, LoadMemory, QuerySkill, SaveMemory
+from psl_optimizer.batch_rollout import BatchRollout
+from psl_optimizer.learning import Learner, LearnSettings, batch_evaluator
+from psl_optimizer.policy_search import STRATEGIES, SearchSettings
+from psl_sim.action_client import ActionClient
+from psl_sim.task import TaskDefinition, TaskError, load_task, task_id
+
+MODES = ('batch', 'graph')
+
+
+class Cancelled(Exception):
+    """The goal was cancelled; finished tasks are in the checkpoint."""
+
+
+def wait_for(future, timeout: float, what: str):
+    """The future's result, or TimeoutError (other executor threads complete the future)."""
+    event = threading.Event()
+    future.add_done_callback(lambda _: event.set())
+    if not event.wait(timeout):
+        raise TimeoutError(f'no answer from {what} within {timeout:.0f} s')
+    return future.result()
+
+
+class ServiceSkill:
+    """The skill `name` inside the skill_memory node, with the interface Learner expects."""
+
+    def __init__(self, node: 'LearnerNode', name: str, timeout: float):
+        self.node, self.name, self.timeout = node, name, timeout
+
+    def _call(self, service: str, request):
+        client = self.node.memory_clients[service]
+        if not client.wait_for_service(timeout_sec=self.timeout):
+            raise RuntimeError(f'the skill memory service {client.srv_name} is not available')
+        response = wait_for(client.call_async(request), self.timeout, client.srv_name)
+        if not response.success:
+            raise RuntimeError(f'{client.srv_name}: {response.message}')
+        return response
+
+    def query(self, tau: np.ndarray) -> np.ndarray:
+        response = self._call('query', QuerySkill.Request(skill=self.name,
+                                                          tau=[float(x) for x in tau]))
+        return np.asarray(response.theta)
+
+    def add(self, tau: np.ndarray, theta: np.ndarray) -> None:
+        self._call('add_sample', AddSample.Request(skill=self.name, tau=[float(x) for x in tau],
+                                                   theta=[float(x) for x in theta]))
+
+    def save(self, path: Path) -> None:
+        self._call('save', SaveMemory.Request(path=str(Path(path).resolve())))
+
+    def restore(self, path: Path | None) -> None:
+        """From a checkpoint: load it into the memory node. Without one, the session starts
+        from the skill the memory node holds now (empty on a fresh node)."""
+        if path is not None:
+            self._call('load', LoadMemory.Request(path=str(Path(path).resolve())))
+
+
+class LearnerNode(Node):
+
+    def __init__(self):
+        super().__init__('learner')
+        defaults = SearchSettings()
+        for name, default, text in (
+                ('mode', 'batch', 'batch (in-process mujoco.rollout) | graph (execute_rollout); '
+                                  'a goal may choose'),
+                ('output_root', 'runs', 'sessions write into <output_root>/<task>-<strategy>-'
+                                        'seed<seed>'),
+                ('test_tasks', LearnSettings.num_test, 'held-out instances tested at the end'),
+                ('popsize', defaults.popsize, 'CMA-ES population size'),
+                ('sigma0', defaults.sigma0, 'CMA-ES initial step size, normalised theta units'),
+                ('cost_weight', defaults.cost_weight, 'beta of bootstrap_cost'),
+                ('service_timeout', 10.0, 'seconds to wait for a skill memory answer'),
+                ('rollout_timeout', 120.0, 'seconds to wait for one graph-mode rollout')):
+            self.declare_parameter(name, default, ParameterDescriptor(description=text,
+                                                                      read_only=True))
+        self.mode = self.get_parameter('mode').value
+        if self.mode not in MODES:
+            raise ValueError(f"parameter mode must be one of {MODES}, got {self.mode!r}")
+        clients = ReentrantCallbackGroup()
+        self.memory_clients = {
+            name: self.create_client(srv, f'skill_memory/{name}', callback_group=clients)
+            for name, srv in (('query', QuerySkill), ('add_sample', AddSample),
+                              ('save', SaveMemory), ('load', LoadMemory))}
+        self.rollout_client = ActionClient(self, ExecuteRollout, 'execute_rollout',
+                                           callback_group=clients)
+        self._busy = threading.Lock()
+        self._evaluators: dict[str, object] = {}    # batch evaluators per task, built once
+        self._server = ActionServer(
+            self, LearnSkill, 'learn_skill', execute_callback=self.execute,
+            goal_callback=lambda goal: GoalResponse.ACCEPT,
+            cancel_callback=lambda handle: CancelResponse.ACCEPT,
+            callback_group=MutuallyExclusiveCallbackGroup())
+        self.get_logger().info(f'serving learn_skill ({self.mode} mode)')
+
+    # -- the action ---------------------------------------------------------------------------
+    def execute(self, goal_handle) -> LearnSkill.Result:
+        goal = goal_handle.request
+        result = LearnSkill.Result()
+        if not self._busy.acquire(blocking=False):
+            goal_handle.abort()
+            result.message = 'a learning session is running; cancel it or wait'
+            return result
+        try:
+            try:
+                task, settings, out, mode = self._session(goal)
+            except (TaskError, ValueError) as exc:
+                goal_handle.abort()
+                result.message = str(exc)
+                return result
+            result.metrics_path = str((out / 'metrics.json').resolve())
+            self.get_logger().info(f'learning {task.name} with {settings.strategy}, seed '
+                                   f'{settings.seed}, {settings.num_tasks} tasks, {mode} '
+                                   f'mode -> {out}')
+            learner = Learner(task, settings, out,
+                              evaluate=lambda thetas, taus: evaluate(thetas, taus),
+                              skill=ServiceSkill(self, task.name,
+                                                 self.get_parameter('service_timeout').value))
+            evaluate = self._evaluate(goal_handle, task, learner, mode)
+            try:
+                metrics = learner.run()
+            except Cancelled:
+                goal_handle.canceled()
+                result.message = self._stopped('cancelled', learner)
+                return result
+            except Exception as exc:  # noqa: BLE001 - report it, keep serving
+                goal_handle.abort()
+                result.message = self._stopped(f'stopped by an error ({exc})', learner)
+                self.get_logger().error(result.message)
+                return result
+            summary = metrics.get('summary', {})
+            goal_handle.succeed()
+            result.success = True
+            result.message = (f"{summary.get('total_rollouts', 0)} rollouts over "
+                              f"{settings.num_tasks} tasks; held-out zero-shot success "
+                              f"{100 * summary.get('zero_shot_success_rate', 0.0):.0f} %")
+            return result
+        finally:
+            self._busy.release()
+
+    def _session(self, goal) -> tuple[TaskDefinition, LearnSettings, Path, str]:
+        mode = goal.mode or self.mode
+        if mode not in MODES:
+            raise ValueError(f'unknown mode {mode!r}; known: {", ".join(MODES)}')
+        if goal.strategy not in STRATEGIES:
+            raise ValueError(f'unknown strategy {goal.strategy!r}; known: '
+                             f'{", ".join(STRATEGIES)}')
+        if goal.num_tasks == 0:
+            raise ValueError('num_tasks must be at least 1')
+        task = load_task(goal.task)
+        p = self.get_parameter
+        search = SearchSettings(
+            max_rollouts=int(goal.max_rollouts_per_task or SearchSettings.max_rollouts),
+            popsize=p('popsize').value, sigma0=p('sigma0').value,
+            cost_weight=p('cost_weight').value)
+        settings = LearnSettings(strategy=goal.strategy, num_tasks=int(goal.num_tasks),
+                                 seed=int(goal.seed), num_test=p('test_tasks').value,
+                                 search=search)
+        out = Path(goal.output_dir or Path(p('output_root').value)
+                   / f'{task.name}-{goal.strategy}-seed{goal.seed}')
+        return task, settings, out, mode
+
+    @staticmethod
+    def _stopped(why: str, learner: Learner) -> str:
+        return (f'{why} after {len(learner.done)} of {learner.settings.num_tasks} tasks; the '
+                f'checkpoint in {learner.out} keeps them: send the same goal to resume')
+
+    # -- rollouts -----------------------------------------------------------------------------
+    def _evaluate(self, goal_handle, task: TaskDefinition, learner: Learner, mode: str):
+        """evaluate(thetas, taus) -> (rewards, fulfilled) in batch or graph mode, checking for
+        a cancel before each batch and publishing feedback after it."""
+        if mode == 'batch':
+            if task.name not in self._evaluators:
+                self._evaluators[task.name] = batch_evaluator(BatchRollout(task))
+            run = self._evaluators[task.name]
+        else:
+            def run(thetas, taus):
+                results = [self._graph_rollout(task, tau, theta)
+                           for theta, tau in zip(thetas, taus)]
+                return (np.array([r.reward for r in results]),
+                        np.array([r.fulfilled for r in results]))
+        current = {'index': -1, 'rollouts': 0, 'best': -np.inf, 'fulfilled': False}
+
+        def evaluate(thetas: np.ndarray, taus: np.ndarray):
+            if goal_handle.is_cancel_requested:
+                raise Cancelled()
+            rewards, fulfilled = run(thetas, taus)
+            if len(learner.done) >= learner.settings.num_tasks:
+                return rewards, fulfilled                   # the held-out test at the end
+            if current['index'] != len(learner.done):      # a new task
+                current.update(index=len(learner.done), rollouts=0, best=-np.inf,
+                               fulfilled=False)
+            current['rollouts'] += len(thetas)
+            current['best'] = max(current['best'], float(np.max(rewards)))
+            current['fulfilled'] = current['fulfilled'] or bool(np.any(fulfilled))
+            goal_handle.publish_feedback(LearnSkill.Feedback(
+                task_index=current['index'],
+                rollouts=sum(d['rollouts'] for d in learner.done) + current['rollouts'],
+                best_reward=current['best'], fulfilled=current['fulfilled']))
+            return rewards, fulfilled
+        return evaluate
+
+    def _graph_rollout(self, task: TaskDefinition, tau: np.ndarray, theta: np.ndarray):
+        timeout = self.get_parameter('rollout_timeout').value
+        if not self.rollout_client.wait_for_server(timeout_sec=min(timeout, 10.0)):
+            raise RuntimeError('the execute_rollout action server is not available (is the '
+                               'graph up?)')
+        goal = ExecuteRollout.Goal(task=task_id(task), tau=[float(x) for x in tau],
+                                   theta=[float(x) for x in theta])
+        handle = wait_for(self.rollout_client.send_goal_async(goal), timeout,
+                          'execute_rollout (goal)')
+        if not handle.accepted:
+            raise RuntimeError('the rollout goal was rejected')
+        result = wait_for(handle.get_result_async(), timeout, 'execute_rollout').result
+        if not result.success:
+            raise RuntimeError(f'rollout failed: {result.message}')
+        return result.evaluation
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = LearnerNode()
+        executor = MultiThreadedExecutor(num_threads=4)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,211 @@
+"""The learner node as a separate process, with the skill memory node behind its services.
+
+A session through the nodes must give what the same session in-process gives (the nodes are
+adapters, not a second algorithm); a SIGKILLed learner, restarted, resumes from its checkpoint
+to the same result; bad goals get a reason and the node keeps serving. (Graph mode:
+the last test, with a whole graph in the root namespace; the other tests run their nodes under
+their own namespace so the two learners never answer the same goal.)
+"""
+import json
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from psl_cli.graph import NODES, Graph, pid_alive
+from psl_cli.ros_client import RosClient
+from psl_controller.policy import policy_for
+from psl_memory.skill_memory import SkillMemory
+from psl_optimizer.learning import Learner, LearnSettings
+from psl_optimizer.policy_search import SearchSettings
+from psl_sim.task import load_task
+
+TASK = 'reach_over_obstacle'
+NUM_TEST = 6
+SKILL = LearnSettings().skill      # the memory node gets the in-process default's readout
+MEMORY_PARAMS = {'readout': SKILL.readout, 'n_hidden': SKILL.n_hidden,
+                 'regularization': SKILL.regularization, 'seed': SKILL.seed}
+LEARN_NODES = tuple(n for n in NODES if n[0] in ('skill_memory', 'learner'))
+LEARNER_ONLY = tuple(n for n in NODES if n[0] == 'learner')
+NAMESPACE = 'batch_learning'
+
+
+def settings(strategy: str, num_tasks: int, budget: int, seed: int) -> LearnSettings:
+    return LearnSettings(strategy=strategy, num_tasks=num_tasks, seed=seed, num_test=NUM_TEST,
+                         search=SearchSettings(max_rollouts=budget))
+
+
+def in_process(s: LearnSettings, out) -> dict:
+    return Learner(load_task(TASK), s, out).run()
+
+
+def without_time(records):
+    return [{k: v for k, v in r.items() if k != 'seconds'} for r in records]
+
+
+def assert_same_session(node_metrics: dict, reference: dict) -> None:
+    a, b = without_time(node_metrics['tasks']), without_time(reference['tasks'])
+    assert [r['rollouts'] for r in a] == [r['rollouts'] for r in b]
+    assert [r['fulfilled'] for r in a] == [r['fulfilled'] for r in b]
+    np.testing.assert_allclose([r['tau'] for r in a], [r['tau'] for r in b], atol=0)
+    np.testing.assert_allclose([r['best_reward'] for r in a], [r['best_reward'] for r in b],
+                               rtol=0, atol=1e-9)
+    np.testing.assert_allclose(node_metrics['summary']['test_rewards'],
+                               reference['summary']['test_rewards'], rtol=0, atol=1e-9)
+
+
+def stop(graph: Graph) -> None:
+    graph.stop()
+    assert not [p.name for p in graph.processes if pid_alive(p.pid)]
+
+
+def learner_params(out_root) -> dict:
+    return {'test_tasks': NUM_TEST, 'output_root': str(out_root)}
+
+
+@pytest.fixture(scope='module')
+def nodes(tmp_path_factory):
+    g = Graph(nodes=LEARN_NODES, namespace=NAMESPACE,
+              log_dir=tmp_path_factory.mktemp('learner_logs'),
+              extra_params={'skill_memory': MEMORY_PARAMS,
+                            'learner': learner_params(tmp_path_factory.mktemp('runs'))})
+    try:
+        g.start()
+        yield g
+    finally:
+        stop(g)
+
+
+@pytest.fixture(scope='module')
+def client(nodes):
+    with RosClient(NAMESPACE) as c:
+        assert c.memory('info', timeout=30).success
+        yield c
+
+
+def fresh_memory(client, tmp_path) -> None:
+    """Load an empty skill for the task into the memory node (its public load service)."""
+    task = load_task(TASK)
+    memory = SkillMemory(SKILL)
+    memory.create(task.name, task.tau_low, task.tau_high, policy_for(task).default_theta)
+    path = tmp_path / 'empty.npz'
+    memory.save(path)
+    assert client.memory('load', path=str(path)).success
+
+
+def num_samples(client) -> int:
+    return json.loads(client.memory('info').message)[TASK]['num_samples']
+
+
+def goal(s: LearnSettings, out, mode: str = 'batch') -> dict:
+    return dict(task=TASK, strategy=s.strategy, num_tasks=s.num_tasks,
+                max_rollouts_per_task=s.search.max_rollouts, seed=s.seed, mode=mode,
+                output_dir=str(out))
+
+
+def test_a_session_through_the_nodes_equals_the_in_process_session(client, tmp_path):
+    fresh_memory(client, tmp_path)
+    s = settings('bootstrap', num_tasks=4, budget=60, seed=5)
+    feedback = []
+    result = client.learn(feedback=lambda m: feedback.append(m.feedback), timeout=300,
+                          **goal(s, tmp_path / 'node'))
+    assert result.success, result.message
+    metrics = json.loads(open(result.metrics_path).read())
+    reference = in_process(s, tmp_path / 'reference')
+    assert_same_session(metrics, reference)
+    # the skill lives in the memory node: one sample per fulfilled task
+    assert num_samples(client) == sum(r['fulfilled'] for r in metrics['tasks'])
+    # feedback: task index and rollout count never go back, and it reached the last task
+    assert feedback, 'no feedback'
+    indices = [f.task_index for f in feedback]
+    rollouts = [f.rollouts for f in feedback]
+    assert indices == sorted(indices) and rollouts == sorted(rollouts)
+    assert indices[-1] == s.num_tasks - 1
+    assert rollouts[-1] >= metrics['summary']['total_rollouts']
+
+
+@pytest.mark.parametrize('fields, reason', [
+    ({'task': 'no_such_task'}, 'no_such_task'),
+    ({'strategy': 'gradient_descent'}, 'unknown strategy'),
+    ({'num_tasks': 0}, 'num_tasks'),
+    ({'mode': 'warp'}, 'unknown mode'),
+])
+def test_a_bad_goal_gets_a_reason_and_the_node_keeps_serving(client, tmp_path, fields, reason):
+    fields = {**goal(settings('bootstrap', 1, 5, 0), tmp_path / 'bad'), **fields}
+    result = client.learn(timeout=60, **fields)
+    assert not result.success and reason in result.message
+    assert not (tmp_path / 'bad' / 'checkpoint.json').exists()
+    fresh_memory(client, tmp_path)
+    result = client.learn(timeout=120, **goal(settings('bootstrap', 1, 5, 0), tmp_path / 'ok'))
+    assert result.success, result.message
+
+
+def test_a_missing_skill_aborts_with_the_reason(client, tmp_path):
+    empty = SkillMemory(SKILL)
+    empty.save(tmp_path / 'none.npz')
+    assert client.memory('load', path=str(tmp_path / 'none.npz')).success
+    result = client.learn(timeout=60, **goal(settings('bootstrap', 2, 5, 0), tmp_path / 'x'))
+    assert not result.success and 'unknown skill' in result.message
+
+
+def test_a_killed_learner_resumes_from_its_checkpoint(nodes, client, tmp_path):
+    fresh_memory(client, tmp_path)
+    s = settings('scratch', num_tasks=8, budget=60, seed=2)
+    out = tmp_path / 'session'
+    learner = next(p for p in nodes.processes if p.name == 'learner')
+    handle = client.send_learn_goal(**goal(s, out))
+    checkpoint = out / 'checkpoint.json'
+    deadline = time.monotonic() + 120
+    done_at_kill = 0
+    while time.monotonic() < deadline:
+        if checkpoint.is_file():
+            done_at_kill = len(json.loads(checkpoint.read_text())['tasks'])
+            if done_at_kill >= 2:
+                break
+        time.sleep(0.005)
+    os.kill(learner.pid, signal.SIGKILL)
+    learner.process.wait(timeout=10)
+    before = json.loads(checkpoint.read_text())['tasks']
+    assert 2 <= len(before) < s.num_tasks, 'the kill came too late to test a resume'
+    del handle
+    restarted = Graph(nodes=LEARNER_ONLY, namespace=NAMESPACE, log_dir=tmp_path / 'logs',
+                      extra_params={'learner': learner_params(tmp_path / 'runs')})
+    try:
+        restarted.start()
+        # a new participant: the old one may still see the killed server until its lease ends
+        with RosClient(NAMESPACE) as fresh:
+            result = fresh.learn(timeout=300, **goal(s, out))
+    finally:
+        stop(restarted)
+    assert result.success, result.message
+    metrics = json.loads((out / 'metrics.json').read_text())
+    # the tasks finished before the kill were kept, not redone
+    assert without_time(metrics['tasks'][:len(before)]) == without_time(before)
+    assert [r['seconds'] for r in metrics['tasks'][:len(before)]] == [r['seconds']
+                                                                     for r in before]
+    # and the whole session is the uninterrupted one
+    assert_same_session(metrics, in_process(s, tmp_path / 'reference'))
+    assert num_samples(client) == sum(r['fulfilled'] for r in metrics['tasks'])
+
+
+def test_graph_mode_learns_what_batch_mode_learns(tmp_path):
+    """Rollouts through execute_rollout (sim, controller, executor, evaluator as processes)
+    give the batch rewards to 1e-9, so CMA-ES takes the same path."""
+    g = Graph(log_dir=tmp_path / 'logs', extra_params={
+        'skill_memory': MEMORY_PARAMS, 'learner': learner_params(tmp_path / 'runs')})
+    try:
+        g.start()
+        g.wait_ready(timeout=60)
+        with RosClient() as c:
+            s = settings('bootstrap', num_tasks=2, budget=12, seed=3)
+            feedback = []
+            result = c.learn(timeout=600, feedback=feedback.append,
+                             **goal(s, tmp_path / 'graph', mode='graph'))
+            assert result.success, result.message
+            assert feedback
+            metrics = json.loads(open(result.metrics_path).read())
+    finally:
+        stop(g)
+    assert_same_session(metrics, in_process(s, tmp_path / 'batch'))
