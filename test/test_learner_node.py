@@ -150,7 +150,29 @@ def test_a_missing_skill_aborts_with_the_reason(client, tmp_path):
     assert not result.success and 'unknown skill' in result.message
 
 
+def test_a_cancelled_session_resumes_when_the_goal_comes_again(client, tmp_path):
+    fresh_memory(client, tmp_path)
+    s = settings('scratch', num_tasks=8, budget=60, seed=4)
+    out = tmp_path / 'session'
+    handle = client.send_learn_goal(**goal(s, out))
+    checkpoint = out / 'checkpoint.json'
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not checkpoint.is_file():
+        time.sleep(0.005)
+    client.wait(handle.cancel_goal_async(), 30, 'cancel')
+    result = client.wait(handle.get_result_async(), 60, 'result').result
+    kept = json.loads(checkpoint.read_text())['tasks']
+    assert not result.success and 'cancelled' in result.message, result.message
+    assert 1 <= len(kept) < s.num_tasks
+    result = client.learn(timeout=300, **goal(s, out))
+    assert result.success, result.message
+    metrics = json.loads((out / 'metrics.json').read_text())
+    assert metrics['tasks'][:len(kept)] == kept
+    assert_same_session(metrics, in_process(s, tmp_path / 'reference'))
+
+
 def test_a_killed_learner_resumes_from_its_checkpoint(nodes, client, tmp_path):
+    """Kills the module's learner for good: keep this the last test that uses `nodes`."""
     fresh_memory(client, tmp_path)
     s = settings('scratch', num_tasks=8, budget=60, seed=2)
     out = tmp_path / 'session'

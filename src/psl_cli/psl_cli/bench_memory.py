@@ -37,13 +37,13 @@ from psl_memory.readout import make_readout
 
 SIZES = (10, 100, 1000, 10000)
 # (label, SkillConfig overrides): every readout with the node's defaults, and the Bayesian one
-# also without evidence maximisation, to show what the re-estimation costs per sample.
+# also with evidence maximisation, to show what the re-estimation costs per sample.
 READOUT_VARIANTS = (
     ('ridge', {'readout': 'ridge'}),
     ('rls', {'readout': 'rls'}),
     ('incremental_ridge', {'readout': 'incremental_ridge'}),
-    ('bayes', {'readout': 'bayes'}),
-    ('bayes, fixed precisions', {'readout': 'bayes', 'estimate_precisions': False}),
+    ('bayes (fixed precisions, the default)', {'readout': 'bayes'}),
+    ('bayes, precisions estimated', {'readout': 'bayes', 'estimate_precisions': True}),
 )
 SKILL_LABEL = 'ParameterizedSkill.add (default: {readout} + {associative})'
 NOISE_STD = 0.01          # of theta, for the evidence maximisation

@@ -102,7 +102,7 @@ class RosClient:
         time.sleep(0.3)   # seen from here; give the pairwise matching a moment
 
     @staticmethod
-    def _wait(future, timeout: float, what: str):
+    def wait(future, timeout: float, what: str):
         event = threading.Event()
         future.add_done_callback(lambda _: event.set())
         if not event.wait(timeout):
@@ -117,13 +117,13 @@ class RosClient:
             raise TimeoutError(f'the skill memory service skill_memory/{service} is not '
                                'available')
         request = MEMORY_SERVICES[service].Request(**fields)
-        return self._wait(client.call_async(request), timeout, f'skill_memory/{service}')
+        return self.wait(client.call_async(request), timeout, f'skill_memory/{service}')
 
     def reset(self, task: str, tau, timeout: float = 10.0) -> ResetTask.Response:
         if not self.reset_client.wait_for_service(timeout_sec=timeout):
             raise TimeoutError('the simulator service sim/reset is not available')
         request = ResetTask.Request(task=task, tau=[float(x) for x in tau])
-        return self._wait(self.reset_client.call_async(request), timeout, 'sim/reset')
+        return self.wait(self.reset_client.call_async(request), timeout, 'sim/reset')
 
     def rollout(self, task: str, tau, theta, timeout: float = 120.0,
                 feedback=None) -> ExecuteRollout.Result:
@@ -138,12 +138,12 @@ class RosClient:
         goal = ExecuteRollout.Goal(task=task, tau=[float(x) for x in np.ravel(tau)],
                                    theta=[float(x) for x in np.ravel(theta)])
         start = time.monotonic()
-        handle = self._wait(self.rollout_client.send_goal_async(goal, feedback_callback=feedback),
+        handle = self.wait(self.rollout_client.send_goal_async(goal, feedback_callback=feedback),
                             timeout, 'execute_rollout goal')
         if not handle.accepted:
             raise RuntimeError('the rollout goal was rejected')
         remaining = max(1.0, timeout - (time.monotonic() - start))
-        return self._wait(handle.get_result_async(), remaining, 'execute_rollout result').result
+        return self.wait(handle.get_result_async(), remaining, 'execute_rollout result').result
 
     def send_learn_goal(self, timeout: float = 30.0, feedback=None, **fields):
         """Send a learn_skill goal (fields of psl_msgs/LearnSkill.Goal) to the learner node;
@@ -151,7 +151,7 @@ class RosClient:
         if not self.learn_client.wait_for_server(timeout_sec=timeout):
             raise TimeoutError('the learner action server learn_skill is not available '
                                '(is the graph up?)')
-        handle = self._wait(self.learn_client.send_goal_async(
+        handle = self.wait(self.learn_client.send_goal_async(
             LearnSkill.Goal(**fields), feedback_callback=feedback), timeout, 'learn_skill goal')
         if not handle.accepted:
             raise RuntimeError('the learn_skill goal was rejected')
@@ -160,7 +160,7 @@ class RosClient:
     def learn(self, timeout: float = 3600.0, feedback=None, **fields) -> LearnSkill.Result:
         """One learning session through the learner node; returns its result."""
         handle = self.send_learn_goal(feedback=feedback, **fields)
-        return self._wait(handle.get_result_async(), timeout, 'learn_skill result').result
+        return self.wait(handle.get_result_async(), timeout, 'learn_skill result').result
 
 
 def evaluation_dict(evaluation: RolloutEvaluation) -> dict:

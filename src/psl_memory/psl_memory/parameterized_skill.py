@@ -40,7 +40,9 @@ class SkillConfig:
     seed: int = 0
     alpha: float = 1.0               # slope of the hidden sigmoid
     associative: str = 'aelm'        # aelm: O(1) per sample; arbf: one centre per sample
-    estimate_precisions: bool = True  # bayes: evidence maximisation of alpha and beta
+    # bayes: evidence maximisation of alpha and beta. Off by default: with few samples it
+    # shrinks PS towards the default policy (docs/benchmarks.md, psl bench learn)
+    estimate_precisions: bool = False
     noise_precision: float = 1.0     # bayes: beta (the initial value when estimated)
     completion_tolerance: float = 1e-6    # recall stops when no entry moves more (normalised)
     completion_max_iterations: int = 200

@@ -45,7 +45,7 @@ class LearnSettings:
     seed: int = 0
     num_test: int = 20
     search: SearchSettings = SearchSettings()
-    skill: SkillConfig = SkillConfig(readout='incremental_ridge')
+    skill: SkillConfig = SkillConfig()  # bayes, fixed precisions: ridge's mean + variance
     add_only_fulfilled: bool = True     # a failed search's best theta would teach the skill a miss
 
 
