@@ -1,8 +1,10 @@
 """``psl demo`` (what ``make demo`` runs): the whole robot loop on the embedded default task.
 
 Starts the graph (every node its own process), records the loop's topics into a rosbag2
-(MCAP) bag, rolls out the demonstration's policy over a few obstacle placements, prints a
-table of the evaluations and ends every process it started.
+(MCAP) bag, rolls out the demonstration's policy over a few obstacle placements, has the
+learner node learn the skill (batch mode, bootstrap, 30 random instances; the skill lives in
+the skill_memory node), rolls out PS(tau) from the memory on the same placements (never trained
+on: zero-shot), prints both tables and ends every process it started.
 """
 from __future__ import annotations
 
@@ -34,12 +36,16 @@ def placements(task, count: int) -> list[np.ndarray]:
     return out
 
 
+LEARN_TASKS = 30
+
+
 def run_demo(task: str, out: Path, positions: int = 5) -> int:
     definition = load_task(task)
     theta = policy_for(definition).default_theta
     out.mkdir(parents=True, exist_ok=True)
-    bag = out / time.strftime('bag-%Y%m%d-%H%M%S')
-    rows = []
+    stamp = time.strftime('%Y%m%d-%H%M%S')
+    bag = out / f'bag-{stamp}'
+    rows, learned = [], []
     with Graph(task=task_id(definition), mode='lockstep') as graph:
         print('started ' + ', '.join(f'{p.name} (pid {p.pid})' for p in graph.processes),
               flush=True)
@@ -57,6 +63,25 @@ def run_demo(task: str, out: Path, positions: int = 5) -> int:
                         print(f'rollout at tau={tau.tolist()} failed: {result.message}')
                         return 1
                     rows.append(evaluation_dict(result.evaluation))
+                print(f'learning the skill over {LEARN_TASKS} random instances (learner node, '
+                      'batch mode, bootstrap) ...', flush=True)
+                session = client.learn(timeout=600, task=task_id(definition),
+                                       strategy='bootstrap', num_tasks=LEARN_TASKS,
+                                       max_rollouts_per_task=200, seed=0, mode='batch',
+                                       output_dir=str((out / f'skill-{stamp}').resolve()))
+                if not session.success:
+                    print(f'learning failed: {session.message}')
+                    return 1
+                print(f'learned: {session.message}; metrics in {session.metrics_path}')
+                for tau in placements(definition, positions):
+                    answer = client.memory('query', skill=definition.name,
+                                           tau=[float(x) for x in tau])
+                    result = client.rollout(task_id(definition), tau, np.asarray(answer.theta))
+                    if not (answer.success and result.success):
+                        print(f'skill rollout at tau={tau.tolist()} failed: '
+                              f'{answer.message} {result.message}')
+                        return 1
+                    learned.append(evaluation_dict(result.evaluation))
         finally:
             time.sleep(0.5)
             stop.set()
@@ -64,13 +89,16 @@ def run_demo(task: str, out: Path, positions: int = 5) -> int:
     names = definition.tau_names
     header = ''.join(f'{n:>17s}' for n in names) + f'{"reward":>10s}{"fulfilled":>11s}' \
         f'{"goal err [m]":>14s}{"penetration [m]":>17s}{"tracking [rad]":>16s}'
-    print(f'\nreach with the demonstration policy on task {definition.name!r}')
-    print(header)
-    for row in rows:
-        c = row['components']
-        print(''.join(f'{v:17.3f}' for v in row['tau']) + f'{row["reward"]:10.3f}'
-              f'{str(row["fulfilled"]):>11s}{c["goal_error"]:14.4f}{c["penetration"]:17.4f}'
-              f'{c["tracking_error"]:16.4f}')
+    for title, table in ((f'the demonstration policy on task {definition.name!r}', rows),
+                         ('the learned skill, theta = PS(tau) from the skill_memory node '
+                          '(zero-shot)', learned)):
+        print(f'\n{title}: {sum(r["fulfilled"] for r in table)} of {len(table)} fulfilled')
+        print(header)
+        for row in table:
+            c = row['components']
+            print(''.join(f'{v:17.3f}' for v in row['tau']) + f'{row["reward"]:10.3f}'
+                  f'{str(row["fulfilled"]):>11s}{c["goal_error"]:14.4f}'
+                  f'{c["penetration"]:17.4f}{c["tracking_error"]:16.4f}')
     print(f'\nbag {bag} (rosbag2, MCAP):')
     for topic, (msgtype, count) in sorted(read_bag_summary(bag).items()):
         print(f'  {topic:22s} {msgtype:34s} {count:6d} messages')
