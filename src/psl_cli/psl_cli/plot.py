@@ -9,8 +9,8 @@ Panels:
   (c) predictive variance of the first run's skill over the tau range (`variance_grid`): a curve
       for a 1-D tau, a heat map over the first two dimensions otherwise (the rest held at the
       centre of their ranges), with the training instances on top. A skill whose readout has no
-      variance (e.g. 'incremental_ridge', the learning default) gets a Bayesian readout fitted
-      to its stored samples for the plot (`bayesian_stand_in`); the panel title says so.
+      variance (e.g. 'incremental_ridge') gets a Bayesian readout fitted to its stored samples
+      for the plot (`bayesian_stand_in`); the panel title says so.
 
 A run without memory.npz, with an unreadable one, or without a summary (an incomplete session)
 is drawn with what it has; a missing or corrupt metrics.json is a ValueError naming the file.
@@ -29,7 +29,7 @@ from matplotlib import colors
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
-from matplotlib.ticker import MaxNLocator
+from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter
 
 from psl_memory.parameterized_skill import ParameterizedSkill
 from psl_memory.skill_memory import MemoryFileError, SkillMemory
@@ -41,6 +41,7 @@ RUN_KEYS = ('task', 'strategy', 'seed', 'tasks')
 TASK_KEYS = ('index', 'tau', 'rollouts', 'fulfilled', 'best_reward')
 SUMMARY_KEYS = ('test_taus', 'test_rewards')
 LOG_RANGE = 10.0             # a positive quantity spanning more than this factor gets a log axis
+PLAIN = FuncFormatter(lambda value, _: f'{value:g}')     # tick labels 0.01, 20, 300
 
 
 # -- loading ----------------------------------------------------------------------------------
@@ -149,9 +150,10 @@ def bayesian_stand_in(skill: ParameterizedSkill) -> ParameterizedSkill:
     """A skill like `skill` (same ranges, hidden layer and options) but with the Bayesian readout
     ('bayes', eq. 2.12-2.14), fed the same samples in the same order.
 
-    Its mean is not exactly `skill`'s: the Bayesian readout's precisions come from its own
-    options (with the default ``estimate_precisions``, evidence maximisation), not from the ridge
-    factor of the original readout.
+    The precisions come from the skill's configuration: prior precision alpha = its
+    ``regularization``, noise precision beta = its ``noise_precision``, re-estimated by evidence
+    maximisation if ``estimate_precisions``. With fixed precisions and beta = 1 the mean is
+    that of ridge regression with the same factor (eq. 2.8), so only the variance is new.
     """
     config = dataclasses.replace(skill.config, readout='bayes')
     stand_in = ParameterizedSkill(skill.name, skill.tau_scaler, skill.theta_scaler, config)
@@ -289,8 +291,11 @@ def _draw_rollouts(ax: Axes, runs: list[dict[str, Any]]) -> None:
             ax.plot(index, rollouts[0], 'o-', color=colour, ms=4, label=label)
             continue
         seeds = ', '.join(str(r['metrics']['seed']) for r in members)
+        rates = [r['metrics']['summary']['zero_shot_success_rate'] for r in members
+                 if 'zero_shot_success_rate' in r['metrics'].get('summary', {})]
+        zero_shot = f', zero-shot {100 * np.mean(rates):.0f} %' if rates else ''
         ax.plot(index, np.nanmean(rollouts, axis=0), 'o-', color=colour, ms=4,
-                label=f'{key}, mean of seeds {seeds}: {np.mean(totals):.0f} rollouts')
+                label=f'{key}, mean of seeds {seeds}: {np.mean(totals):.0f} rollouts{zero_shot}')
         ax.fill_between(index, np.nanmin(rollouts, axis=0), np.nanmax(rollouts, axis=0),
                         color=colour, alpha=0.2, lw=0, label=f'{key}: min-max over seeds')
     ax.set_title('(a) rollouts per task instance', fontsize=10)
@@ -298,9 +303,12 @@ def _draw_rollouts(ax: Axes, runs: list[dict[str, Any]]) -> None:
     ax.set_ylabel('rollouts to solve the task')
     if positive:
         ax.set_yscale('log')
+        ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_major_formatter(PLAIN)
+        ax.yaxis.set_minor_formatter(NullFormatter())
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc='best')
+    ax.legend(fontsize=8, loc='upper center', bbox_to_anchor=(0.5, -0.1), frameon=False)
 
 
 def _zero_shot(metrics: dict[str, Any]) -> str:
@@ -353,6 +361,10 @@ def _draw_rewards(fig: Figure, ax: Axes, run: dict[str, Any], names: list[str] |
             ax.axhline(threshold, color='k', ls='--', lw=1, label='success threshold')
         norm = _reward_norm(np.r_[rewards, [] if threshold is None else [threshold]])
         ax.set_yscale('symlog', linthresh=norm.linthresh)
+        ax.yaxis.set_major_formatter(PLAIN)
+        low, high = norm.vmin, norm.vmax          # margins: the axis would run to +-0.1
+        ax.set_ylim(low * 2 if low < 0 else low - norm.linthresh,
+                    high * 2 if high > 0 else high + 0.5 * norm.linthresh)
         ax.set_xlabel(_tau_name(names, 0, dim))
         ax.set_ylabel('reward (symmetric log scale)')
         ax.grid(alpha=0.3)
@@ -364,16 +376,18 @@ def _draw_rewards(fig: Figure, ax: Axes, run: dict[str, Any], names: list[str] |
     image = ax.scatter(taus[done, 0], taus[done, 1], c=best[done], marker='o', s=55, **style)
     ax.scatter(taus[~done, 0], taus[~done, 1], c=best[~done], marker='X', s=90, **style)
     ax.scatter(test_taus[:, 0], test_taus[:, 1], c=test_rewards, marker='^', s=55, **style)
-    bar = fig.colorbar(image, ax=ax, label='reward (symmetric log scale)')
+    bar = fig.colorbar(image, ax=ax, format=PLAIN)
+    label = 'reward (symmetric log scale)'
     if threshold is not None and norm.vmin <= threshold <= norm.vmax:
         bar.ax.axhline(threshold, color='r', lw=2)
-        bar.ax.text(0.5, threshold, 'success', color='r', fontsize=7, ha='center', va='bottom',
-                    transform=bar.ax.get_yaxis_transform())
+        label += '; red: success threshold'
+    bar.set_label(label)
     grey = {'ls': 'none', 'mfc': '0.7', 'mec': 'k'}
-    handles = [Line2D([], [], marker='o', label='training: best reward, fulfilled', **grey),
-               Line2D([], [], marker='X', ms=9, label='training: not fulfilled', **grey),
+    handles = [Line2D([], [], marker='o', label='training, fulfilled: best reward', **grey),
+               Line2D([], [], marker='X', ms=9, label='training, not fulfilled', **grey),
                Line2D([], [], marker='^', label='held-out: zero-shot reward', **grey)]
-    ax.legend(handles=handles, fontsize=8, loc='best')
+    ax.legend(handles=handles, fontsize=8, loc='upper center', bbox_to_anchor=(0.5, -0.1),
+              ncol=2, frameon=False)
     ax.set_xlabel(_tau_name(names, 0, dim))
     ax.set_ylabel(_tau_name(names, 1, dim))
     if dim > 2:
@@ -396,10 +410,15 @@ def _draw_variance(fig: Figure, ax: Axes, run: dict[str, Any], names: list[str] 
         return
     grid = variance_grid(skill, grid_points)
     if grid.fitted:
-        title += (f'\nBayesian readout fitted to the {grid.num_samples} samples for this plot '
-                  f"(the run's readout '{skill.config.readout}' has no variance)")
+        precisions = 'estimated' if skill.config.estimate_precisions else 'fixed'
+        title += (f"\nthe run's readout '{skill.config.readout}' gives no variance: a Bayesian"
+                  f' readout\n({precisions} precisions) was fitted to its {grid.num_samples} '
+                  'samples for this plot')
     else:
-        title += f"\nreadout '{skill.config.readout}', {grid.num_samples} samples"
+        title += f"\nthe run's readout '{skill.config.readout}', {grid.num_samples} samples"
+        if skill.config.readout == 'bayes':
+            title += (f" ({'estimated' if skill.config.estimate_precisions else 'fixed'} "
+                      'precisions)')
     dim = skill.tau_dim
     values = grid.values
     log = bool(values.max() > LOG_RANGE * values.min())
@@ -424,14 +443,19 @@ def _draw_variance(fig: Figure, ax: Axes, run: dict[str, Any], names: list[str] 
     norm = (colors.LogNorm if log else colors.Normalize)(vmin=values.min(), vmax=values.max())
     mesh = ax.pcolormesh(grid.axes[0], grid.axes[1], values, norm=norm, cmap='magma',
                          shading='auto')
-    fig.colorbar(mesh, ax=ax, label='mean predictive variance of theta'
-                 + (' (log scale)' if log else ''))
+    bar = fig.colorbar(mesh, ax=ax, label='mean predictive variance of theta'
+                       + (' (log scale)' if log else ''))
+    if log:        # label the minor ticks (20, 30, ...) too when there are few decades
+        bar.ax.yaxis.set_major_formatter(PLAIN)
+        few = values.max() < LOG_RANGE**2 * values.min()
+        bar.ax.yaxis.set_minor_formatter(PLAIN if few else NullFormatter())
     ax.scatter(samples[:, 0], samples[:, 1], marker='o', s=30, facecolors='w',
                edgecolors='k', linewidths=0.8, label=f'samples in the skill ({len(samples)})')
     if len(failed):
         ax.scatter(failed[:, 0], failed[:, 1], marker='X', s=60, color='C2', edgecolors='k',
                    linewidths=0.6, label='training: not fulfilled (not stored)')
-    ax.legend(fontsize=8, loc='upper right', framealpha=0.8)
+    ax.legend(fontsize=8, loc='upper center', bbox_to_anchor=(0.5, -0.1), ncol=2,
+              frameon=False)
     ax.set_xlabel(_tau_name(names, 0, dim))
     ax.set_ylabel(_tau_name(names, 1, dim))
     if dim > 2:

@@ -1,0 +1,186 @@
+"""psl plot: figures of real (tiny) learning runs, the variance grid, bad folders, the CLI."""
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+from matplotlib.image import imread
+
+from psl_cli.plot import (DPI, FIGSIZE, bayesian_stand_in, load_run, plot_runs,
+                          variance_grid)
+from psl_memory.parameterized_skill import SkillConfig
+from psl_memory.skill_memory import SkillMemory
+from psl_optimizer.batch_rollout import BatchRollout
+from psl_optimizer.learning import Learner, LearnSettings
+from psl_optimizer.policy_search import SearchSettings
+from psl_sim.task import EMBEDDED_TASKS, load_task
+
+TASK = 'reach_over_obstacle'
+NUM_TASKS = 12
+GRID = 25
+PNG_SHAPE = (round(FIGSIZE[1] * DPI), round(FIGSIZE[0] * DPI), 4)   # rows, columns, RGBA
+FAR = 0.5       # grid points farther than this from every sample (unit tau) count as far
+NO_VARIANCE = SkillConfig(readout='incremental_ridge')      # the plot fits a Bayesian readout
+BAYES = SkillConfig(readout='bayes')                        # the plot queries the skill as it is
+
+
+def settings(strategy: str, seed: int, num_tasks: int = NUM_TASKS,
+             skill: SkillConfig = NO_VARIANCE) -> LearnSettings:
+    return LearnSettings(strategy=strategy, num_tasks=num_tasks, seed=seed, num_test=6,
+                         search=SearchSettings(max_rollouts=40), skill=skill)
+
+
+@pytest.fixture(scope='module')
+def task():
+    return load_task(TASK)
+
+
+@pytest.fixture(scope='module')
+def evaluator(task):
+    return BatchRollout(task)
+
+
+@pytest.fixture(scope='module')
+def runs(task, evaluator, tmp_path_factory):
+    """Three finished runs with a readout without variance: bootstrap seeds 0 and 1, scratch
+    seed 0."""
+    out = {}
+    for strategy, seed in (('bootstrap', 0), ('bootstrap', 1), ('scratch', 0)):
+        folder = tmp_path_factory.mktemp(f'{strategy}{seed}')
+        Learner(task, settings(strategy, seed), folder, evaluator).run()
+        out[strategy, seed] = folder
+    return out
+
+
+def skill_of(folder):
+    return SkillMemory.read(folder / 'memory.npz').get(TASK)
+
+
+def assert_png(path):
+    image = imread(path)
+    assert image.shape == PNG_SHAPE
+    assert np.ptp(image[..., :3]) > 0.5          # something is drawn, not a blank canvas
+
+
+def test_several_runs_give_one_png_of_the_figure_size(runs, tmp_path):
+    out = tmp_path / 'runs.png'
+    assert plot_runs(list(runs.values()), out, grid_points=GRID) == out
+    assert_png(out)
+
+
+def test_variance_grid_is_positive_and_lowest_near_the_samples(runs):
+    skill = skill_of(runs['bootstrap', 0])
+    assert skill.config.readout == 'incremental_ridge' and skill.num_samples >= 8
+    grid = variance_grid(skill, GRID)
+    assert grid.fitted and grid.num_samples == skill.num_samples
+    assert grid.values.shape == (GRID, GRID)
+    np.testing.assert_allclose([a[[0, -1]] for a in grid.axes],
+                               np.c_[skill.tau_scaler.low, skill.tau_scaler.high])
+    assert np.all(np.isfinite(grid.values)) and np.all(grid.values > 0)
+    # distances in unit tau coordinates, grid (row: tau_1, column: tau_0) against the samples
+    x, y = np.meshgrid(*grid.axes)
+    points = skill.tau_scaler.to_unit(np.c_[x.ravel(), y.ravel()])             # (GRID^2, 2)
+    samples = skill.tau_scaler.to_unit(skill.taus)                              # (N, 2)
+    dist = np.linalg.norm(points[:, None] - samples[None], axis=2)              # (GRID^2, N)
+    values = grid.values.ravel()
+    near = values[np.argmin(dist, axis=0)]             # the grid point nearest each sample
+    far = values[dist.min(axis=1) > FAR]
+    assert far.size > 0
+    assert np.mean(near) < np.mean(far)
+    assert np.max(near) < np.max(far)
+
+
+def test_a_skill_with_variance_is_queried_as_it_is(runs):
+    skill = skill_of(runs['scratch', 0])
+    stand_in = bayesian_stand_in(skill)
+    assert stand_in.config.readout == 'bayes' and stand_in.num_samples == skill.num_samples
+    fitted, own = variance_grid(skill, GRID), variance_grid(stand_in, GRID)
+    assert fitted.fitted and not own.fitted
+    np.testing.assert_allclose(own.values, fitted.values)
+    with pytest.raises(ValueError, match='n >= 2'):
+        variance_grid(skill, 1)
+
+
+def test_incomplete_run_and_run_without_memory_still_plot(task, evaluator, runs, tmp_path):
+    calls = []
+
+    def stop_after_three():
+        calls.append(1)
+        return len(calls) > 3
+
+    partial = tmp_path / 'partial'
+    Learner(task, settings('hybrid', 2), partial, evaluator).run(should_stop=stop_after_three)
+    run = load_run(partial)
+    assert 'summary' not in run['metrics'] and len(run['metrics']['tasks']) == 3
+    bare = tmp_path / 'bare'
+    shutil.copytree(runs['scratch', 0], bare)
+    (bare / 'memory.npz').unlink()
+    assert load_run(bare)['memory_path'] is None
+    for folders in ([partial, runs['bootstrap', 0]], [bare]):
+        out = tmp_path / f'{folders[0].name}.png'
+        assert_png(plot_runs(folders, out, grid_points=GRID))
+
+
+def test_a_one_dimensional_task_plots(evaluator, tmp_path, monkeypatch):
+    """reach_over_obstacle with only the obstacle's position as tau, learned for real."""
+    folder = tmp_path / 'tasks'
+    folder.mkdir()
+    data = yaml.safe_load((EMBEDDED_TASKS / f'{TASK}.yaml').read_text())
+    data['name'] = 'reach_over_obstacle_1d'
+    data['task_parameters'] = data['task_parameters'][:1]
+    (folder / 'reach_over_obstacle_1d.yaml').write_text(yaml.safe_dump(data))
+    shutil.copy(EMBEDDED_TASKS / data['model'], folder / data['model'])
+    monkeypatch.setenv('PSL_TASK_PATH', str(folder))       # the plot finds the tau names
+    task_1d = load_task('reach_over_obstacle_1d')
+    assert len(task_1d.parameters) == 1
+    out = tmp_path / 'run'
+    Learner(task_1d, settings('bootstrap', 0, num_tasks=6, skill=BAYES), out).run()
+    skill = SkillMemory.read(out / 'memory.npz').get(task_1d.name)
+    grid = variance_grid(skill, GRID)
+    assert not grid.fitted and len(grid.axes) == 1 and grid.values.shape == (GRID,)
+    assert np.all(grid.values > 0)
+    assert_png(plot_runs([out], out / 'learning.png', grid_points=GRID))
+
+
+def test_bad_folders_are_value_errors_naming_the_file(runs, tmp_path):
+    with pytest.raises(ValueError, match='no such folder'):
+        load_run(tmp_path / 'nothing')
+    empty = tmp_path / 'empty'
+    empty.mkdir()
+    with pytest.raises(ValueError, match=f'{empty / "metrics.json"}: no such file'):
+        load_run(empty)
+    corrupt = tmp_path / 'corrupt'
+    shutil.copytree(runs['bootstrap', 0], corrupt)
+    metrics = corrupt / 'metrics.json'
+    text = metrics.read_text()
+    metrics.write_text(text[:len(text) // 2])                    # truncated
+    with pytest.raises(ValueError, match=f'{metrics}: not readable as JSON'):
+        plot_runs([runs['bootstrap', 0], corrupt], tmp_path / 'x.png')
+    broken = json.loads(text)
+    del broken['tasks'][0]['rollouts']
+    metrics.write_text(json.dumps(broken))
+    with pytest.raises(ValueError, match=f'{metrics}: corrupt metrics.*rollouts'):
+        load_run(corrupt)
+    assert not (tmp_path / 'x.png').exists()
+
+
+def psl_plot(*args):
+    return subprocess.run([sys.executable, '-m', 'psl_cli.main', 'plot', *map(str, args)],
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_psl_plot_command(runs, tmp_path):
+    first, second = runs['bootstrap', 0], runs['scratch', 0]
+    done = psl_plot(first, second)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == str(first / 'learning.png')
+    assert_png(first / 'learning.png')
+    out = tmp_path / 'chosen.png'
+    done = psl_plot(first, '--out', out)
+    assert done.returncode == 0 and done.stdout.strip() == str(out) and out.is_file()
+    failed = psl_plot(first, tmp_path / 'missing')
+    assert failed.returncode == 2
+    assert 'psl plot:' in failed.stderr and str(tmp_path / 'missing') in failed.stderr
