@@ -70,6 +70,46 @@ def test_up_serves_rollouts_and_ends_its_processes_on_sigterm(tmp_path):
         end(proc, pids)
 
 
+def test_learn_in_graph_mode_cancels_on_ctrl_c_and_resumes(tmp_path):
+    """`psl learn --mode graph` runs the session in the graph's learner node; Ctrl-C cancels
+    the goal (finished tasks stay in the checkpoint), the same command resumes it, and the
+    result equals batch mode's (graph rollouts give the batch rewards)."""
+    proc, pids, log = start_up(tmp_path)
+    out = tmp_path / 'graph'
+    learn = PSL + ['learn', '--mode', 'graph', '--tasks', '3', '--budget', '12', '--seed', '3',
+                   '--out', str(out)]
+    try:
+        wait_for_line(log, 'graph ready')
+        first = subprocess.Popen(learn, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                 text=True)
+        try:
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and not (out / 'checkpoint.json').is_file():
+                time.sleep(0.05)
+            os.kill(first.pid, signal.SIGINT)
+            _, stderr = first.communicate(timeout=120)
+        finally:
+            if first.poll() is None:
+                first.kill()
+        assert first.returncode == 1 and 'cancelled after' in stderr, stderr
+        kept = json.loads((out / 'checkpoint.json').read_text())['tasks']
+        assert 1 <= len(kept) < 3
+        again = subprocess.run(learn, capture_output=True, text=True, timeout=300)
+        assert again.returncode == 0, again.stderr
+    finally:
+        end(proc, pids)
+    graph = json.loads((out / 'metrics.json').read_text())
+    assert graph['tasks'][:len(kept)] == kept
+    batch = subprocess.run(PSL + ['learn', '--tasks', '3', '--budget', '12', '--seed', '3',
+                                  '--out', str(tmp_path / 'batch')],
+                           capture_output=True, text=True, timeout=300)
+    assert batch.returncode == 0, batch.stderr
+    batch = json.loads((tmp_path / 'batch' / 'metrics.json').read_text())
+    assert [t['rollouts'] for t in graph['tasks']] == [t['rollouts'] for t in batch['tasks']]
+    assert [t['best_reward'] for t in graph['tasks']] == pytest.approx(
+        [t['best_reward'] for t in batch['tasks']], abs=1e-9)
+
+
 def test_up_reports_a_dead_node_and_ends_the_others(tmp_path):
     proc, pids, log = start_up(tmp_path)
     try:
