@@ -6,6 +6,7 @@ deadline misses of the realtime mode at 500 Hz over a long episode.
 ``psl bench memory``: per-sample update and query time of each readout against the number of
 stored samples, and the query service round trip beside a bare DDS round trip.
 ``psl bench learn``: policy-search strategies over task instances (`psl_cli.bench_learn`).
+``psl bench dynamics``: learned feed-forward on held-out payloads (`psl_cli.bench_dynamics`).
 """
 from __future__ import annotations
 
@@ -39,8 +40,9 @@ def add_arguments(parser) -> None:
     memory.add_argument('--service-samples', type=int, default=1000)
     memory.add_argument('--round-trips', type=int, default=1000)
     memory.add_argument('--json', action='store_true')
-    from psl_cli import bench_learn
+    from psl_cli import bench_dynamics, bench_learn
     bench_learn.add_arguments(sub)
+    bench_dynamics.add_arguments(sub)
 
 
 def add_rollout_arguments(sub) -> None:
@@ -68,7 +70,7 @@ def bench_rollout(args) -> int:
     taus = np.array([task.sample_tau(rng) for _ in range(args.population)])
     control = batch.controls([batch.policy.reference(t) for t in thetas], taus)
     steps = args.population * control.shape[1]
-    raw, full = [], []
+    raw, full, refs, ctrls = [], [], [], []
     for _ in range(args.repeats):
         start = time.perf_counter()
         mj_rollout.rollout(batch.model, batch.datas, batch.initial_state[None], control,
@@ -77,18 +79,34 @@ def bench_rollout(args) -> int:
         start = time.perf_counter()
         batch.run(thetas, taus)
         full.append(time.perf_counter() - start)
+        start = time.perf_counter()                  # where batch mode's extra time goes
+        references = [batch.policy.reference(t) for t in thetas]
+        refs.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        batch.controls(references, taus)
+        ctrls.append(time.perf_counter() - start)
+    med = statistics.median
     report = {'task': task.name, 'population': args.population, 'steps_per_rollout':
               control.shape[1], 'threads': len(batch.datas),
-              'raw_steps_per_second': steps / statistics.median(raw),
-              'batch_steps_per_second': steps / statistics.median(full)}
+              'raw_steps_per_second': steps / med(raw),
+              'batch_steps_per_second': steps / med(full),
+              # each repeat's raw and batch run back to back: robust to a drifting load
+              'ratio_paired_median': med([r / f for r, f in zip(raw, full)]),
+              'ms_per_population': {'total': 1e3 * med(full), 'mujoco_rollout': 1e3 * med(raw),
+                                    'references': 1e3 * med(refs), 'controls': 1e3 * med(ctrls),
+                                    'rewards_and_rest': 1e3 * (med(full) - med(raw) - med(refs)
+                                                               - med(ctrls))}}
     report['ratio'] = report['batch_steps_per_second'] / report['raw_steps_per_second']
     if args.json:
         print(json.dumps(report, indent=2))
     else:
+        ms = report['ms_per_population']
         print(f"raw mujoco.rollout: {report['raw_steps_per_second']:.0f} steps/s; batch mode "
               f"(DMP references, controls, rollout, rewards): "
               f"{report['batch_steps_per_second']:.0f} steps/s; ratio {report['ratio']:.2f} "
-              f"(population {args.population}, {report['threads']} threads)")
+              f"(paired median {report['ratio_paired_median']:.2f}; population "
+              f"{args.population}, {report['threads']} threads)")
+        print('ms per population: ' + ', '.join(f'{k} {v:.1f}' for k, v in ms.items()))
     return 0
 
 
@@ -102,6 +120,9 @@ def main(args) -> int:
     if args.bench == 'learn':
         from psl_cli import bench_learn
         return bench_learn.main(args)
+    if args.bench == 'dynamics':
+        from psl_cli import bench_dynamics
+        return bench_dynamics.main(args)
     raise ValueError(f'unknown benchmark {args.bench!r}')
 
 
