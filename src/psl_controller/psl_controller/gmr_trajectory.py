@@ -99,12 +99,15 @@ class GMRTrajectory:
 
     def rollout(self, dt: float, t_end: float | None = None) -> GMRTrajectorySample:
         """q(t) on the grid t = 0, dt, ..., t_end (default: the duration): the conditional mean
-        (eq. 2.25) from `gmr`, and its exact time derivative."""
+        (eq. 2.25) from `gmr`, and its exact time derivative; after the duration the
+        trajectory holds q(1) (a settle phase), as a DMP settles at its goal."""
         t_end = self.duration if t_end is None else t_end
         t = np.arange(int(round(t_end / dt)) + 1) * dt
-        s = t / self.duration
+        s = np.minimum(t / self.duration, 1.0)        # after the movement: hold its end
         y = self.mixture().predict(np.array([0]), s[:, None])
-        return GMRTrajectorySample(t=t, y=y, yd=self._velocity(s) / self.duration)
+        yd = self._velocity(s) / self.duration
+        yd[t > self.duration] = 0.0
+        return GMRTrajectorySample(t=t, y=y, yd=yd)
 
     def _velocity(self, s: np.ndarray) -> np.ndarray:
         """d q / d s of the conditional mean: sum_k h_k' m_k(s) + h_k slope_k, with

@@ -2,7 +2,10 @@
 
 For ``policy.kind: dmp`` the kinematics are one DMP per joint (eq. 2.23-2.24) from the task's
 start posture to its goal posture; the default theta is the least-squares fit of the task's
-demonstration. The feed-forward torque (dynamics modality) is zero for now. Imports no ROS;
+demonstration. With ``policy.feedforward: true`` theta is one flat vector
+``[theta_K, theta_D]``: theta_K the DMP weights (n_joints * n_basis), theta_D the weights of the
+feed-forward torque u_ffwd(t) on the same basis (`psl_controller.feedforward`, same size),
+default theta_D = 0. Without the option theta = theta_K and u_ffwd is zero. Imports no ROS;
 the DMP executor node and batch rollouts both call `TaskPolicy.reference`.
 """
 from __future__ import annotations
@@ -13,6 +16,7 @@ import functools
 import numpy as np
 
 from psl_controller.dmp import DMP, demonstration_from_waypoints
+from psl_controller.feedforward import FeedForward
 from psl_sim.task import TaskDefinition
 
 
@@ -41,11 +45,39 @@ class TaskPolicy:
         dt = task.control_period
         t, y = demonstration_from_waypoints(task.demo_times, task.demo_positions, dt)
         self.dmp.fit(t, y, dt)
-        self.default_theta = self.dmp.get_theta().copy()
+        feedforward = cfg.get('feedforward', False)
+        if not isinstance(feedforward, bool):
+            raise ValueError(f'task {task.name!r}: policy.feedforward must be true or false, '
+                             f'got {feedforward!r}')
+        self.feedforward = (FeedForward(self.dmp.canonical, self.dmp.basis, task.n_joints)
+                            if feedforward else None)
+        n_kin = self.dmp.num_parameters
+        n_dyn = self.feedforward.num_parameters if feedforward else 0
+        self.kinematics = slice(0, n_kin)               # theta_K in theta
+        self.dynamics = slice(n_kin, n_kin + n_dyn)     # theta_D in theta (empty without)
+        self.default_theta = np.concatenate([self.dmp.get_theta(), np.zeros(n_dyn)])
 
     @property
     def num_parameters(self) -> int:
         return self.default_theta.size
+
+    @property
+    def has_feedforward(self) -> bool:
+        return self.feedforward is not None
+
+    def with_feedforward(self, theta: np.ndarray, theta_d: np.ndarray) -> np.ndarray:
+        """theta with its theta_D block replaced (theta_K kept). Raises ValueError for a task
+        without feed-forward or sizes that do not fit."""
+        if self.feedforward is None:
+            raise ValueError(f'task {self.task.name!r} has no feed-forward (policy.feedforward)')
+        theta = np.array(theta, dtype=float)
+        theta_d = np.asarray(theta_d, dtype=float).reshape(-1)
+        n_dyn = self.feedforward.num_parameters
+        if theta.shape != self.default_theta.shape or theta_d.size != n_dyn:
+            raise ValueError(f'theta needs {self.num_parameters} and theta_D '
+                             f'{n_dyn} entries')
+        theta[self.dynamics] = theta_d
+        return theta
 
     def reference(self, theta: np.ndarray) -> Reference:
         """The commanded trajectory for theta over one episode. Raises ValueError for a
@@ -56,10 +88,12 @@ class TaskPolicy:
                              f'{self.num_parameters} entries, got {theta.size}')
         if not np.all(np.isfinite(theta)):
             raise ValueError('theta contains NaN or inf')
-        self.dmp.set_theta(theta)
+        self.dmp.set_theta(theta[self.kinematics])
         dt = self.task.control_period
         traj = self.dmp.integrate(dt, self.task.num_steps * dt)
-        return Reference(t=traj.t, q=traj.y, qd=traj.yd, u_ffwd=np.zeros_like(traj.y))
+        u_ffwd = (self.feedforward.signal(theta[self.dynamics], traj.t)
+                  if self.feedforward is not None else np.zeros_like(traj.y))
+        return Reference(t=traj.t, q=traj.y, qd=traj.yd, u_ffwd=u_ffwd)
 
 
 @functools.lru_cache(maxsize=16)

@@ -86,3 +86,12 @@ def test_a_component_mean_moves_the_trajectory_near_its_phase_only(fitted):
     assert abs(peak - fitted.phase_means[3]) < 0.1
     assert delta.max() > 0.1 and np.all(np.abs(changed.rollout(DT).y[:, 1:]
                                                 - fitted.rollout(DT).y[:, 1:]) < 1e-12)
+
+
+def test_after_the_duration_the_trajectory_holds_its_end(fitted):
+    sample = fitted.rollout(DT, t_end=DURATION + 0.5)
+    after = sample.t > DURATION
+    assert after.sum() == 250
+    np.testing.assert_array_equal(sample.y[after], np.broadcast_to(sample.y[~after][-1],
+                                                                   sample.y[after].shape))
+    assert np.all(sample.yd[after] == 0.0)
