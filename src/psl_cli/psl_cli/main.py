@@ -193,6 +193,10 @@ def _print_summary(args, metrics: dict, out: Path) -> None:
         print(f"{s['total_rollouts']} rollouts over {args.tasks} tasks; held-out zero-shot "
               f"success {100 * s['zero_shot_success_rate']:.0f} % (mean reward "
               f"{s['zero_shot_mean_reward']:.3f}); metrics in {out / 'metrics.json'}")
+        if 'tracking_rmse_learned_mean' in s:       # a task with feed-forward
+            print(f"held-out tracking RMSE: PD only {s['tracking_rmse_pd_only_mean']:.4f}, "
+                  f"learned {s['tracking_rmse_learned_mean']:.4f}, oracle "
+                  f"{s['tracking_rmse_oracle_mean']:.4f} rad")
 
 
 def _learn_in_process(args, task, out: Path, stop: threading.Event) -> int:

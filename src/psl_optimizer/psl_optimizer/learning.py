@@ -6,6 +6,13 @@ separate stream and are never trained on. After every task the loop writes a che
 (memory file + progress JSON) into its output folder, and `Learner.run` resumes from it, so a
 crash or a cancel loses no finished task. Imports no ROS; the learner node and ``psl learn``
 wrap it.
+
+Dynamics modality (a task with ``policy.feedforward: true``): the search covers the whole
+theta = [theta_K, theta_D], with theta_D in its own CMA-ES units (`search_normalisation`); in
+batch mode each instance first gets ILC of theta_D from the search's start (`psl_optimizer.ilc`,
+far fewer rollouts than CMA-ES: docs/benchmarks.md, ``psl bench dynamics``), and CMA-ES goes on
+from ILC's best if that falls short. The summary then adds the held-out tracking errors of the
+learned feed-forward beside PD only and the inverse-dynamics oracle (`tracking_comparison`).
 """
 from __future__ import annotations
 
@@ -22,10 +29,14 @@ from psl_controller.policy import policy_for
 from psl_memory.parameterized_skill import SkillConfig, scaler_around
 from psl_memory.skill_memory import SkillMemory
 from psl_optimizer.batch_rollout import BatchRollout
-from psl_optimizer.policy_search import SearchSettings, search
+from psl_optimizer.ilc import ILCSettings, ilc_search
+from psl_optimizer.inverse_dynamics import oracle_theta
+from psl_optimizer.policy_search import SearchResult, SearchSettings, search
+from psl_sim.arm_model import ArmModel
 from psl_sim.task import TaskDefinition
 
 TEST_SEED_OFFSET = 1_000_003     # held-out instances: a stream no training sequence uses
+FEEDFORWARD_SCALE = 0.5          # theta_D's CMA-ES unit: this share of the joint's torque limit
 
 
 def task_sequence(task: TaskDefinition, count: int, seed: int) -> np.ndarray:
@@ -47,6 +58,9 @@ class LearnSettings:
     search: SearchSettings = SearchSettings()
     skill: SkillConfig = SkillConfig()  # bayes, fixed precisions: ridge's mean + variance
     add_only_fulfilled: bool = True     # a failed search's best theta would teach the skill a miss
+    # tasks with feed-forward, batch mode: ILC of theta_D from the search's start first, then
+    # CMA-ES over [theta_K, theta_D] with the rest of the budget (iterations=0: CMA-ES only)
+    ilc: ILCSettings = ILCSettings()
 
 
 class InProcessSkill:
@@ -84,6 +98,26 @@ def batch_evaluator(evaluator: BatchRollout):
     return evaluate
 
 
+def search_normalisation(task: TaskDefinition, default_theta: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """CMA-ES coordinates theta = centre + scale * z: around the default theta with the
+    skill's common spread (`scaler_around`); for a task with feed-forward the theta_D block
+    gets its own scale, a share (`FEEDFORWARD_SCALE`) of each joint's torque limit, since
+    torques and DMP weights differ in units and size by orders of magnitude."""
+    policy = policy_for(task)
+    default_theta = np.asarray(default_theta, dtype=float)
+    scaler = scaler_around(default_theta[policy.kinematics])
+    centre, scale = default_theta.copy(), np.empty(default_theta.shape)
+    centre[policy.kinematics] = 0.5 * (scaler.high + scaler.low)
+    scale[policy.kinematics] = 0.5 * (scaler.high - scaler.low)
+    if policy.has_feedforward:
+        arm = ArmModel(task)
+        limit = np.maximum(np.abs(arm.torque_low), np.abs(arm.torque_high))   # (n_joints,)
+        scale[policy.dynamics] = np.repeat(FEEDFORWARD_SCALE * limit,
+                                           policy.feedforward.n_basis)
+    return centre, scale
+
+
 class Learner:
     """Runs one learning session of one task, checkpointing into `out`.
 
@@ -96,9 +130,12 @@ class Learner:
     def __init__(self, task: TaskDefinition, settings: LearnSettings, out: str | Path,
                  evaluator: BatchRollout | None = None, evaluate=None, skill=None):
         self.task, self.settings, self.out = task, settings, Path(out)
-        self.default_theta = policy_for(task).default_theta
+        self.policy = policy_for(task)
+        self.default_theta = self.policy.default_theta
         if evaluate is None:
-            evaluate = batch_evaluator(evaluator or BatchRollout(task))
+            evaluator = evaluator or BatchRollout(task)
+            evaluate = batch_evaluator(evaluator)
+        self.batch = evaluator                  # None when rollouts go elsewhere (the graph)
         self.evaluate = evaluate
         self.skill = skill or InProcessSkill(task, settings.skill, self.default_theta)
         self.done: list[dict] = []      # finished tasks' records (from the checkpoint, then run)
@@ -141,19 +178,14 @@ class Learner:
         self.out.mkdir(parents=True, exist_ok=True)
         s = self.settings
         done = self.done = self._load_checkpoint()
-        scaler = scaler_around(self.default_theta)      # the skill's own theta scaling
-        centre, scale = 0.5 * (scaler.high + scaler.low), 0.5 * (scaler.high - scaler.low)
+        centre, scale = search_normalisation(self.task, self.default_theta)
         taus = task_sequence(self.task, s.num_tasks, s.seed)
         for index in range(len(done), s.num_tasks):
             if should_stop is not None and should_stop():
                 break
             tau = taus[index]
             start = time.perf_counter()
-            result = search(s.strategy, lambda thetas: self.evaluate(thetas, np.tile(
-                                tau, (len(thetas), 1))),
-                            tau, self.default_theta, self.skill.query, centre, scale,
-                            self.task.tau_low, self.task.tau_high, s.search,
-                            seed=s.seed * 100_003 + index)
+            result = self._search(tau, index, centre, scale)
             if result.fulfilled or not s.add_only_fulfilled:
                 self.skill.add(tau, result.theta)
             done.append({'index': index, 'tau': tau.tolist(), 'rollouts': result.rollouts,
@@ -171,12 +203,39 @@ class Learner:
         (self.out / 'metrics.json').write_text(json.dumps(metrics, indent=1))
         return metrics
 
+    def _search(self, tau: np.ndarray, index: int, centre: np.ndarray,
+                scale: np.ndarray) -> SearchResult:
+        """One task instance: the strategy's CMA-ES search, preceded by ILC of theta_D for a
+        task with feed-forward in batch mode (`LearnSettings.ilc`)."""
+        s = self.settings
+
+        def evaluate(thetas):
+            return self.evaluate(thetas, np.tile(tau, (len(thetas), 1)))
+        seed = s.seed * 100_003 + index
+        if not (self.policy.has_feedforward and self.batch is not None and s.ilc.iterations):
+            return search(s.strategy, evaluate, tau, self.default_theta, self.skill.query,
+                          centre, scale, self.task.tau_low, self.task.tau_high, s.search,
+                          seed=seed)
+        start = self.default_theta if s.strategy == 'scratch' else self.skill.query(tau)
+        ilc = ilc_search(self.batch, tau, start, s.ilc)
+        # CMA-ES (any strategy) goes on from ILC's best theta: it is the start and the estimate
+        left = s.search.max_rollouts - ilc.rollouts
+        if ilc.fulfilled or left <= 0:
+            return ilc
+        rest = search(s.strategy, evaluate, tau, ilc.theta, lambda _: ilc.theta, centre, scale,
+                      self.task.tau_low, self.task.tau_high,
+                      dataclasses.replace(s.search, max_rollouts=left), seed=seed)
+        best = rest if (rest.fulfilled or rest.reward > ilc.reward) else ilc
+        return SearchResult(theta=best.theta, reward=best.reward, fulfilled=best.fulfilled,
+                            rollouts=ilc.rollouts + rest.rollouts, start_theta=ilc.start_theta,
+                            rewards=ilc.rewards + rest.rewards)
+
     def summary(self, done: list[dict]) -> dict:
         test = held_out_tasks(self.task, self.settings.num_test, self.settings.seed)
         thetas = np.array([self.skill.query(t) for t in test])
         rewards, fulfilled = self.evaluate(thetas, test)
         rollouts = [d['rollouts'] for d in done]
-        return {
+        summary = {
             'total_rollouts': int(sum(rollouts)),
             'rollouts_per_task': rollouts,
             'fulfilled_tasks': int(sum(d['fulfilled'] for d in done)),
@@ -185,3 +244,29 @@ class Learner:
             'zero_shot_success_rate': float(np.mean(fulfilled)),
             'zero_shot_mean_reward': float(np.mean(rewards)),
         }
+        if self.policy.has_feedforward:
+            summary.update(tracking_comparison(self.task, test, thetas, self.batch))
+        return summary
+
+
+def tracking_comparison(task: TaskDefinition, taus: np.ndarray, thetas: np.ndarray,
+                        batch: BatchRollout | None = None) -> dict:
+    """RMS tracking error [rad] on each task instance taus (B, E) of its policy thetas (B, F)
+    beside the same commanded path (theta_K) with theta_D = 0 (PD only) and with the
+    inverse-dynamics oracle's theta_D; per instance and the means. Batch mode (graph mode
+    rolls out the same, see the graph/batch equivalence test)."""
+    batch = batch or BatchRollout(task)
+    policy = policy_for(task)
+    thetas = np.asarray(thetas, dtype=float)
+    variants = {
+        'pd_only': np.array([policy.with_feedforward(th, np.zeros(
+                             policy.feedforward.num_parameters)) for th in thetas]),
+        'learned': thetas,
+        'oracle': np.array([oracle_theta(task, tau, th, policy) for tau, th in zip(taus, thetas)]),
+    }
+    out = {}
+    for name, variant in variants.items():
+        rmse = [r.evaluation.components['tracking_error'] for r in batch.run(variant, taus)]
+        out[f'tracking_rmse_{name}'] = [float(v) for v in rmse]
+        out[f'tracking_rmse_{name}_mean'] = float(np.mean(rmse))
+    return out

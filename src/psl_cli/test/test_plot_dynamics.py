@@ -1,0 +1,49 @@
+"""The dynamics figure: commanded vs executed joint angles and torques of PD only, learned and
+oracle on a held-out instance of a payload_transport run."""
+import numpy as np
+import pytest
+
+from psl_cli.plot_dynamics import dynamics_rollouts, plot_dynamics
+from psl_controller.policy import policy_for
+from psl_optimizer.learning import Learner, LearnSettings
+from psl_optimizer.policy_search import SearchSettings
+from psl_sim.task import load_task
+
+PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
+
+
+@pytest.fixture(scope='module')
+def run_folder(tmp_path_factory):
+    folder = tmp_path_factory.mktemp('payload_run')
+    settings = LearnSettings(strategy='bootstrap', num_tasks=3, seed=0, num_test=2,
+                             search=SearchSettings(max_rollouts=40))
+    Learner(load_task('payload_transport'), settings, folder).run()
+    return folder
+
+
+def test_writes_a_png(run_folder, tmp_path):
+    out = plot_dynamics(run_folder, tmp_path / 'dynamics.png', test_index=1)
+    assert out == tmp_path / 'dynamics.png'
+    assert out.read_bytes()[:8] == PNG_MAGIC and out.stat().st_size > 10_000
+
+
+def test_bad_test_index_raises(run_folder, tmp_path):
+    with pytest.raises(ValueError, match='test_index'):
+        plot_dynamics(run_folder, tmp_path / 'x.png', test_index=2)
+
+
+def test_rollouts_share_the_commanded_path():
+    task = load_task('payload_transport')
+    theta = policy_for(task).default_theta
+    rollouts = dynamics_rollouts(task, np.array([1.0]), theta)
+    assert set(rollouts) == {'pd_only', 'learned', 'oracle'}
+    q_refs = [result.q_ref for result, _ in rollouts.values()]
+    np.testing.assert_array_equal(q_refs[0], q_refs[1])
+    np.testing.assert_array_equal(q_refs[0], q_refs[2])
+    np.testing.assert_array_equal(rollouts['pd_only'][1].u_ffwd, 0.0)
+
+
+def test_a_task_without_feedforward_is_refused():
+    task = load_task('reach_over_obstacle')
+    with pytest.raises(ValueError, match='feed-forward'):
+        dynamics_rollouts(task, task.tau_default, policy_for(task).default_theta)

@@ -1,0 +1,66 @@
+"""The oracle of the dynamics modality: inverse dynamics from the simulator's own model.
+
+Along the commanded trajectory (q_ref, qd_ref and the acceleration that takes qd_ref from one
+control period to the next) `mujoco.mj_inverse` gives the joint torques that make the model,
+with the task instance's parameters applied (e.g. the payload mass), follow it; projected onto
+the feed-forward basis by least squares they give theta_D_oracle. A comparison for the learned
+feed-forward only: the learner never sees it. Imports no ROS.
+"""
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from psl_controller.policy import Reference, TaskPolicy, policy_for
+from psl_sim.arm_model import ArmModel
+from psl_sim.task import TaskDefinition
+
+
+def inverse_dynamics_torque(task: TaskDefinition, tau: np.ndarray,
+                            reference: Reference) -> np.ndarray:
+    """Joint torques (T, n) that realise the reference on the task instance tau.
+
+    The acceleration at control period k is the forward difference
+    ``(qd_ref[k+1] - qd_ref[k]) / dt`` (the last period repeats the one before): with one
+    semi-implicit Euler physics step per period, that is the acceleration that reaches the next
+    commanded velocity.
+
+    Raises:
+        TaskError: tau outside the task's ranges.
+    """
+    arm = ArmModel(task)
+    model, data = arm.model, mujoco.MjData(arm.model)
+    arm.apply_tau(tau, data, model)          # a private model: the payload mass goes in here
+    dt = task.control_period
+    qdd = np.diff(reference.qd, axis=0) / dt                            # (T-1, n)
+    qdd = np.vstack([qdd, qdd[-1:]]) if len(qdd) else np.zeros_like(reference.qd)
+    torque = np.empty_like(reference.q)                                 # (T, n)
+    for k in range(len(reference.q)):
+        data.qpos[arm.qpos_adr] = reference.q[k]
+        data.qvel[arm.dof_adr] = reference.qd[k]
+        data.qacc[arm.dof_adr] = qdd[k]
+        mujoco.mj_inverse(model, data)
+        torque[k] = data.qfrc_inverse[arm.dof_adr]
+    return torque
+
+
+def oracle_theta_d(task: TaskDefinition, tau: np.ndarray, theta: np.ndarray,
+                   policy: TaskPolicy | None = None) -> np.ndarray:
+    """theta_D that encodes the inverse-dynamics torque of theta's commanded trajectory.
+
+    Raises:
+        ValueError: a task without feed-forward, or a theta of the wrong size.
+    """
+    policy = policy or policy_for(task)
+    if not policy.has_feedforward:
+        raise ValueError(f'task {task.name!r} has no feed-forward (policy.feedforward)')
+    reference = policy.reference(theta)
+    torque = inverse_dynamics_torque(task, tau, reference)
+    return policy.feedforward.fit(reference.t, torque)
+
+
+def oracle_theta(task: TaskDefinition, tau: np.ndarray, theta: np.ndarray,
+                 policy: TaskPolicy | None = None) -> np.ndarray:
+    """theta with its theta_D replaced by the oracle's (theta_K, the commanded path, kept)."""
+    policy = policy or policy_for(task)
+    return policy.with_feedforward(theta, oracle_theta_d(task, tau, theta, policy))

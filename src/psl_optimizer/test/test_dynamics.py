@@ -1,0 +1,115 @@
+"""The dynamics modality on payload_transport, in batch mode: theta_D = 0 is PD only, the
+inverse-dynamics oracle makes tracking precise, ILC learns it, and the skill interpolates the
+learned feed-forward between trained payload masses."""
+import numpy as np
+import pytest
+import yaml
+
+from psl_optimizer.batch_rollout import BatchRollout
+from psl_optimizer.ilc import ILCSettings, ilc_search
+from psl_optimizer.inverse_dynamics import inverse_dynamics_torque, oracle_theta
+from psl_optimizer.learning import (Learner, LearnSettings, search_normalisation,
+                                    tracking_comparison)
+from psl_optimizer.policy_search import SearchSettings
+from psl_sim.task import load_task
+
+TASK = 'payload_transport'
+HEAVY = np.array([3.0])           # kg, the heaviest payload of the task
+TRAIN_MASSES = [0.5, 1.2, 1.9, 2.6, 3.0]   # kg
+BETWEEN = [0.85, 1.55, 2.25, 2.8]          # kg, each between two trained masses
+
+
+@pytest.fixture(scope='module')
+def task():
+    return load_task(TASK)
+
+
+@pytest.fixture(scope='module')
+def batch(task):
+    return BatchRollout(task)
+
+
+def without_feedforward(task, folder):
+    """The same task with `policy.feedforward: false` (theta = theta_K only)."""
+    data = yaml.safe_load(task.path.read_text())
+    data['model'] = str(task.model_path)
+    data['policy']['feedforward'] = False
+    path = folder / 'payload_pd_only.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return load_task(str(path))
+
+
+def test_zero_theta_d_is_pd_only_bit_for_bit(task, batch, tmp_path):
+    pd_task = without_feedforward(task, tmp_path)
+    pd_batch = BatchRollout(pd_task)
+    theta_k = pd_batch.policy.default_theta
+    assert batch.policy.num_parameters == 2 * theta_k.size
+    with_zero = batch.run(np.r_[theta_k, np.zeros(theta_k.size)][None], HEAVY)[0]
+    pd_only = pd_batch.run(theta_k[None], HEAVY)[0]
+    np.testing.assert_array_equal(with_zero.q, pd_only.q)
+    np.testing.assert_array_equal(with_zero.torque, pd_only.torque)
+    assert with_zero.evaluation == pd_only.evaluation
+
+
+def test_the_load_spoils_pd_tracking_and_the_oracle_restores_it(task, batch):
+    theta = batch.policy.default_theta
+    oracle = oracle_theta(task, HEAVY, theta)
+    np.testing.assert_array_equal(oracle[batch.policy.kinematics],
+                                  theta[batch.policy.kinematics])
+    pd_only, with_oracle = batch.run(np.array([theta, oracle]), HEAVY)
+    assert pd_only.evaluation.components['tracking_error'] > 0.2          # rad: visibly off
+    assert not pd_only.evaluation.fulfilled
+    assert (with_oracle.evaluation.components['tracking_error']
+            < 0.05 * pd_only.evaluation.components['tracking_error'])
+    assert with_oracle.evaluation.fulfilled
+
+
+def test_inverse_dynamics_grows_with_the_payload(task, batch):
+    reference = batch.policy.reference(batch.policy.default_theta)
+    light = inverse_dynamics_torque(task, np.array([0.5]), reference)
+    heavy = inverse_dynamics_torque(task, HEAVY, reference)
+    assert light.shape == heavy.shape == reference.q.shape
+    assert np.all(np.abs(heavy).max(axis=0) > np.abs(light).max(axis=0) + 5.0)   # N m
+
+
+def test_search_scales_theta_d_by_the_torque_limits(task, batch):
+    centre, scale = search_normalisation(task, batch.policy.default_theta)
+    dynamics = scale[batch.policy.dynamics].reshape(task.n_joints, -1)
+    np.testing.assert_allclose(dynamics[:, 0], 0.5 * batch.arm.torque_high)
+    assert np.all(scale[batch.policy.kinematics] > 100.0)
+    np.testing.assert_allclose(centre, batch.policy.default_theta)
+
+
+def test_ilc_reaches_the_oracles_precision(task, batch):
+    result = ilc_search(batch, HEAVY, batch.policy.default_theta, ILCSettings(iterations=30))
+    assert result.fulfilled and result.rollouts == len(result.rewards) <= 30
+    learned = batch.run(result.theta[None], HEAVY)[0].evaluation.components['tracking_error']
+    oracle = batch.run(oracle_theta(task, HEAVY, batch.policy.default_theta)[None],
+                       HEAVY)[0].evaluation.components['tracking_error']
+    assert learned < 1.5 * oracle
+
+
+def test_skill_interpolates_the_feedforward_between_trained_masses(task, batch, tmp_path,
+                                                                   monkeypatch):
+    import psl_optimizer.learning as learning
+    monkeypatch.setattr(learning, 'task_sequence',
+                        lambda task, count, seed: np.array(TRAIN_MASSES)[:count, None])
+    settings = LearnSettings(strategy='bootstrap', num_tasks=len(TRAIN_MASSES), seed=0,
+                             num_test=2, search=SearchSettings(max_rollouts=60))
+    learner = Learner(task, settings, tmp_path, batch)
+    metrics = learner.run()
+    assert all(d['fulfilled'] for d in metrics['tasks'])
+    summary = metrics['summary']
+    for key in ('pd_only', 'learned', 'oracle'):
+        assert len(summary[f'tracking_rmse_{key}']) == 2
+        assert summary[f'tracking_rmse_{key}_mean'] == pytest.approx(
+            np.mean(summary[f'tracking_rmse_{key}']))
+    between = np.array(BETWEEN)[:, None]
+    thetas = np.array([learner.skill.query(tau) for tau in between])
+    comparison = tracking_comparison(task, between, thetas, batch)
+    learned, pd_only, oracle = (np.array(comparison[f'tracking_rmse_{k}'])
+                                for k in ('learned', 'pd_only', 'oracle'))
+    assert np.all(learned < 0.2 * pd_only)
+    assert np.all(learned < 1.5 * oracle)
+    rewards, _ = learner.evaluate(thetas, between)
+    assert np.all(rewards > -0.3)        # PD only scores -2.5 (0.5 kg) to -8 (3 kg)
