@@ -258,16 +258,21 @@ def _learn_in_graph(args, task, out: Path, stop: threading.Event) -> int:
 
 
 def cmd_plot(args) -> int:
-    """psl plot DIR...: rollouts per task, reward over tau, predictive variance over tau."""
+    """psl plot DIR...: rollouts per task, reward over tau, predictive variance over tau; for a
+    task with feed-forward also commanded vs executed joints and the torques (PD only,
+    learned, oracle) on a held-out instance."""
     from psl_cli.plot import plot_runs
 
     out = Path(args.out) if args.out else Path(args.dirs[0]) / 'learning.png'
     try:
-        path = plot_runs(args.dirs, out)
+        print(plot_runs(args.dirs, out))
+        if 'tracking_rmse_learned_mean' in json.loads(
+                (Path(args.dirs[0]) / 'metrics.json').read_text()).get('summary', {}):
+            from psl_cli.plot_dynamics import plot_dynamics   # a task with feed-forward
+            print(plot_dynamics(args.dirs[0], out.with_name(out.stem + '_dynamics.png')))
     except (ValueError, OSError) as exc:
         print(f'psl plot: {exc}', file=sys.stderr)
         return 2
-    print(path)
     return 0
 
 
