@@ -7,6 +7,8 @@ deadline misses of the realtime mode at 500 Hz over a long episode.
 stored samples, and the query service round trip beside a bare DDS round trip.
 ``psl bench learn``: policy-search strategies over task instances (`psl_cli.bench_learn`).
 ``psl bench dynamics``: learned feed-forward on held-out payloads (`psl_cli.bench_dynamics`).
+``psl bench memories``: associative memories completing learned samples both ways
+(`psl_cli.bench_memories`).
 """
 from __future__ import annotations
 
@@ -40,9 +42,10 @@ def add_arguments(parser) -> None:
     memory.add_argument('--service-samples', type=int, default=1000)
     memory.add_argument('--round-trips', type=int, default=1000)
     memory.add_argument('--json', action='store_true')
-    from psl_cli import bench_dynamics, bench_learn
+    from psl_cli import bench_dynamics, bench_learn, bench_memories
     bench_learn.add_arguments(sub)
     bench_dynamics.add_arguments(sub)
+    bench_memories.add_arguments(sub)
 
 
 def add_rollout_arguments(sub) -> None:
@@ -123,6 +126,9 @@ def main(args) -> int:
     if args.bench == 'dynamics':
         from psl_cli import bench_dynamics
         return bench_dynamics.main(args)
+    if args.bench == 'memories':
+        from psl_cli import bench_memories
+        return bench_memories.main(args)
     raise ValueError(f'unknown benchmark {args.bench!r}')
 
 

@@ -204,7 +204,7 @@ def _learn_in_process(args, task, out: Path, stop: threading.Event) -> int:
     from psl_optimizer.policy_search import SearchSettings
 
     settings = LearnSettings(strategy=args.strategy, num_tasks=args.tasks, seed=args.seed,
-                             num_test=args.test_tasks,
+                             num_test=args.test_tasks, task_selection=args.task_selection,
                              search=SearchSettings(max_rollouts=args.budget))
 
     def progress(record: dict) -> None:
@@ -238,7 +238,7 @@ def _learn_in_graph(args, task, out: Path, stop: threading.Event) -> int:
             handle = client.send_learn_goal(
                 feedback=feedback, task=task_id(task), strategy=args.strategy,
                 num_tasks=args.tasks, max_rollouts_per_task=args.budget, seed=args.seed,
-                mode='graph', output_dir=str(out))
+                mode='graph', output_dir=str(out), task_selection=args.task_selection)
             future = handle.get_result_async()
             while not future.done():
                 if stop.wait(0.1):
@@ -363,6 +363,9 @@ def build_parser() -> argparse.ArgumentParser:
     learn.add_argument('--mode', choices=('batch', 'graph'), default='batch',
                        help='batch: rollouts in this process with mujoco.rollout (fast); graph: '
                        "the running graph's learner node, rollouts through execute_rollout")
+    learn.add_argument('--task-selection', choices=('random', 'variance'), default='random',
+                       help='next instance: random, or the most uncertain of 20 candidates '
+                       "(the skill's predictive variance)")
     learn.add_argument('--namespace', default='', help='graph mode: namespace of the graph')
     learn.add_argument('--verbose', action='store_true', help='one line per task')
     learn.set_defaults(func=cmd_learn)

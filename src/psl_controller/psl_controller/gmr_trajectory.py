@@ -97,7 +97,7 @@ class GMRTrajectory:
         means = np.column_stack([self.phase_means, self.means])
         return GMM(k, priors=self.priors, means=means, covariances=cov)
 
-    def rollout(self, dt: float, t_end: float | None = None) -> GMRTrajectorySample:
+    def integrate(self, dt: float, t_end: float | None = None) -> GMRTrajectorySample:
         """q(t) on the grid t = 0, dt, ..., t_end (default: the duration): the conditional mean
         (eq. 2.25) from `gmr`, and its exact time derivative; after the duration the
         trajectory holds q(1) (a settle phase), as a DMP settles at its goal."""

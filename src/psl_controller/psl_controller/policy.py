@@ -2,9 +2,14 @@
 
 For ``policy.kind: dmp`` the kinematics are one DMP per joint (eq. 2.23-2.24) from the task's
 start posture to its goal posture; the default theta is the least-squares fit of the task's
-demonstration. With ``policy.feedforward: true`` theta is one flat vector
-``[theta_K, theta_D]``: theta_K the DMP weights (n_joints * n_basis), theta_D the weights of the
-feed-forward torque u_ffwd(t) on the same basis (`psl_controller.feedforward`, same size),
+demonstration. With ``policy.kind: gmr`` the kinematics are instead a Gaussian mixture over
+[phase, q] conditioned on the phase (eq. 2.25, `psl_controller.gmr_trajectory`;
+``n_components``, default 6): theta_K = the components' means and slopes, fitted to the same
+demonstration by EM; start and goal are then not guaranteed, only learned. Both expose theta_K
+as one flat vector (get_theta / set_theta) and ``integrate(dt, t_end)``.
+With ``policy.feedforward: true`` theta is one flat vector
+``[theta_K, theta_D]``: theta_K as above, theta_D the weights of the feed-forward torque
+u_ffwd(t) on the DMP's basis (`psl_controller.feedforward`, same size),
 default theta_D = 0. Without the option theta = theta_K and u_ffwd is zero. Imports no ROS;
 the DMP executor node and batch rollouts both call `TaskPolicy.reference`.
 """
@@ -17,7 +22,11 @@ import numpy as np
 
 from psl_controller.dmp import DMP, demonstration_from_waypoints
 from psl_controller.feedforward import FeedForward
+from psl_controller.gmr_trajectory import GMRTrajectory
 from psl_sim.task import TaskDefinition
+
+
+KINDS = ('dmp', 'gmr')     # how theta_K encodes the joint trajectory
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,9 +44,12 @@ class TaskPolicy:
 
     def __init__(self, task: TaskDefinition):
         cfg = task.policy
-        if cfg.get('kind', 'dmp') != 'dmp':
-            raise ValueError(f'task {task.name!r}: unknown policy kind {cfg.get("kind")!r}')
+        kind = cfg.get('kind', 'dmp')
+        if kind not in KINDS:
+            raise ValueError(f'task {task.name!r}: unknown policy kind {kind!r}; known: '
+                             f'{", ".join(KINDS)}')
         self.task = task
+        # the DMP's phase and basis also carry the feed-forward, whatever encodes theta_K
         self.dmp = DMP(n_dims=task.n_joints, n_basis=int(cfg['n_basis']),
                        duration=task.duration, y0=task.start_posture, goal=task.goal_posture,
                        k_s=float(cfg.get('k_s', 400.0)),
@@ -45,17 +57,23 @@ class TaskPolicy:
         dt = task.control_period
         t, y = demonstration_from_waypoints(task.demo_times, task.demo_positions, dt)
         self.dmp.fit(t, y, dt)
+        if kind == 'gmr':
+            self.movement = GMRTrajectory(task.n_joints, int(cfg.get('n_components', 6)),
+                                          task.duration)
+            self.movement.fit(t, y, seed=int(cfg.get('fit_seed', 0)))
+        else:
+            self.movement = self.dmp
         feedforward = cfg.get('feedforward', False)
         if not isinstance(feedforward, bool):
             raise ValueError(f'task {task.name!r}: policy.feedforward must be true or false, '
                              f'got {feedforward!r}')
         self.feedforward = (FeedForward(self.dmp.canonical, self.dmp.basis, task.n_joints)
                             if feedforward else None)
-        n_kin = self.dmp.num_parameters
+        n_kin = self.movement.num_parameters
         n_dyn = self.feedforward.num_parameters if feedforward else 0
         self.kinematics = slice(0, n_kin)               # theta_K in theta
         self.dynamics = slice(n_kin, n_kin + n_dyn)     # theta_D in theta (empty without)
-        self.default_theta = np.concatenate([self.dmp.get_theta(), np.zeros(n_dyn)])
+        self.default_theta = np.concatenate([self.movement.get_theta(), np.zeros(n_dyn)])
 
     @property
     def num_parameters(self) -> int:
@@ -88,9 +106,9 @@ class TaskPolicy:
                              f'{self.num_parameters} entries, got {theta.size}')
         if not np.all(np.isfinite(theta)):
             raise ValueError('theta contains NaN or inf')
-        self.dmp.set_theta(theta[self.kinematics])
+        self.movement.set_theta(theta[self.kinematics])
         dt = self.task.control_period
-        traj = self.dmp.integrate(dt, self.task.num_steps * dt)
+        traj = self.movement.integrate(dt, self.task.num_steps * dt)
         u_ffwd = (self.feedforward.signal(theta[self.dynamics], traj.t)
                   if self.feedforward is not None else np.zeros_like(traj.y))
         return Reference(t=traj.t, q=traj.y, qd=traj.yd, u_ffwd=u_ffwd)

@@ -26,7 +26,7 @@ def fitted():
 
 def test_the_fit_reproduces_the_demonstration(fitted):
     t, y = demonstration()
-    sample = fitted.rollout(DT)
+    sample = fitted.integrate(DT)
     np.testing.assert_array_equal(sample.t, t)
     assert np.sqrt(np.mean((sample.y - y) ** 2)) < 0.01      # rad, over a range of ~1.2 rad
 
@@ -42,11 +42,11 @@ def test_theta_round_trip_and_bad_sizes(fitted):
     other.fit(*demonstration(), seed=0)
     other.set_theta(theta + 0.1)
     other.set_theta(theta)
-    np.testing.assert_array_equal(other.rollout(DT).y, fitted.rollout(DT).y)
+    np.testing.assert_array_equal(other.integrate(DT).y, fitted.integrate(DT).y)
     with pytest.raises(ValueError, match='48 entries'):
         other.set_theta(theta[:-1])
     with pytest.raises(RuntimeError, match='fit'):
-        GMRTrajectory(3, 8, DURATION).rollout(DT)
+        GMRTrajectory(3, 8, DURATION).integrate(DT)
 
 
 def test_gmr_conditioning_equals_the_closed_form(fitted):
@@ -55,7 +55,7 @@ def test_gmr_conditioning_equals_the_closed_form(fitted):
     fitted_copy = GMRTrajectory(3, 8, DURATION)
     fitted_copy.fit(*demonstration(), seed=0)
     fitted_copy.set_theta(fitted.get_theta() + rng.normal(0, 0.3, fitted.num_parameters))
-    sample = fitted_copy.rollout(DT)
+    sample = fitted_copy.integrate(DT)
     s = sample.t / DURATION
     d = s[:, None] - fitted_copy.phase_means
     w = fitted_copy.priors * np.exp(-0.5 * d**2 / fitted_copy.phase_vars) \
@@ -68,7 +68,7 @@ def test_gmr_conditioning_equals_the_closed_form(fitted):
 
 def test_velocity_is_the_derivative_of_position(fitted):
     fine = DT / 20                                 # central differences: error ~ fine**2
-    sample = fitted.rollout(fine)
+    sample = fitted.integrate(fine)
     numeric = np.gradient(sample.y, fine, axis=0)
     np.testing.assert_allclose(sample.yd[1:-1], numeric[1:-1],
                                atol=1e-5 * np.abs(sample.yd).max())
@@ -80,16 +80,16 @@ def test_a_component_mean_moves_the_trajectory_near_its_phase_only(fitted):
     theta = fitted.get_theta()
     theta[3 * 3 + 0] += 0.5                    # component 3, joint 0: its mean
     changed.set_theta(theta)
-    delta = np.abs(changed.rollout(DT).y[:, 0] - fitted.rollout(DT).y[:, 0])
+    delta = np.abs(changed.integrate(DT).y[:, 0] - fitted.integrate(DT).y[:, 0])
     s = np.arange(delta.size) * DT / DURATION
     peak = s[np.argmax(delta)]
     assert abs(peak - fitted.phase_means[3]) < 0.1
-    assert delta.max() > 0.1 and np.all(np.abs(changed.rollout(DT).y[:, 1:]
-                                                - fitted.rollout(DT).y[:, 1:]) < 1e-12)
+    assert delta.max() > 0.1 and np.all(np.abs(changed.integrate(DT).y[:, 1:]
+                                                - fitted.integrate(DT).y[:, 1:]) < 1e-12)
 
 
 def test_after_the_duration_the_trajectory_holds_its_end(fitted):
-    sample = fitted.rollout(DT, t_end=DURATION + 0.5)
+    sample = fitted.integrate(DT, t_end=DURATION + 0.5)
     after = sample.t > DURATION
     assert after.sum() == 250
     np.testing.assert_array_equal(sample.y[after], np.broadcast_to(sample.y[~after][-1],

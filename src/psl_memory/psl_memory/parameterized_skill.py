@@ -3,8 +3,9 @@
 `ParameterizedSkill` composes:
 - `ELMFeatures` on tau (fixed random hidden layer, eq. 2.2) and one of the readouts
   (`make_readout`: ridge, rls, incremental_ridge, bayes) learning normalised theta from h(tau);
-- an associative memory over v = [tau, theta] (AELM, eq. 2.20-2.21, or ARBF, eq. 2.22) that
-  completes a partial pattern in either direction (tau -> theta, theta -> tau);
+- an associative memory over v = [tau, theta] (AELM, eq. 2.20-2.21, or ARBF, eq. 2.22; the
+  baselines RBM, eq. 2.17-2.19, and Hopfield, eq. 2.15-2.16) that completes a partial pattern
+  in either direction (tau -> theta, theta -> tau);
 - the samples themselves, so the skill can be saved, inspected and refitted.
 
 Normalisation: tau by its ranges (the task YAML's, or around the first sample for a skill
@@ -22,11 +23,14 @@ import numpy as np
 from psl_memory.aelm import AELM
 from psl_memory.arbf import ARBF
 from psl_memory.elm import ELMFeatures, RangeScaler
+from psl_memory.hopfield import Hopfield
+from psl_memory.rbm import RBM
 from psl_memory.readout import make_readout
 
 READOUTS = ('ridge', 'rls', 'incremental_ridge', 'bayes')
 MAX_SPREADS = 1e6    # a sample this many ranges away from the skill is a units error
-ASSOCIATIVE = ('aelm', 'arbf')
+ASSOCIATIVE = ('aelm', 'arbf')                  # the parameterized skill memories (PSM)
+BASELINE_ASSOCIATIVE = ('rbm', 'hopfield')      # textbook baselines, coarser completion
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,7 +43,9 @@ class SkillConfig:
     forgetting: float = 1.0          # RLS only, 0 < lambda <= 1
     seed: int = 0
     alpha: float = 1.0               # slope of the hidden sigmoid
-    associative: str = 'aelm'        # aelm: O(1) per sample; arbf: one centre per sample
+    # aelm: O(1) per sample; arbf: one centre per sample; rbm, hopfield: baselines
+    # (docs/benchmarks.md, psl bench memories)
+    associative: str = 'aelm'
     # bayes: evidence maximisation of alpha and beta. Off by default: with few samples it
     # shrinks PS towards the default policy (docs/benchmarks.md, psl bench learn)
     estimate_precisions: bool = False
@@ -50,9 +56,9 @@ class SkillConfig:
     def __post_init__(self):
         if self.readout not in READOUTS:
             raise ValueError(f'unknown readout {self.readout!r}; known: {", ".join(READOUTS)}')
-        if self.associative not in ASSOCIATIVE:
+        if self.associative not in ASSOCIATIVE + BASELINE_ASSOCIATIVE:
             raise ValueError(f'unknown associative memory {self.associative!r}; known: '
-                             f'{", ".join(ASSOCIATIVE)}')
+                             f'{", ".join(ASSOCIATIVE + BASELINE_ASSOCIATIVE)}')
         if not 0.0 < self.forgetting <= 1.0:
             raise ValueError(f'forgetting must be in (0, 1], got {self.forgetting}')
         if int(self.n_hidden) < 1:
@@ -90,8 +96,12 @@ class ParameterizedSkill:
         if config.associative == 'aelm':
             self.associative = AELM(v_scaler, n_hidden=max(config.n_hidden, 100),
                                     seed=config.seed, modality_sizes=sizes)
-        else:
+        elif config.associative == 'arbf':
             self.associative = ARBF(v_scaler, modality_sizes=sizes)
+        elif config.associative == 'rbm':
+            self.associative = RBM(v_scaler, seed=config.seed, modality_sizes=sizes)
+        else:
+            self.associative = Hopfield(v_scaler)
         self._taus: list[np.ndarray] = []               # N x (E,)
         self._thetas: list[np.ndarray] = []             # N x (F,)
 

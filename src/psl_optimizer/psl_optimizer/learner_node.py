@@ -73,6 +73,12 @@ class ServiceSkill:
                                                           tau=[float(x) for x in tau]))
         return np.asarray(response.theta)
 
+    def variance(self, tau: np.ndarray) -> np.ndarray | None:
+        """Predictive variance per theta dimension, None when the node's readout has none."""
+        response = self._call('query', QuerySkill.Request(skill=self.name,
+                                                          tau=[float(x) for x in tau]))
+        return np.asarray(response.variance) if response.variance else None
+
     def add(self, tau: np.ndarray, theta: np.ndarray) -> None:
         self._call('add_sample', AddSample.Request(skill=self.name, tau=[float(x) for x in tau],
                                                    theta=[float(x) for x in theta]))
@@ -186,7 +192,7 @@ class LearnerNode(Node):
             cost_weight=p('cost_weight').value)
         settings = LearnSettings(strategy=goal.strategy, num_tasks=int(goal.num_tasks),
                                  seed=int(goal.seed), num_test=p('test_tasks').value,
-                                 search=search)
+                                 search=search, task_selection=goal.task_selection or 'random')
         out = Path(goal.output_dir or Path(p('output_root').value)
                    / f'{task.name}-{goal.strategy}-seed{goal.seed}')
         return task, settings, out, mode

@@ -49,6 +49,28 @@ def held_out_tasks(task: TaskDefinition, count: int, seed: int) -> np.ndarray:
     return task_sequence(task, count, seed + TEST_SEED_OFFSET)
 
 
+TASK_SELECTIONS = ('random', 'variance')
+CANDIDATE_SEED_OFFSET = 2_000_003   # candidates of variance-driven selection: their own stream
+
+
+def most_uncertain(task: TaskDefinition, variance: Callable[[np.ndarray], np.ndarray | None],
+                   count: int, seed: int, index: int) -> np.ndarray:
+    """Active task selection: of `count` candidates drawn from the task distribution (a stream
+    seeded by seed and index, so a resumed session draws the same ones), the one whose
+    predictive variance (eq. 2.14), averaged over theta's dimensions, is largest (a skill
+    scales every theta dimension alike, `scaler_around`, so theta units rank as normalised
+    ones). Raises ValueError when the skill's readout gives no variance."""
+    candidates = task_sequence(task, count, (seed + CANDIDATE_SEED_OFFSET) * 100_003 + index)
+    scores = []
+    for tau in candidates:
+        var = variance(tau)
+        if var is None:
+            raise ValueError("task selection 'variance' needs a readout with predictive "
+                             "variance (readout: bayes)")
+        scores.append(float(np.mean(var)))
+    return candidates[int(np.argmax(scores))]
+
+
 @dataclasses.dataclass(frozen=True)
 class LearnSettings:
     strategy: str = 'bootstrap'
@@ -61,6 +83,17 @@ class LearnSettings:
     # tasks with feed-forward, batch mode: ILC of theta_D from the search's start first, then
     # CMA-ES over [theta_K, theta_D] with the rest of the budget (iterations=0: CMA-ES only)
     ilc: ILCSettings = ILCSettings()
+    # which instance comes next: 'random' (the seeded sequence) or 'variance' (the candidate
+    # with the largest predictive variance of the skill, `most_uncertain`)
+    task_selection: str = 'random'
+    selection_candidates: int = 20
+
+    def __post_init__(self):
+        if self.task_selection not in TASK_SELECTIONS:
+            raise ValueError(f'unknown task selection {self.task_selection!r}; known: '
+                             f'{", ".join(TASK_SELECTIONS)}')
+        if self.selection_candidates < 1:
+            raise ValueError('selection_candidates must be at least 1')
 
 
 class InProcessSkill:
@@ -81,6 +114,11 @@ class InProcessSkill:
 
     def query(self, tau: np.ndarray) -> np.ndarray:
         return self.memory.get(self.task.name).query(tau)[0]
+
+    def variance(self, tau: np.ndarray) -> np.ndarray | None:
+        """Predictive variance of PS(tau) per theta dimension (None without a Bayesian
+        readout)."""
+        return self.memory.get(self.task.name).query(tau)[1]
 
     def add(self, tau: np.ndarray, theta: np.ndarray) -> None:
         self.memory.add(self.task.name, tau, theta)
@@ -149,13 +187,19 @@ class Learner:
     def memory_path(self) -> Path:
         return self.out / 'memory.npz'
 
+    def _identity(self) -> dict:
+        """What a checkpoint must match to be resumed by this session."""
+        s = self.settings
+        return {'task': self.task.name, 'strategy': s.strategy, 'seed': s.seed,
+                'task_selection': s.task_selection}
+
     def _load_checkpoint(self) -> list[dict]:
         if not self.checkpoint_path.is_file():
             self.skill.restore(None)
             return []
         state = json.loads(self.checkpoint_path.read_text())
-        mine = {'task': self.task.name, 'strategy': self.settings.strategy,
-                'seed': self.settings.seed}
+        mine = self._identity()
+        state.setdefault('task_selection', 'random')      # checkpoints from before the option
         if any(state.get(k) != v for k, v in mine.items()):
             raise ValueError(f'{self.out} holds a checkpoint of another session '
                              f'({ {k: state.get(k) for k in mine} }); use another folder')
@@ -164,8 +208,7 @@ class Learner:
 
     def _save_checkpoint(self, done: list[dict]) -> None:
         self.skill.save(self.memory_path)             # atomic
-        state = {'task': self.task.name, 'strategy': self.settings.strategy,
-                 'seed': self.settings.seed, 'tasks': done}
+        state = {**self._identity(), 'tasks': done}
         tmp = self.checkpoint_path.with_suffix('.tmp')
         tmp.write_text(json.dumps(state))
         os.replace(tmp, self.checkpoint_path)
@@ -183,7 +226,8 @@ class Learner:
         for index in range(len(done), s.num_tasks):
             if should_stop is not None and should_stop():
                 break
-            tau = taus[index]
+            tau = taus[index] if s.task_selection == 'random' else most_uncertain(
+                self.task, self.skill.variance, s.selection_candidates, s.seed, index)
             start = time.perf_counter()
             result = self._search(tau, index, centre, scale)
             if result.fulfilled or not s.add_only_fulfilled:

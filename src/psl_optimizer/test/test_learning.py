@@ -1,4 +1,5 @@
 """The learning loop on the embedded task, in batch mode: it improves, and it resumes."""
+import dataclasses
 import json
 import os
 import signal
@@ -121,3 +122,41 @@ def test_a_checkpoint_of_another_session_is_refused(task, evaluator, finished):
     other = LearnSettings(strategy='scratch', num_tasks=6, seed=3)
     with pytest.raises(ValueError, match='another session'):
         Learner(task, other, out, evaluator).run()
+
+
+def test_variance_selection_picks_the_candidate_the_skill_knows_least(task, tmp_path):
+    """Checked against the skill itself: the chosen instance is the argmax of the mean
+    predictive variance over the same seeded candidates, and it lies away from the samples."""
+    from psl_optimizer.learning import InProcessSkill, most_uncertain
+    from psl_controller.policy import policy_for
+
+    skill = InProcessSkill(task, LearnSettings().skill, policy_for(task).default_theta)
+    theta = policy_for(task).default_theta
+    low, high = task.tau_low, task.tau_high
+    for u in np.linspace(0.0, 0.4, 6):                # samples in one corner only
+        skill.add(low + u * (high - low), theta)
+    chosen = most_uncertain(task, skill.variance, 30, seed=1, index=0)
+    again = most_uncertain(task, skill.variance, 30, seed=1, index=0)
+    np.testing.assert_array_equal(chosen, again)
+    candidates = task_sequence(task, 30, (1 + 2_000_003) * 100_003)
+    scores = [np.mean(skill.variance(c)) for c in candidates]
+    np.testing.assert_array_equal(chosen, candidates[int(np.argmax(scores))])
+    unit = (chosen - low) / (high - low)
+    assert np.linalg.norm(unit) > 0.8                  # far from the sampled corner
+    without = InProcessSkill(task, dataclasses.replace(LearnSettings().skill,
+                                                       readout='incremental_ridge'), theta)
+    with pytest.raises(ValueError, match='variance'):
+        most_uncertain(task, without.variance, 5, seed=1, index=0)
+
+
+def test_a_variance_selected_session_resumes_to_the_same_tasks(task, evaluator, tmp_path):
+    s = dataclasses.replace(SETTINGS, num_tasks=4, task_selection='variance')
+    full = Learner(task, s, tmp_path / 'full', evaluator).run()
+    first = Learner(task, dataclasses.replace(s, num_tasks=4), tmp_path / 'part', evaluator)
+    calls = iter([False, False, True])
+    first.run(should_stop=lambda: next(calls, True))
+    resumed = Learner(task, s, tmp_path / 'part', evaluator).run()
+    assert without_time(resumed['tasks']) == without_time(full['tasks'])
+    random = [t['tau'] for t in Learner(task, dataclasses.replace(s, task_selection='random'),
+                                        tmp_path / 'random', evaluator).run()['tasks']]
+    assert random != [t['tau'] for t in full['tasks']]
