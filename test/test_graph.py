@@ -166,3 +166,23 @@ def test_graph_and_batch_mode_agree(graph_matches_batch, task, theta):
     rng = np.random.default_rng(7)
     perturbed = theta + rng.normal(0.0, 0.1 * np.abs(theta).max(), theta.size)
     graph_matches_batch(task, task.sample_tau(rng), perturbed)
+
+
+def test_a_gmr_encoded_task_runs_in_the_graph_as_in_batch_mode(graph_matches_batch, tmp_path):
+    """policy.kind: gmr in a task YAML (theta_K = GMR means and slopes, eq. 2.25): the
+    executor's reference and batch mode's are the same, so the rollouts agree."""
+    import yaml
+
+    task = load_task('reach_over_obstacle')
+    data = yaml.safe_load(task.path.read_text())
+    data.update(name='reach_over_obstacle_gmr', model=str(task.model_path))
+    data['policy'] = dict(data['policy'], kind='gmr', n_components=6)
+    path = tmp_path / 'reach_over_obstacle_gmr.yaml'
+    path.write_text(yaml.safe_dump(data))
+    mine = load_task(str(path))
+    theta = policy_for(mine).default_theta
+    assert theta.size == 2 * 6 * mine.n_joints
+    rng = np.random.default_rng(4)
+    evaluation, _ = graph_matches_batch(mine, mine.tau_default,
+                                        theta + rng.normal(0.0, 0.02, theta.size))
+    assert evaluation.task == str(path.resolve())

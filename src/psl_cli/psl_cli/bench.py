@@ -9,6 +9,8 @@ stored samples, and the query service round trip beside a bare DDS round trip.
 ``psl bench dynamics``: learned feed-forward on held-out payloads (`psl_cli.bench_dynamics`).
 ``psl bench memories``: associative memories completing learned samples both ways
 (`psl_cli.bench_memories`).
+``psl bench encodings``: DMP vs GMR encoding, random vs variance-driven task selection
+(`psl_cli.bench_encodings`).
 """
 from __future__ import annotations
 
@@ -42,10 +44,11 @@ def add_arguments(parser) -> None:
     memory.add_argument('--service-samples', type=int, default=1000)
     memory.add_argument('--round-trips', type=int, default=1000)
     memory.add_argument('--json', action='store_true')
-    from psl_cli import bench_dynamics, bench_learn, bench_memories
+    from psl_cli import bench_dynamics, bench_encodings, bench_learn, bench_memories
     bench_learn.add_arguments(sub)
     bench_dynamics.add_arguments(sub)
     bench_memories.add_arguments(sub)
+    bench_encodings.add_arguments(sub)
 
 
 def add_rollout_arguments(sub) -> None:
@@ -129,6 +132,9 @@ def main(args) -> int:
     if args.bench == 'memories':
         from psl_cli import bench_memories
         return bench_memories.main(args)
+    if args.bench == 'encodings':
+        from psl_cli import bench_encodings
+        return bench_encodings.main(args)
     raise ValueError(f'unknown benchmark {args.bench!r}')
 
 

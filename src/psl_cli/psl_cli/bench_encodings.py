@@ -1,0 +1,197 @@
+"""``psl bench encodings``: trajectory encodings and task selection, on the same tasks and seeds.
+
+Two tables from `Learner` sessions in batch mode (bootstrap strategy):
+
+1. **DMP vs GMR** (``policy.kind``): the same task YAML with theta_K encoded by the DMP (the
+   default) or by Gaussian Mixture Regression (`psl_controller.gmr_trajectory`): total
+   rollouts, rollouts per task after `after` tasks, tasks fulfilled, held-out zero-shot
+   success and reward, and the demonstration's own zero-shot success in each encoding.
+2. **random vs variance-driven task selection** (``LearnSettings.task_selection``): after every
+   training task the skill is tested zero-shot on the held-out instances (measurement rollouts,
+   not counted as training); reported: the training rollouts (and tasks) spent until the
+   zero-shot success first reaches the target (80 %), and the final success.
+
+Every session of a seed sees the same held-out instances; the random sessions of a seed the
+same training sequence. Imports ROS nothing.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+TARGET = 0.8
+
+
+def _mean_sd(values: Sequence[float]) -> str:
+    values = [float(v) for v in values]
+    if len(values) < 2:
+        return f'{values[0]:.2f}' if values else '-'
+    return f'{statistics.mean(values):.2f} ± {statistics.stdev(values):.2f}'
+
+
+def encoding_variant(task, kind: str, n_components: int):
+    """The task with theta_K encoded by `kind` ('dmp' or 'gmr'); everything else unchanged."""
+    policy = dict(task.policy, kind=kind)
+    if kind == 'gmr':
+        policy['n_components'] = n_components
+    return dataclasses.replace(task, policy=policy)
+
+
+def run_encodings(task_name: str, seeds: Sequence[int], num_tasks: int, budget: int,
+                  num_test: int, after: int, n_components: int,
+                  progress: Callable[[str], None] = lambda line: None) -> dict:
+    from psl_controller.policy import policy_for
+    from psl_optimizer.batch_rollout import BatchRollout
+    from psl_optimizer.learning import Learner, LearnSettings, held_out_tasks
+    from psl_optimizer.policy_search import SearchSettings
+    from psl_sim.task import load_task
+
+    base = load_task(task_name)
+    rows: dict[str, list[dict]] = {}
+    for kind in ('dmp', 'gmr'):
+        task = encoding_variant(base, kind, n_components)
+        batch = BatchRollout(task)
+        theta0 = policy_for(task).default_theta
+        for seed in seeds:
+            settings = LearnSettings(strategy='bootstrap', num_tasks=num_tasks, seed=seed,
+                                     num_test=num_test,
+                                     search=SearchSettings(max_rollouts=budget))
+            start = time.perf_counter()
+            with tempfile.TemporaryDirectory() as out:
+                metrics = Learner(task, settings, out, batch).run()
+            test = held_out_tasks(task, num_test, seed)
+            demo = batch.run(np.tile(theta0, (len(test), 1)), test)
+            rollouts = [t['rollouts'] for t in metrics['tasks']]
+            row = {'seed': seed, 'theta_size': int(theta0.size),
+                   'total_rollouts': int(sum(rollouts)),
+                   'late_rollouts_per_task': float(np.mean(rollouts[after:])),
+                   'fulfilled_tasks': metrics['summary']['fulfilled_tasks'],
+                   'zero_shot_success': metrics['summary']['zero_shot_success_rate'],
+                   'zero_shot_reward': metrics['summary']['zero_shot_mean_reward'],
+                   'demonstration_success': float(np.mean([r.evaluation.fulfilled
+                                                           for r in demo])),
+                   'seconds': time.perf_counter() - start}
+            rows.setdefault(kind, []).append(row)
+            progress(f"{kind} seed {seed}: {row['total_rollouts']} rollouts, zero-shot "
+                     f"{100 * row['zero_shot_success']:.0f} %")
+    return rows
+
+
+def run_selection(task_name: str, seeds: Sequence[int], num_tasks: int, budget: int,
+                  num_test: int, progress: Callable[[str], None] = lambda line: None) -> dict:
+    from psl_optimizer.batch_rollout import BatchRollout
+    from psl_optimizer.learning import Learner, LearnSettings, held_out_tasks
+    from psl_optimizer.policy_search import SearchSettings
+    from psl_sim.task import load_task
+
+    task = load_task(task_name)
+    batch = BatchRollout(task)
+    rows: dict[str, list[dict]] = {}
+    for selection in ('random', 'variance'):
+        for seed in seeds:
+            settings = LearnSettings(strategy='bootstrap', num_tasks=num_tasks, seed=seed,
+                                     num_test=num_test, task_selection=selection,
+                                     search=SearchSettings(max_rollouts=budget))
+            test = held_out_tasks(task, num_test, seed)
+            curve: list[tuple[int, float]] = []     # (training rollouts so far, success)
+            with tempfile.TemporaryDirectory() as out:
+                learner = Learner(task, settings, out, batch)
+
+                def measure(record: dict) -> None:
+                    thetas = np.array([learner.skill.query(t) for t in test])
+                    fulfilled = [r.evaluation.fulfilled for r in batch.run(thetas, test)]
+                    used = sum(d['rollouts'] for d in learner.done)
+                    curve.append((used, float(np.mean(fulfilled))))
+                learner.run(progress=measure)
+            reached = next((i for i, (_, ok) in enumerate(curve) if ok >= TARGET), None)
+            row = {'seed': seed, 'curve': curve,
+                   'rollouts_to_target': None if reached is None else curve[reached][0],
+                   'tasks_to_target': None if reached is None else reached + 1,
+                   'final_success': curve[-1][1], 'total_rollouts': curve[-1][0]}
+            rows.setdefault(selection, []).append(row)
+            progress(f"{selection} seed {seed}: {TARGET:.0%} zero-shot after "
+                     f"{row['tasks_to_target']} tasks / {row['rollouts_to_target']} rollouts")
+    return rows
+
+
+def format_tables(report: dict) -> str:
+    s = report['settings']
+    lines = [f"{s['task']}: bootstrap, {s['tasks']} training tasks, budget {s['budget']}, "
+             f"{s['test_tasks']} held-out tasks, seeds {' '.join(map(str, s['seeds']))}; "
+             'mean ± SD over seeds', '',
+             f"| encoding | theta size | demonstration zero-shot | total rollouts | rollouts "
+             f"per task after {s['after']} | fulfilled tasks | zero-shot success | zero-shot "
+             'reward |', '|---|---|---|---|---|---|---|---|']
+    for kind, rows in report['encodings'].items():
+        label = kind if kind == 'dmp' else f"gmr ({s['n_components']} components)"
+        lines.append(
+            f"| {label} | {rows[0]['theta_size']} | "
+            f"{_mean_sd([100 * r['demonstration_success'] for r in rows])} % | "
+            f"{_mean_sd([r['total_rollouts'] for r in rows])} | "
+            f"{_mean_sd([r['late_rollouts_per_task'] for r in rows])} | "
+            f"{_mean_sd([r['fulfilled_tasks'] for r in rows])} | "
+            f"{_mean_sd([100 * r['zero_shot_success'] for r in rows])} % | "
+            f"{_mean_sd([r['zero_shot_reward'] for r in rows])} |")
+    lines += ['', f'| task selection | training tasks to {TARGET:.0%} zero-shot | training '
+              f'rollouts to {TARGET:.0%} | final zero-shot success | total rollouts |',
+              '|---|---|---|---|---|']
+    for selection, rows in report['selection'].items():
+        reached = [r for r in rows if r['tasks_to_target'] is not None]
+        missed = len(rows) - len(reached)
+        note = f' ({missed} of {len(rows)} seeds never reached it)' if missed else ''
+        lines.append(
+            f"| {selection} | {_mean_sd([r['tasks_to_target'] for r in reached])}{note} | "
+            f"{_mean_sd([r['rollouts_to_target'] for r in reached])} | "
+            f"{_mean_sd([100 * r['final_success'] for r in rows])} % | "
+            f"{_mean_sd([r['total_rollouts'] for r in rows])} |")
+        lines.append(f"|   per seed | {', '.join(str(r['tasks_to_target']) for r in rows)} | "
+                     f"{', '.join(str(r['rollouts_to_target']) for r in rows)} | | |")
+    return '\n'.join(lines) + '\n'
+
+
+def main(args) -> int:
+    """``psl bench encodings`` (arguments from `add_arguments`)."""
+    if args.after >= args.tasks:
+        print('psl bench encodings: --after must be below --tasks', file=sys.stderr)
+        return 2
+    log = (lambda line: print(line, file=sys.stderr, flush=True))
+    try:
+        report = {
+            'settings': {'task': args.task, 'seeds': args.seeds, 'tasks': args.tasks,
+                         'budget': args.budget, 'test_tasks': args.test_tasks,
+                         'after': args.after, 'n_components': args.n_components},
+            'encodings': run_encodings(args.task, args.seeds, args.tasks, args.budget,
+                                       args.test_tasks, args.after, args.n_components, log),
+            'selection': run_selection(args.task, args.seeds, args.tasks, args.budget,
+                                       args.test_tasks, log)}
+    except ValueError as exc:
+        print(f'psl bench encodings: {exc}', file=sys.stderr)
+        return 2
+    if args.out:
+        Path(args.out).write_text(json.dumps(report, indent=1))
+    print(json.dumps(report, indent=2) if args.json else format_tables(report), end='')
+    return 0
+
+
+def add_arguments(sub) -> None:
+    """The ``encodings`` subcommand of ``psl bench``."""
+    p = sub.add_parser('encodings', help='DMP vs GMR encoding, random vs variance-driven task '
+                       'selection')
+    p.add_argument('--task', default='reach_over_obstacle')
+    p.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
+    p.add_argument('--tasks', type=int, default=30, help='training tasks per session')
+    p.add_argument('--budget', type=int, default=300, help='rollouts per task at most')
+    p.add_argument('--test-tasks', type=int, default=20, help='held-out tasks per seed')
+    p.add_argument('--after', type=int, default=20,
+                   help='rollouts per task are averaged over the tasks after this many')
+    p.add_argument('--n-components', type=int, default=6, help='GMR components')
+    p.add_argument('--out', help='also write the report (with the learning curves) as JSON')
+    p.add_argument('--json', action='store_true')
