@@ -157,6 +157,37 @@ def format_tables(report: dict) -> str:
     return '\n'.join(lines) + '\n'
 
 
+def plot_selection(report: dict, out_path: str | Path) -> Path:
+    """Zero-shot success on the held-out instances against training tasks and against
+    training rollouts, random vs variance-driven selection: mean over seeds and each seed."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(11, 4), dpi=110, layout='constrained')
+    by_task, by_rollout = fig.subplots(1, 2)
+    for (selection, rows), colour in zip(report['selection'].items(), ('C0', 'C3')):
+        curves = np.array([[ok for _, ok in r['curve']] for r in rows])       # (seeds, tasks)
+        tasks = np.arange(1, curves.shape[1] + 1)
+        by_task.plot(tasks, 100 * curves.mean(axis=0), color=colour, lw=2,
+                     label=f'{selection}: mean of {len(rows)} seeds')
+        for r in rows:
+            used = [u for u, _ in r['curve']]
+            ok = [100 * o for _, o in r['curve']]
+            by_task.plot(tasks, ok, color=colour, lw=0.6, alpha=0.4)
+            by_rollout.plot(used, ok, color=colour, lw=0.8, alpha=0.7,
+                            label=f"{selection}" if r is rows[0] else None)
+    for ax, xlabel in ((by_task, 'training tasks'), (by_rollout, 'training rollouts')):
+        ax.axhline(100 * TARGET, color='k', ls='--', lw=0.8)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel('held-out zero-shot success [%]')
+        ax.grid(alpha=0.3)
+        ax.legend(loc='lower right')
+    by_rollout.set_xscale('log')
+    fig.suptitle(f"{report['settings']['task']}: task selection (bootstrap; dashed: "
+                 f'{TARGET:.0%})')
+    fig.savefig(out_path)
+    return Path(out_path)
+
+
 def main(args) -> int:
     """``psl bench encodings`` (arguments from `add_arguments`)."""
     if args.after >= args.tasks:
@@ -177,6 +208,8 @@ def main(args) -> int:
         return 2
     if args.out:
         Path(args.out).write_text(json.dumps(report, indent=1))
+    if args.figure:
+        print(f'figure: {plot_selection(report, args.figure)}', file=sys.stderr)
     print(json.dumps(report, indent=2) if args.json else format_tables(report), end='')
     return 0
 
@@ -194,4 +227,5 @@ def add_arguments(sub) -> None:
                    help='rollouts per task are averaged over the tasks after this many')
     p.add_argument('--n-components', type=int, default=6, help='GMR components')
     p.add_argument('--out', help='also write the report (with the learning curves) as JSON')
+    p.add_argument('--figure', help='also draw the task-selection curves into this PNG')
     p.add_argument('--json', action='store_true')
