@@ -13,11 +13,13 @@ import time
 
 import numpy as np
 import pytest
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from psl_cli.graph import NODES, Graph, pid_alive
 from psl_cli.ros_client import RosClient
 from psl_controller.policy import policy_for
 from psl_memory.skill_memory import SkillMemory
+from psl_msgs.msg import RolloutEvaluation
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
 from psl_sim.task import load_task
@@ -28,6 +30,7 @@ SKILL = LearnSettings().skill      # the memory node gets the in-process default
 MEMORY_PARAMS = {'readout': SKILL.readout, 'n_hidden': SKILL.n_hidden,
                  'regularization': SKILL.regularization, 'seed': SKILL.seed}
 LEARN_NODES = tuple(n for n in NODES if n[0] in ('skill_memory', 'learner'))
+RELIABLE = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
 LEARNER_ONLY = tuple(n for n in NODES if n[0] == 'learner')
 NAMESPACE = 'batch_learning'
 
@@ -231,3 +234,37 @@ def test_graph_mode_learns_what_batch_mode_learns(tmp_path):
     finally:
         stop(g)
     assert_same_session(metrics, in_process(s, tmp_path / 'batch'))
+
+
+def test_two_rollout_workers_learn_what_batch_mode_learns(tmp_path):
+    """Graph(workers=2): the loop runs twice, under worker0 and worker1; the learner spreads
+    each CMA-ES population over both (lockstep rollouts do not depend on the worker)."""
+    g = Graph(log_dir=tmp_path / 'logs', workers=2, extra_params={
+        'skill_memory': MEMORY_PARAMS, 'learner': learner_params(tmp_path / 'runs')})
+    try:
+        g.start()
+        labels = sorted(p.name for p in g.processes)
+        assert 'worker0/sim' in labels and 'worker1/dmp_executor' in labels
+        assert labels.count('learner') == 1 and 'sim' not in labels
+        g.wait_ready(timeout=90)
+        with RosClient() as c:
+            evaluations = {'worker0': 0, 'worker1': 0}     # each worker's evaluator's output
+
+            def counter(worker):
+                def count(_):
+                    evaluations[worker] += 1
+                return count
+            for worker in evaluations:
+                c.node.create_subscription(RolloutEvaluation, f'/{worker}/rollout_evaluation',
+                                           counter(worker), RELIABLE)
+            s = settings('scratch', num_tasks=2, budget=22, seed=5)
+            result = c.learn(timeout=600, **goal(s, tmp_path / 'graph', mode='graph'))
+            assert result.success, result.message
+            metrics = json.loads(open(result.metrics_path).read())
+            time.sleep(0.5)      # the last evaluations are on their way to this client too
+    finally:
+        stop(g)
+    assert_same_session(metrics, in_process(s, tmp_path / 'batch'))
+    # both workers rolled out, together every rollout of the session and of its test
+    assert evaluations['worker0'] > 0 and evaluations['worker1'] > 0, evaluations
+    assert sum(evaluations.values()) == metrics['summary']['total_rollouts'] + NUM_TEST

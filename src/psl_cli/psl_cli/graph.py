@@ -22,6 +22,8 @@ NODES = (  # (name, package, executable)
     ('skill_memory', 'psl_memory', 'skill_memory'),
     ('learner', 'psl_optimizer', 'learner'),
 )
+# the nodes of one rollout worker: with Graph(workers=N) each worker runs under <ns>/worker<k>
+WORKER_NODES = ('sim', 'pd_controller', 'dmp_executor', 'reward_evaluator')
 
 
 def pid_alive(pid: int) -> bool:
@@ -78,13 +80,21 @@ class NodeProcess:
 
 
 class Graph:
-    """The robot loop (sim, controller, executor, evaluator) as separate processes."""
+    """The robot loop (sim, controller, executor, evaluator) as separate processes.
+
+    With ``workers=N`` (N >= 1) the loop's nodes run N times, under ``<namespace>/worker<k>``,
+    and the learner spreads a population over them (its ``workers`` parameter); the skill
+    memory and the learner run once, in ``<namespace>``."""
 
     def __init__(self, task: str = 'reach_over_obstacle', mode: str = 'lockstep',
                  namespace: str = '', log_dir: str | Path | None = None,
-                 nodes: tuple = NODES, extra_params: dict[str, dict] | None = None):
+                 nodes: tuple = NODES, extra_params: dict[str, dict] | None = None,
+                 workers: int = 0):
         if mode not in ('lockstep', 'realtime'):
             raise ValueError(f"mode must be 'lockstep' or 'realtime', got {mode!r}")
+        if workers < 0:
+            raise ValueError(f'workers must be >= 0, got {workers}')
+        self.workers = workers
         self.task, self.mode = task, mode
         self.namespace = '/' + namespace.strip('/') if namespace.strip('/') else ''
         root = Path(os.environ.get('PSL_ROOT', '.'))
@@ -102,27 +112,48 @@ class Graph:
             common = {}
         if name == 'skill_memory':
             common = {'tasks': f'[{self.task}]'}
+        if name == 'learner' and self.workers:
+            common = {'workers': '[' + ','.join(self.worker_namespaces(relative=True)) + ']'}
         common.update(self.extra_params.get(name, {}))
         return common
+
+    def worker_namespaces(self, relative: bool = False) -> list[str]:
+        """The namespaces the robot loop runs in: one per worker, or the graph's own."""
+        if not self.workers:
+            return [''] if relative else [self.namespace]
+        names = [f'worker{k}' for k in range(self.workers)]
+        return names if relative else [f'{self.namespace}/{n}' for n in names]
+
+    def _plan(self) -> list[tuple[str, str, str, str, str]]:
+        """(label, node name, package, executable, namespace) of every process."""
+        plan = []
+        for name, package, executable in self.nodes_spec:
+            if self.workers and name in WORKER_NODES:
+                for ns in self.worker_namespaces():
+                    plan.append((f'{ns.rsplit("/", 1)[-1]}/{name}', name, package,
+                                 executable, ns))
+            else:
+                plan.append((name, name, package, executable, self.namespace))
+        return plan
 
     def start(self) -> list[NodeProcess]:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         try:
-            for name, package, executable in self.nodes_spec:
+            for label, name, package, executable, namespace in self._plan():
                 cmd = [str(find_executable(package, executable)), '--ros-args']
                 params_file = find_params_file(package, name)
                 if params_file is not None:
                     cmd += ['--params-file', str(params_file)]
-                if self.namespace:
-                    cmd += ['-r', f'__ns:={self.namespace}']
+                if namespace:
+                    cmd += ['-r', f'__ns:={namespace}']
                 for key, value in self.params(name).items():
                     cmd += ['-p', f'{key}:={value}']
-                log_path = self.log_dir / f'{name}.log'
+                log_path = self.log_dir / f'{label.replace("/", ".")}.log'
                 with open(log_path, 'wb') as log:
                     process = subprocess.Popen(
                         cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                         start_new_session=True)   # Ctrl-C reaches us only; we end them
-                self.processes.append(NodeProcess(name, process, log_path))
+                self.processes.append(NodeProcess(label, process, log_path))
         except BaseException:
             self.stop()
             raise
@@ -142,18 +173,23 @@ class Graph:
         node, or what is missing, otherwise."""
         from psl_cli.ros_client import RosClient
 
-        with RosClient(self.namespace) as client:
-            deadline = time.monotonic() + timeout
-            while time.monotonic() < deadline and not (stop is not None and stop.is_set()):
-                dead = self.dead()
-                if dead:
-                    raise RuntimeError(self.describe_death(dead[0]))
-                if client.graph_ready(timeout=0.5):
-                    return
-            if stop is not None and stop.is_set():
-                return
-            raise RuntimeError(f'the graph was not ready within {timeout:.0f} s: missing '
-                               f'{client.missing_endpoints()} (logs in {self.log_dir})')
+        deadline = time.monotonic() + timeout
+        for namespace in self.worker_namespaces():      # every worker's loop
+            with RosClient(namespace) as client:
+                while time.monotonic() < deadline and not (stop is not None
+                                                           and stop.is_set()):
+                    dead = self.dead()
+                    if dead:
+                        raise RuntimeError(self.describe_death(dead[0]))
+                    if client.graph_ready(timeout=0.5):
+                        break
+                else:
+                    if stop is not None and stop.is_set():
+                        return
+                    raise RuntimeError(
+                        f'the graph was not ready within {timeout:.0f} s: missing '
+                        f'{client.missing_endpoints()} in {namespace or "/"} (logs in '
+                        f'{self.log_dir})')
 
     def stop(self, timeout: float = 5.0) -> None:
         """End every process this graph started, by PID."""

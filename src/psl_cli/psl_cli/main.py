@@ -28,7 +28,8 @@ def _load_theta(path: str | None, task) -> np.ndarray:
 def cmd_up(args) -> int:
     from psl_cli.graph import Graph
 
-    graph = Graph(task=args.task, mode=args.mode, namespace=args.namespace)
+    graph = Graph(task=args.task, mode=args.mode, namespace=args.namespace,
+                  workers=args.workers)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -309,6 +310,9 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument('--task', default='reach_over_obstacle')
     up.add_argument('--mode', choices=('lockstep', 'realtime'), default='lockstep')
     up.add_argument('--namespace', default='')
+    up.add_argument('--workers', type=int, default=0,
+                    help='N rollout workers (sim, controller, executor, evaluator) under '
+                    '<namespace>/worker0..N-1; the learner spreads a population over them')
     up.set_defaults(func=cmd_up)
 
     ro = sub.add_parser('rollout', help='one rollout through the running graph')

@@ -75,8 +75,12 @@ class DMPExecutor(Node):
             self._cv.notify_all()
 
     def on_diagnostics(self, msg: DiagnosticArray) -> None:
-        """The simulator reports episode progress about every tenth of an episode."""
+        """The simulator reports episode progress about every tenth of an episode. /diagnostics
+        is shared by every rollout worker: only this namespace's simulator counts."""
+        mine = self.get_namespace().rstrip('/') + '/sim:'
         for status in msg.status:
+            if not status.name.startswith(mine):
+                continue
             values = {kv.key: kv.value for kv in status.values}
             if 'steps_done' in values and 'episode_start_ns' in values:
                 self._progress[int(values['episode_start_ns'])] = (

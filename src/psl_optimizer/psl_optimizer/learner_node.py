@@ -16,8 +16,9 @@ tasks, a skill the memory does not hold) ends with success=false and the reason.
 """
 from __future__ import annotations
 
-import dataclasses
+import queue
 import threading
+from concurrent.futures import ThreadPoolExecutor
 import time
 from pathlib import Path
 
@@ -108,7 +109,10 @@ class LearnerNode(Node):
                 ('sigma0', defaults.sigma0, 'CMA-ES initial step size, normalised theta units'),
                 ('cost_weight', defaults.cost_weight, 'beta of bootstrap_cost'),
                 ('service_timeout', 10.0, 'seconds to wait for a skill memory answer'),
-                ('rollout_timeout', 120.0, 'seconds to wait for one graph-mode rollout')):
+                ('rollout_timeout', 120.0, 'seconds to wait for one graph-mode rollout'),
+                ('workers', [''], 'graph mode: namespaces of the rollout workers, relative to '
+                                  "this node's ('' = its own); a population is spread over "
+                                  'them, one rollout per worker at a time')):
             self.declare_parameter(name, default, ParameterDescriptor(description=text,
                                                                       read_only=True))
         self.mode = self.get_parameter('mode').value
@@ -119,8 +123,12 @@ class LearnerNode(Node):
             name: self.create_client(srv, f'skill_memory/{name}', callback_group=clients)
             for name, srv in (('query', QuerySkill), ('add_sample', AddSample),
                               ('save', SaveMemory), ('load', LoadMemory))}
-        self.rollout_client = ActionClient(self, ExecuteRollout, 'execute_rollout',
-                                           callback_group=clients)
+        names = ['/'.join(filter(None, (w.strip('/'), 'execute_rollout')))
+                 for w in self.get_parameter('workers').value]
+        self.rollout_clients = [(name, ActionClient(self, ExecuteRollout, name,
+                                                    callback_group=clients)) for name in names]
+        if not self.rollout_clients:
+            raise ValueError("parameter workers needs at least one namespace ('' = own)")
         self._busy = threading.Lock()
         self._evaluators: dict[str, object] = {}    # batch evaluators per task, built once
         self._server = ActionServer(
@@ -212,8 +220,7 @@ class LearnerNode(Node):
             run = self._evaluators[task.name]
         else:
             def run(thetas, taus):
-                results = [self._graph_rollout(task, tau, theta)
-                           for theta, tau in zip(thetas, taus)]
+                results = self._graph_rollouts(task, thetas, taus)
                 return (np.array([r.reward for r in results]),
                         np.array([r.fulfilled for r in results]))
         current = {'index': -1, 'rollouts': 0, 'best': -np.inf, 'fulfilled': False}
@@ -237,18 +244,38 @@ class LearnerNode(Node):
             return rewards, fulfilled
         return evaluate
 
-    def _graph_rollout(self, task: TaskDefinition, tau: np.ndarray, theta: np.ndarray):
+    def _graph_rollouts(self, task: TaskDefinition, thetas: np.ndarray, taus: np.ndarray):
+        """Evaluations of the population, in its order, the rollouts spread over the workers
+        (each worker runs one at a time; lockstep results do not depend on which one)."""
+        if len(self.rollout_clients) == 1:
+            return [self._graph_rollout(self.rollout_clients[0], task, tau, theta)
+                    for theta, tau in zip(thetas, taus)]
+        free: queue.Queue = queue.Queue()
+        for worker in self.rollout_clients:
+            free.put(worker)
+
+        def one(i: int):
+            worker = free.get()
+            try:
+                return self._graph_rollout(worker, task, taus[i], thetas[i])
+            finally:
+                free.put(worker)
+        with ThreadPoolExecutor(max_workers=len(self.rollout_clients)) as pool:
+            return list(pool.map(one, range(len(thetas))))
+
+    def _graph_rollout(self, worker: tuple[str, ActionClient], task: TaskDefinition,
+                       tau: np.ndarray, theta: np.ndarray):
         timeout = self.get_parameter('rollout_timeout').value
-        if not self.rollout_client.wait_for_server(timeout_sec=min(timeout, 10.0)):
-            raise RuntimeError('the execute_rollout action server is not available (is the '
-                               'graph up?)')
+        name, client = worker
+        if not client.wait_for_server(timeout_sec=min(timeout, 10.0)):
+            raise RuntimeError(f'the action server {name} is not available (is the graph '
+                               'up?)')
         goal = ExecuteRollout.Goal(task=task_id(task), tau=[float(x) for x in tau],
                                    theta=[float(x) for x in theta])
-        handle = wait_for(self.rollout_client.send_goal_async(goal), timeout,
-                          'execute_rollout (goal)')
+        handle = wait_for(client.send_goal_async(goal), timeout, f'{name} (goal)')
         if not handle.accepted:
             raise RuntimeError('the rollout goal was rejected')
-        result = wait_for(handle.get_result_async(), timeout, 'execute_rollout').result
+        result = wait_for(handle.get_result_async(), timeout, name).result
         if not result.success:
             raise RuntimeError(f'rollout failed: {result.message}')
         return result.evaluation
