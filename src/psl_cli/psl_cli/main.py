@@ -1,4 +1,5 @@
-"""``psl``: start the node graph, run rollouts, record bags, run the demo and benchmarks."""
+"""``psl``: start the node graph, run rollouts, learn skills, query the memory, plot, record
+bags, run the demo and benchmarks."""
 from __future__ import annotations
 
 import argparse
@@ -387,8 +388,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument('topics', nargs='*', help='topics (default: all)')
     rec.set_defaults(func=cmd_record)
 
-    demo = sub.add_parser('demo', help='start the graph, roll out over a few obstacle '
-                          'positions, record a bag, print a table, end everything')
+    demo = sub.add_parser('demo', help='start the graph, roll the demonstration out over a '
+                          'few obstacle positions, learn the skill, roll it out zero-shot on '
+                          'the same positions, record a bag, end everything')
     demo.add_argument('--task', default='reach_over_obstacle')
     demo.add_argument('--out', default='demo')
     demo.add_argument('--positions', type=int, default=5)
