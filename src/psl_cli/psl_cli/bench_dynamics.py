@@ -16,7 +16,6 @@ the oracle.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import sys
 import tempfile

@@ -14,6 +14,7 @@ from psl_msgs.msg import RolloutEvaluation
 from psl_msgs.srv import (AddSample, CompletePattern, LoadMemory, QuerySkill, ResetTask,
                           SaveMemory)
 from psl_sim.action_client import ActionClient
+from psl_sim.futures import wait_for
 from std_srvs.srv import Trigger
 
 MEMORY_SERVICES = {'query': QuerySkill, 'add_sample': AddSample, 'complete': CompletePattern,
@@ -101,13 +102,7 @@ class RosClient:
                 time.sleep(0.05)
         time.sleep(0.3)   # seen from here; give the pairwise matching a moment
 
-    @staticmethod
-    def wait(future, timeout: float, what: str):
-        event = threading.Event()
-        future.add_done_callback(lambda _: event.set())
-        if not event.wait(timeout):
-            raise TimeoutError(f'no answer to {what} within {timeout:.0f} s')
-        return future.result()
+    wait = staticmethod(wait_for)     # the future's result, or TimeoutError
 
     def memory(self, service: str, timeout: float = 10.0, **fields):
         """Call one of the skill memory's services (query, add_sample, complete, save, load,

@@ -3,7 +3,6 @@ sessions' own zero-shot success, checked against an independent session."""
 import argparse
 import tempfile
 
-import numpy as np
 import pytest
 
 from psl_cli import bench, bench_encodings

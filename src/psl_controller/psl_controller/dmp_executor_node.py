@@ -17,7 +17,6 @@ from builtin_interfaces.msg import Duration
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from diagnostic_msgs.msg import DiagnosticArray
@@ -28,7 +27,9 @@ from psl_msgs.action import ExecuteRollout
 from psl_msgs.msg import RolloutEvaluation
 from psl_msgs.srv import ResetTask
 from psl_sim.arm_model import joint_names_of
+from psl_sim.futures import wait_for
 from psl_sim.task import TaskError, load_task
+from psl_sim.node_main import run_node
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -150,28 +151,14 @@ class DMPExecutor(Node):
         return evaluation
 
     def _call(self, client, request):
-        future = client.call_async(request)
-        event = threading.Event()
-        future.add_done_callback(lambda _: event.set())
-        if not event.wait(timeout=10.0):
-            raise RuntimeError(f'no answer from {client.srv_name}')
-        return future.result()
+        try:
+            return wait_for(client.call_async(request), 10.0, client.srv_name)
+        except TimeoutError as exc:
+            raise RuntimeError(str(exc)) from exc       # a failed rollout, with the reason
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = DMPExecutor()
-        executor = MultiThreadedExecutor(num_threads=4)
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(DMPExecutor, args, threads=4)    # its action waits on other callbacks
 
 
 if __name__ == '__main__':

@@ -14,9 +14,7 @@ state's stamp, so the tracking error can be computed and recorded.
 from __future__ import annotations
 
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -28,6 +26,7 @@ from psl_controller.trajectory_sampling import SampledTrajectory
 from psl_sim.arm_model import ArmModel
 from psl_sim.hot_path import HotPath
 from psl_sim.task import load_task
+from psl_sim.node_main import run_node
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -174,17 +173,7 @@ class PDController(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = PDController()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(PDController, args)
 
 
 if __name__ == '__main__':

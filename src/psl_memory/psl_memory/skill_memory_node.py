@@ -18,15 +18,14 @@ import threading
 from pathlib import Path
 
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from psl_msgs.srv import AddSample, CompletePattern, LoadMemory, QuerySkill, SaveMemory
 from psl_memory.parameterized_skill import SkillConfig
 from psl_memory.skill_memory import MemoryFileError, SkillMemory
+from psl_sim.node_main import run_node
 
 
 class SkillMemoryNode(Node):
@@ -150,17 +149,7 @@ class SkillMemoryNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = SkillMemoryNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(SkillMemoryNode, args)
 
 
 if __name__ == '__main__':

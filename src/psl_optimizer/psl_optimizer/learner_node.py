@@ -19,15 +19,12 @@ from __future__ import annotations
 import queue
 import threading
 from concurrent.futures import ThreadPoolExecutor
-import time
 from pathlib import Path
 
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 
 from psl_msgs.action import ExecuteRollout, LearnSkill
@@ -36,22 +33,15 @@ from psl_optimizer.batch_rollout import BatchRollout
 from psl_optimizer.learning import Learner, LearnSettings, batch_evaluator
 from psl_optimizer.policy_search import STRATEGIES, SearchSettings
 from psl_sim.action_client import ActionClient
+from psl_sim.futures import wait_for
 from psl_sim.task import TaskDefinition, TaskError, load_task, task_id
+from psl_sim.node_main import run_node
 
 MODES = ('batch', 'graph')
 
 
 class Cancelled(Exception):
     """The goal was cancelled; finished tasks are in the checkpoint."""
-
-
-def wait_for(future, timeout: float, what: str):
-    """The future's result, or TimeoutError (other executor threads complete the future)."""
-    event = threading.Event()
-    future.add_done_callback(lambda _: event.set())
-    if not event.wait(timeout):
-        raise TimeoutError(f'no answer from {what} within {timeout:.0f} s')
-    return future.result()
 
 
 class ServiceSkill:
@@ -282,19 +272,7 @@ class LearnerNode(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = LearnerNode()
-        executor = MultiThreadedExecutor(num_threads=4)
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(LearnerNode, args, threads=4)    # its action waits on other callbacks
 
 
 if __name__ == '__main__':

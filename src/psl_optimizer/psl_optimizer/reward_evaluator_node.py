@@ -9,8 +9,6 @@ psl_msgs/RolloutEvaluation stamped with the episode's first state.
 from __future__ import annotations
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -20,6 +18,7 @@ from psl_optimizer.reward import evaluate_rollout
 from psl_sim.arm_model import ArmModel
 from psl_sim.hot_path import HotPath
 from psl_sim.task import TaskError, load_task
+from psl_sim.node_main import run_node
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 # The evaluator may lag behind the loop (it is not on the lockstep path): a history longer
@@ -114,17 +113,7 @@ class RewardEvaluator(Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = RewardEvaluator()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(RewardEvaluator, args)
 
 
 if __name__ == '__main__':
