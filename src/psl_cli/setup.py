@@ -1,28 +1,4 @@
-from glob import glob
+"""ament_python package; metadata, executables and data files are in setup.cfg."""
+from setuptools import setup
 
-from setuptools import find_packages, setup
-
-package_name = 'psl_cli'
-
-setup(
-    name=package_name,
-    version='0.1.0',
-    packages=find_packages(exclude=['test']),
-    package_data={package_name: []},
-    data_files=[
-        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
-        ('share/' + package_name, ['package.xml']),
-        ('share/' + package_name + '/config', glob('config/*.yaml')),
-    ],
-    install_requires=['setuptools'],
-    zip_safe=True,
-    maintainer='psl developers',
-    maintainer_email='psl@example.com',
-    description='The psl command line: start the graph, run rollouts, record bags, benchmarks.',
-    license='Apache-2.0',
-    entry_points={
-        'console_scripts': [
-            'psl = psl_cli.main:main',
-        ],
-    },
-)
+setup()

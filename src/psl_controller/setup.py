@@ -1,29 +1,4 @@
-from glob import glob
+"""ament_python package; metadata, executables and data files are in setup.cfg."""
+from setuptools import setup
 
-from setuptools import find_packages, setup
-
-package_name = 'psl_controller'
-
-setup(
-    name=package_name,
-    version='0.1.0',
-    packages=find_packages(exclude=['test']),
-    package_data={package_name: []},
-    data_files=[
-        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
-        ('share/' + package_name, ['package.xml']),
-        ('share/' + package_name + '/config', glob('config/*.yaml')),
-    ],
-    install_requires=['setuptools'],
-    zip_safe=True,
-    maintainer='psl developers',
-    maintainer_email='psl@example.com',
-    description='PD + feed-forward joint controller, DMP library and DMP executor of psl.',
-    license='Apache-2.0',
-    entry_points={
-        'console_scripts': [
-            'pd_controller = psl_controller.pd_controller_node:main',
-            'dmp_executor = psl_controller.dmp_executor_node:main',
-        ],
-    },
-)
+setup()
