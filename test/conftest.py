@@ -15,7 +15,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from psl_cli.graph import Graph, pid_alive  # noqa: E402
-from psl_cli.ros_client import RosClient, evaluation_dict  # noqa: E402
+from psl_ros.client import RosClient, evaluation_dict  # noqa: E402
 
 # graph mode against batch mode: the same law on the same states, only the order of the
 # floating-point additions differs

@@ -7,7 +7,7 @@ import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
 
-from psl_cli.bag_recorder import make_typestore, read_bag_summary, record
+from psl_ros.bag_recorder import make_typestore, read_bag_summary, record
 from psl_controller.policy import policy_for
 from psl_sim.task import load_task
 

@@ -16,7 +16,7 @@ import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from psl_cli.graph import NODES, Graph, pid_alive
-from psl_cli.ros_client import RosClient
+from psl_ros.client import RosClient
 from psl_controller.policy import policy_for
 from psl_memory.skill_memory import SkillMemory
 from psl_msgs.msg import RolloutEvaluation
@@ -145,12 +145,27 @@ def test_a_bad_goal_gets_a_reason_and_the_node_keeps_serving(client, tmp_path, f
     assert result.success, result.message
 
 
-def test_a_missing_skill_aborts_with_the_reason(client, tmp_path):
+def test_a_missing_skill_is_created_from_the_task(client, tmp_path):
+    """The memory knows no tasks: the learner creates the task's skill (create_skill)."""
     empty = SkillMemory(SKILL)
     empty.save(tmp_path / 'none.npz')
     assert client.memory('load', path=str(tmp_path / 'none.npz')).success
+    result = client.learn(timeout=120, **goal(settings('bootstrap', 2, 5, 0), tmp_path / 'x'))
+    assert result.success, result.message
+    metrics = json.loads(open(result.metrics_path).read())
+    skill = json.loads(client.memory('info').message)[TASK]
+    assert (skill['tau_dim'], skill['theta_dim']) == (2, policy_for(load_task(TASK)).num_parameters)
+    assert skill['num_samples'] == sum(r['fulfilled'] for r in metrics['tasks'])
+
+
+def test_a_skill_of_other_sizes_aborts_with_the_reason(client, tmp_path):
+    other = SkillMemory(SKILL)
+    other.add(TASK, [0.5], [1.0, 2.0, 3.0])          # the task's name, but 1 tau and 3 theta
+    other.save(tmp_path / 'other.npz')
+    assert client.memory('load', path=str(tmp_path / 'other.npz')).success
     result = client.learn(timeout=60, **goal(settings('bootstrap', 2, 5, 0), tmp_path / 'x'))
-    assert not result.success and 'unknown skill' in result.message
+    assert not result.success and 'exists with 1 task and 3 policy parameters' in result.message
+    assert not (tmp_path / 'x' / 'checkpoint.json').exists()
 
 
 def test_a_cancelled_session_resumes_when_the_goal_comes_again(client, tmp_path):

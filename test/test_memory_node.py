@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from psl_cli.graph import Graph, pid_alive
-from psl_cli.ros_client import RosClient
+from psl_ros.client import RosClient
 
 MEMORY_NODE = (('skill_memory', 'psl_memory', 'skill_memory'),)
 TASK_SKILL = 'reach_over_obstacle'
@@ -54,11 +54,28 @@ def info(client) -> dict:
     return json.loads(response.message)
 
 
-def test_task_skill_exists_from_the_start(client):
+def create_task_skill(client, **override):
+    """create_skill with the ranges and default policy of the embedded task."""
+    from psl_controller.policy import policy_for
+    from psl_sim.task import load_task
+    task = load_task(TASK_SKILL)
+    fields = dict(skill=TASK_SKILL, tau_low=task.tau_low.tolist(),
+                  tau_high=task.tau_high.tolist(),
+                  theta_reference=policy_for(task).default_theta.tolist())
+    return client.memory('create_skill', **{**fields, **override})
+
+
+def test_a_task_skill_is_created_by_whoever_knows_the_task(client):
+    assert TASK_SKILL not in info(client)          # the memory knows no tasks
+    response = create_task_skill(client)
+    assert response.success and response.created, response.message
     skills = info(client)
     assert skills[TASK_SKILL]['tau_dim'] == 2 and skills[TASK_SKILL]['theta_dim'] == 24
     response = client.memory('query', skill=TASK_SKILL, tau=[0.6, 0.2])
     assert response.success and len(response.theta) == 24 and len(response.variance) == 24
+    again = create_task_skill(client)              # a second call keeps it
+    assert again.success and not again.created and 'kept' in again.message
+    assert info(client) == skills
 
 
 def test_add_query_complete_round_trip(client):
@@ -99,6 +116,16 @@ BAD_REQUESTS = [
     ('save', {'path': '/nonexistent_folder/memory.npz'}, 'does not exist'),
     ('save', {'path': ''}, 'give a path'),
     ('load', {'path': '/nonexistent_folder/memory.npz'}, 'no such file'),
+    ('create_skill', {'skill': 'curve', 'tau_low': [0.0, 0.0], 'tau_high': [1.0, 1.0],
+                      'theta_reference': [0.0, 0.0, 0.0]}, 'exists with 1 task'),
+    ('create_skill', {'skill': 'new', 'tau_low': [1.0], 'tau_high': [0.0],
+                      'theta_reference': [0.0]}, 'high > low'),
+    ('create_skill', {'skill': 'new', 'tau_low': [0.0], 'tau_high': [1.0],
+                      'theta_reference': [float('nan')]}, 'finite'),
+    ('create_skill', {'skill': 'new', 'tau_low': [0.0], 'tau_high': [1.0],
+                      'theta_reference': []}, 'at least one'),
+    ('create_skill', {'skill': '', 'tau_low': [0.0], 'tau_high': [1.0],
+                      'theta_reference': [0.0]}, 'needs a name'),
 ]
 
 

@@ -6,7 +6,7 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 
 from psl_cli.graph import Graph, pid_alive
-from psl_cli.ros_client import RosClient
+from psl_ros.client import RosClient
 from psl_controller.policy import policy_for
 from psl_sim.task import load_task
 

@@ -145,7 +145,7 @@ def measure_query_service(n_samples: int, n_calls: int) -> list[float]:
     from pathlib import Path
 
     from psl_cli.graph import Graph
-    from psl_cli.ros_client import RosClient
+    from psl_ros.client import RosClient
     from psl_memory.skill_memory import SkillMemory
 
     rng = np.random.default_rng(0)
@@ -158,8 +158,7 @@ def measure_query_service(n_samples: int, n_calls: int) -> list[float]:
         path = Path(folder) / 'bench_memory.npz'
         memory.save(path)
         graph = Graph(nodes=(('skill_memory', 'psl_memory', 'skill_memory'),),
-                      extra_params={'skill_memory': {'autosave_path': str(path),
-                                                     'tasks': '[]'}})
+                      extra_params={'skill_memory': {'autosave_path': str(path)}})
         with graph, RosClient() as client:
             info = json.loads(client.memory('info', timeout=60).message)
             if info['bench']['num_samples'] != n_samples:
@@ -290,7 +289,7 @@ class EpisodeStats:
 
 def bench_graph(args) -> int:
     from psl_cli.graph import Graph
-    from psl_cli.ros_client import RosClient
+    from psl_ros.client import RosClient
     from psl_controller.policy import policy_for
     from psl_sim.task import load_task, task_id
 

@@ -14,14 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from psl_cli.bag_recorder import read_bag_summary, record
 from psl_cli.graph import Graph
-from psl_cli.ros_client import RosClient, evaluation_dict
 from psl_controller.policy import policy_for
+from psl_ros import names
+from psl_ros.bag_recorder import read_bag_summary, record
+from psl_ros.client import RosClient, evaluation_dict
 from psl_sim.task import load_task, task_id
 
-TOPICS = ['joint_states', 'ee_pose', 'effort_command', 'reference', 'joint_trajectory',
-          'task_instance', 'rollout_evaluation', '/clock']
 
 
 def placements(task, count: int) -> list[np.ndarray]:
@@ -51,12 +50,13 @@ def run_demo(task: str, out: Path, positions: int = 5) -> int:
               flush=True)
         graph.wait_ready()
         stop = threading.Event()
-        recorder = threading.Thread(target=record, args=(bag, TOPICS),
+        recorder = threading.Thread(target=record, args=(bag, names.RECORDED_TOPICS),
                                     kwargs={'stop': stop, 'discovery_timeout': 2.0})
         recorder.start()
         try:
             with RosClient() as client:
-                client.wait_for_subscribers([t for t in TOPICS if t in client.LOOP_TOPICS])
+                client.wait_for_subscribers([t for t in names.RECORDED_TOPICS
+                                             if t in names.LOOP_TOPICS])
                 for tau in placements(definition, positions):
                     result = client.rollout(task_id(definition), tau, theta)
                     if not result.success:

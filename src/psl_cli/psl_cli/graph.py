@@ -3,7 +3,7 @@
 Every node is its own executable (``install/<package>/lib/<package>/<executable>``, what
 ``ros2 run`` would start); `Graph` starts them with ROS arguments (namespace, parameters),
 keeps their PIDs, writes each one's output to a log file, and ends them by PID: SIGINT, then
-SIGTERM, then SIGKILL. If one dies, `Graph.watch` reports which one and its last output.
+SIGTERM, then SIGKILL. If one dies, `Graph.dead` and `Graph.describe_death` say which one and its last output.
 """
 from __future__ import annotations
 
@@ -105,17 +105,15 @@ class Graph:
         self.processes: list[NodeProcess] = []
 
     def params(self, name: str) -> dict:
-        common = {'task': self.task}
+        """The -p parameters of a node: the task for the simulator and the controller, the
+        mode for the simulator, the workers for the learner, then `extra_params`."""
+        params = {'task': self.task} if name in ('sim', 'pd_controller') else {}
         if name == 'sim':
-            common['mode'] = self.mode
-        if name in ('dmp_executor', 'reward_evaluator', 'learner'):
-            common = {}
-        if name == 'skill_memory':
-            common = {'tasks': f'[{self.task}]'}
+            params['mode'] = self.mode
         if name == 'learner' and self.workers:
-            common = {'workers': '[' + ','.join(self.worker_namespaces(relative=True)) + ']'}
-        common.update(self.extra_params.get(name, {}))
-        return common
+            params['workers'] = '[' + ','.join(self.worker_namespaces(relative=True)) + ']'
+        params.update(self.extra_params.get(name, {}))
+        return params
 
     def worker_namespaces(self, relative: bool = False) -> list[str]:
         """The namespaces the robot loop runs in: one per worker, or the graph's own."""
@@ -168,13 +166,16 @@ class Graph:
         return f'{node.name} (pid {node.pid}) ended with {why}; its last output:\n{node.tail()}'
 
     def wait_ready(self, timeout: float = 30.0, stop=None) -> None:
-        """Block until the loop is connected (action server, reset service, every topic's
-        endpoints) or `stop` (a threading.Event) is set; raise RuntimeError naming a dead
-        node, or what is missing, otherwise."""
-        from psl_cli.ros_client import RosClient
+        """Block until every worker's loop is connected (action server, reset service, every
+        topic's endpoints) or `stop` (a threading.Event) is set; then, if the graph runs a
+        skill memory, create the task's skill in it (kept if it exists). Raise RuntimeError
+        naming a dead node, or what is missing, otherwise."""
+        from psl_ros.client import RosClient
 
         deadline = time.monotonic() + timeout
-        for namespace in self.worker_namespaces():      # every worker's loop
+        names = {name for name, *_ in self.nodes_spec}
+        loops = self.worker_namespaces() if set(WORKER_NODES) <= names else []
+        for namespace in loops:
             with RosClient(namespace) as client:
                 while time.monotonic() < deadline and not (stop is not None
                                                            and stop.is_set()):
@@ -190,6 +191,30 @@ class Graph:
                         f'the graph was not ready within {timeout:.0f} s: missing '
                         f'{client.missing_endpoints()} in {namespace or "/"} (logs in '
                         f'{self.log_dir})')
+        if 'skill_memory' in names and not (stop is not None and stop.is_set()):
+            self.create_skill(max(1.0, deadline - time.monotonic()))
+
+    def create_skill(self, timeout: float = 30.0) -> str:
+        """Create the graph's task's skill in its skill memory (tau ranges and default policy
+        from the task; kept as it is if it exists); returns the memory's answer. Raises
+        RuntimeError if the memory refuses or does not answer."""
+        from psl_controller.policy import policy_for
+        from psl_ros.client import RosClient
+        from psl_sim.task import load_task
+
+        task = load_task(self.task)
+        with RosClient(self.namespace) as client:
+            try:
+                response = client.memory(
+                    'create_skill', timeout=timeout, skill=task.name,
+                    tau_low=task.tau_low.tolist(), tau_high=task.tau_high.tolist(),
+                    theta_reference=policy_for(task).default_theta.tolist())
+            except TimeoutError as exc:
+                raise RuntimeError(f'{exc} (logs in {self.log_dir})') from exc
+        if not response.success:
+            raise RuntimeError(f'the skill memory did not create the skill of task '
+                               f'{task.name!r}: {response.message}')
+        return response.message
 
     def stop(self, timeout: float = 5.0) -> None:
         """End every process this graph started, by PID."""

@@ -64,7 +64,7 @@ def format_evaluation(ev: dict) -> str:
 
 
 def cmd_rollout(args) -> int:
-    from psl_cli.ros_client import RosClient, evaluation_dict
+    from psl_ros.client import RosClient, evaluation_dict
     from psl_sim.task import TaskError, load_task, task_id
 
     try:
@@ -95,7 +95,7 @@ def _floats(values) -> list[float]:
 
 def cmd_memory(args) -> int:
     """psl query / psl memory add|complete|save|load|info: one call to the skill memory."""
-    from psl_cli.ros_client import RosClient
+    from psl_ros.client import RosClient
 
     action = 'query' if args.command == 'query' else args.action
     if action == 'query':
@@ -226,7 +226,7 @@ def _learn_in_process(args, task, out: Path, stop: threading.Event) -> int:
 
 
 def _learn_in_graph(args, task, out: Path, stop: threading.Event) -> int:
-    from psl_cli.ros_client import RosClient
+    from psl_ros.client import RosClient
     from psl_sim.task import task_id
 
     def feedback(message) -> None:
@@ -278,7 +278,7 @@ def cmd_plot(args) -> int:
 
 
 def cmd_record(args) -> int:
-    from psl_cli.bag_recorder import record
+    from psl_ros.bag_recorder import record
 
     try:
         counts = record(args.output, args.topics, duration=args.duration)

@@ -13,12 +13,10 @@ import time
 
 import numpy as np
 import rclpy
-from builtin_interfaces.msg import Duration
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from diagnostic_msgs.msg import DiagnosticArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
@@ -26,12 +24,13 @@ from psl_controller.policy import Reference, policy_for
 from psl_msgs.action import ExecuteRollout
 from psl_msgs.msg import RolloutEvaluation
 from psl_msgs.srv import ResetTask
+from psl_ros import names
+from psl_ros.futures import wait_for
+from psl_ros.node_main import run_node
+from psl_ros.qos import RELIABLE
+from psl_ros.stamps import duration_msg, to_ns
 from psl_sim.arm_model import joint_names_of
-from psl_sim.futures import wait_for
 from psl_sim.task import TaskError, load_task
-from psl_sim.node_main import run_node
-
-RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
 
 def trajectory_msg(joint_names: list[str], ref: Reference) -> JointTrajectory:
@@ -39,11 +38,9 @@ def trajectory_msg(joint_names: list[str], ref: Reference) -> JointTrajectory:
     msg.joint_names = list(joint_names)
     dt_ns = int(round((ref.t[1] - ref.t[0]) * 1e9)) if len(ref.t) > 1 else 0
     for k in range(len(ref.t)):
-        t_ns = k * dt_ns
         msg.points.append(JointTrajectoryPoint(
             positions=ref.q[k].tolist(), velocities=ref.qd[k].tolist(),
-            effort=ref.u_ffwd[k].tolist(),
-            time_from_start=Duration(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)))
+            effort=ref.u_ffwd[k].tolist(), time_from_start=duration_msg(k * dt_ns)))
     return msg
 
 
@@ -54,25 +51,26 @@ class DMPExecutor(Node):
         self.declare_parameter('timeout_margin', 10.0, ParameterDescriptor(
             description='seconds to wait for an evaluation beyond the episode length'))
         group = ReentrantCallbackGroup()
-        self.pub_trajectory = self.create_publisher(JointTrajectory, 'joint_trajectory', RELIABLE)
-        self.reset_client = self.create_client(ResetTask, 'sim/reset', callback_group=group)
-        self.create_subscription(RolloutEvaluation, 'rollout_evaluation', self.on_evaluation,
+        self.pub_trajectory = self.create_publisher(JointTrajectory, names.JOINT_TRAJECTORY,
+                                                     RELIABLE)
+        self.reset_client = self.create_client(ResetTask, names.RESET, callback_group=group)
+        self.create_subscription(RolloutEvaluation, names.ROLLOUT_EVALUATION, self.on_evaluation,
                                  RELIABLE, callback_group=group)
-        self.create_subscription(DiagnosticArray, '/diagnostics', self.on_diagnostics, 10,
+        self.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self.on_diagnostics, 10,
                                  callback_group=group)
         self._rollout_lock = threading.Lock()
         self._cv = threading.Condition()
-        self._evaluations: dict[tuple[int, int], RolloutEvaluation] = {}
+        self._evaluations: dict[int, RolloutEvaluation] = {}   # by episode start [ns]
         self._progress: dict[int, float] = {}   # episode start [ns] -> fraction done
         self._server = ActionServer(
-            self, ExecuteRollout, 'execute_rollout', execute_callback=self.execute,
+            self, ExecuteRollout, names.EXECUTE_ROLLOUT, execute_callback=self.execute,
             goal_callback=lambda goal: GoalResponse.ACCEPT,
             cancel_callback=lambda handle: CancelResponse.ACCEPT, callback_group=group)
         self.get_logger().info('serving execute_rollout')
 
     def on_evaluation(self, msg: RolloutEvaluation) -> None:
         with self._cv:
-            self._evaluations[(msg.stamp.sec, msg.stamp.nanosec)] = msg
+            self._evaluations[to_ns(msg.stamp)] = msg
             self._cv.notify_all()
 
     def on_diagnostics(self, msg: DiagnosticArray) -> None:
@@ -123,14 +121,13 @@ class DMPExecutor(Node):
         response = self._call(self.reset_client, ResetTask.Request(task=goal.task, tau=goal.tau))
         if not response.success:
             raise ValueError(response.message)
-        key = (response.stamp.sec, response.stamp.nanosec)
-        t0 = key[0] * 1_000_000_000 + key[1]
+        t0 = to_ns(response.stamp)
         timeout = response.num_steps * task.control_period + self.get_parameter(
             'timeout_margin').value
         deadline = time.monotonic() + timeout
         feedback, last = ExecuteRollout.Feedback(), -1.0
         with self._cv:
-            while key not in self._evaluations:
+            while t0 not in self._evaluations:
                 if goal_handle.is_cancel_requested:
                     raise RuntimeError('rollout canceled')
                 if time.monotonic() > deadline:
@@ -145,7 +142,7 @@ class DMPExecutor(Node):
                 if feedback.progress != last:
                     goal_handle.publish_feedback(feedback)
                     last = feedback.progress
-            evaluation = self._evaluations.pop(key)
+            evaluation = self._evaluations.pop(t0)
             self._evaluations.clear()
             self._progress.clear()
         return evaluation

@@ -16,7 +16,6 @@ from __future__ import annotations
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory
@@ -24,15 +23,12 @@ from trajectory_msgs.msg import JointTrajectory
 from psl_controller.pd_law import pd_feedforward
 from psl_controller.trajectory_sampling import SampledTrajectory
 from psl_sim.arm_model import ArmModel
-from psl_sim.hot_path import HotPath
+from psl_ros import names
+from psl_ros.hot_path import HotPath
+from psl_ros.node_main import run_node
+from psl_ros.qos import RELIABLE
+from psl_ros.stamps import to_ns
 from psl_sim.task import load_task
-from psl_sim.node_main import run_node
-
-RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-
-
-def time_ns(stamp) -> int:
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
 def trajectory_from_msg(msg: JointTrajectory, joint_names: list[str]) -> SampledTrajectory:
@@ -54,7 +50,7 @@ def trajectory_from_msg(msg: JointTrajectory, joint_names: list[str]) -> Sampled
             raise ValueError(f'every trajectory point needs {n} {field} (or none)')
         return np.asarray(rows, dtype=float)[:, order]
 
-    times = np.array([time_ns(p.time_from_start) for p in msg.points], dtype=np.int64)
+    times = np.array([to_ns(p.time_from_start) for p in msg.points], dtype=np.int64)
     positions = column('positions')
     if positions is None:
         raise ValueError('trajectory points need positions')
@@ -89,14 +85,14 @@ class PDController(Node):
         self.start_ns: int | None = None
         self.hold: np.ndarray | None = None
 
-        self.pub_command = self.create_publisher(Float64MultiArray, 'effort_command', RELIABLE)
-        self.pub_reference = self.create_publisher(JointState, 'reference', RELIABLE)
+        self.pub_command = self.create_publisher(Float64MultiArray, names.EFFORT_COMMAND, RELIABLE)
+        self.pub_reference = self.create_publisher(JointState, names.REFERENCE, RELIABLE)
         # one thread serves both, the trajectory first when both are ready: a trajectory
         # published before an episode starts is in place for the episode's first state
         self.hot_path = HotPath(self)
-        self.hot_path.subscribe(JointTrajectory, 'joint_trajectory', self.on_trajectory,
+        self.hot_path.subscribe(JointTrajectory, names.JOINT_TRAJECTORY, self.on_trajectory,
                                 RELIABLE)
-        self.hot_path.subscribe(JointState, 'joint_states', self.on_state, RELIABLE)
+        self.hot_path.subscribe(JointState, names.JOINT_STATES, self.on_state, RELIABLE)
         self.hot_path.start()
         self.get_logger().info(
             f'PD + feed-forward controller, kp={self.gains["kp"].tolist()} '
@@ -130,7 +126,7 @@ class PDController(Node):
         except ValueError as exc:
             self.get_logger().error(f'refused trajectory: {exc}')
             return
-        start = time_ns(msg.header.stamp)
+        start = to_ns(msg.header.stamp)
         self.start_ns = start if start > 0 else None   # None: the next state starts it
 
     def on_state(self, msg: JointState) -> None:
@@ -144,7 +140,7 @@ class PDController(Node):
             self.get_logger().warning('joint_states does not match the robot joints',
                                       throttle_duration_sec=1.0)
             return
-        t = time_ns(msg.header.stamp)
+        t = to_ns(msg.header.stamp)
         if self.trajectory is not None:
             if self.start_ns is None:
                 self.start_ns = t

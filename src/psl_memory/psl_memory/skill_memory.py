@@ -1,7 +1,7 @@
 """The skill memory: named parameterized skills, saved and loaded as one versioned file.
 
-Skills come from task definitions (tau ranges from the task YAML, theta around the task's
-default policy) or are created by their first sample, whose sizes then fix the skill's
+Skills are created with known ranges (a task's tau ranges, theta around the task's default
+policy: whoever knows the task passes them, the memory knows no tasks) or by their first sample, whose sizes then fix the skill's
 dimensions. `save` writes atomically (temporary file + rename); `load` checks the file's format
 and version and every array before it replaces anything, so a corrupt, truncated or
 other-version file is refused with a clear error and the memory in use stays as it was.
@@ -35,12 +35,31 @@ class SkillMemory:
         self.config = config
         self.skills: dict[str, ParameterizedSkill] = {}
 
-    def create(self, name: str, tau_low, tau_high, theta_reference) -> ParameterizedSkill:
-        """A skill with known tau ranges (e.g. a task's) and a theta reference (its default)."""
+    def create(self, name: str, tau_low, tau_high, theta_reference,
+               exist_ok: bool = False) -> ParameterizedSkill:
+        """A skill with known tau ranges (e.g. a task's) and a theta reference (its default
+        policy, which theta is normalised around).
+
+        Raises:
+            ValueError: no name, bad ranges or reference, or a skill of that name exists (with
+                ``exist_ok``: only if its sizes differ; otherwise it is returned as it is).
+        """
+        if not name or not name.strip():
+            raise ValueError('a skill needs a name')
+        tau_scaler = RangeScaler(tau_low, tau_high)
+        theta_scaler = scaler_around(theta_reference)
+        if tau_scaler.dim == 0 or theta_scaler.dim == 0:
+            raise ValueError('a skill needs at least one task and one policy parameter')
         if name in self.skills:
-            raise ValueError(f'skill {name!r} exists already')
-        skill = ParameterizedSkill(name, RangeScaler(tau_low, tau_high),
-                                   scaler_around(theta_reference), self.config)
+            skill = self.skills[name]
+            if not exist_ok:
+                raise ValueError(f'skill {name!r} exists already')
+            if (skill.tau_dim, skill.theta_dim) != (tau_scaler.dim, theta_scaler.dim):
+                raise ValueError(f'skill {name!r} exists with {skill.tau_dim} task and '
+                                 f'{skill.theta_dim} policy parameters, not {tau_scaler.dim} '
+                                 f'and {theta_scaler.dim}')
+            return skill
+        skill = ParameterizedSkill(name, tau_scaler, theta_scaler, self.config)
         self.skills[name] = skill
         return skill
 

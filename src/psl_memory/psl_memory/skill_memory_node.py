@@ -2,10 +2,11 @@
 
 Serves ``~/query`` (psl_msgs/QuerySkill: theta = PS(tau) and its per-dimension predictive
 variance), ``~/add_sample`` (AddSample), ``~/complete`` (CompletePattern: associative completion
-of [tau, theta] with the known dimensions clamped), ``~/save`` and ``~/load`` (SaveMemory,
+of [tau, theta] with the known dimensions clamped), ``~/create_skill`` (CreateSkill: a skill
+with a task's tau ranges and theta reference), ``~/save`` and ``~/load`` (SaveMemory,
 LoadMemory: one versioned file) and ``~/info`` (std_srvs/Trigger: the skills as JSON).
-Skills come from the task YAMLs named in the ``tasks`` parameter or are created by their first
-sample. Every bad request gets ``success=false`` and a message saying what was wrong; the memory
+The node knows no tasks: a task's skill is created by whoever knows the task (``psl up``, the
+learner) through ``~/create_skill``, or by its first sample. Every bad request gets ``success=false`` and a message saying what was wrong; the memory
 is unchanged and the node keeps serving. With ``autosave_path`` set, the memory is loaded from
 that file at start (if it exists) and written back after every added sample, so a killed node
 restarts with everything it had learned.
@@ -22,10 +23,11 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from psl_msgs.srv import AddSample, CompletePattern, LoadMemory, QuerySkill, SaveMemory
+from psl_msgs.srv import (AddSample, CompletePattern, CreateSkill, LoadMemory, QuerySkill,
+                          SaveMemory)
 from psl_memory.parameterized_skill import SkillConfig
 from psl_memory.skill_memory import MemoryFileError, SkillMemory
-from psl_sim.node_main import run_node
+from psl_ros.node_main import run_node
 
 
 class SkillMemoryNode(Node):
@@ -49,7 +51,6 @@ class SkillMemoryNode(Node):
                  'recall stops when no entry moves more than this (normalised units)'),
                 ('completion_max_iterations', defaults.completion_max_iterations,
                  'recall iteration cap'),
-                ('tasks', ['reach_over_obstacle'], 'tasks whose skills exist from the start'),
                 ('autosave_path', '', 'memory file loaded at start and written after every '
                                       'sample; empty = no autosave')):
             self.declare_parameter(name, default, ParameterDescriptor(description=text,
@@ -62,6 +63,7 @@ class SkillMemoryNode(Node):
         for name, srv, callback in (('~/query', QuerySkill, self.on_query),
                                     ('~/add_sample', AddSample, self.on_add),
                                     ('~/complete', CompletePattern, self.on_complete),
+                                    ('~/create_skill', CreateSkill, self.on_create),
                                     ('~/save', SaveMemory, self.on_save),
                                     ('~/load', LoadMemory, self.on_load),
                                     ('~/info', Trigger, self.on_info)):
@@ -73,14 +75,7 @@ class SkillMemoryNode(Node):
             memory = SkillMemory.read(self.autosave)      # a corrupt file stops the node here
             self.get_logger().info(f'restored the memory from {self.autosave}')
             return memory
-        memory = SkillMemory(self.config)
-        from psl_controller.policy import policy_for     # the task's default theta
-        from psl_sim.task import load_task
-        for task_name in self.get_parameter('tasks').value:
-            task = load_task(task_name)
-            memory.create(task.name, task.tau_low, task.tau_high,
-                          policy_for(task).default_theta)
-        return memory
+        return SkillMemory(self.config)
 
     # -- services -----------------------------------------------------------------------------
     def _serve(self, response, work):
@@ -109,6 +104,22 @@ class SkillMemoryNode(Node):
             if self.autosave:
                 self.memory.save(self.autosave)
             return f'{response.num_samples} samples'
+        return self._serve(response, work)
+
+    def on_create(self, request, response):
+        def work():
+            existed = request.skill in self.memory.skills
+            skill = self.memory.create(request.skill, np.asarray(request.tau_low),
+                                       np.asarray(request.tau_high),
+                                       np.asarray(request.theta_reference), exist_ok=True)
+            response.created, response.num_samples = not existed, skill.num_samples
+            if existed:
+                return (f'skill {request.skill!r} exists ({skill.num_samples} samples); kept '
+                        'as it is')
+            if self.autosave:
+                self.memory.save(self.autosave)
+            return (f'created skill {request.skill!r} ({skill.tau_dim} task, '
+                    f'{skill.theta_dim} policy parameters)')
         return self._serve(response, work)
 
     def on_complete(self, request, response):

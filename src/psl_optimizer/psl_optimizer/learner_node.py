@@ -27,15 +27,15 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
 
-from psl_msgs.action import ExecuteRollout, LearnSkill
-from psl_msgs.srv import AddSample, LoadMemory, QuerySkill, SaveMemory
+from psl_controller.policy import policy_for
+from psl_msgs.action import LearnSkill
 from psl_optimizer.batch_rollout import BatchRollout
 from psl_optimizer.learning import Learner, LearnSettings, batch_evaluator
 from psl_optimizer.policy_search import STRATEGIES, SearchSettings
-from psl_sim.action_client import ActionClient
-from psl_sim.futures import wait_for
+from psl_ros import names
+from psl_ros.client import MemoryClient, RolloutClient
+from psl_ros.node_main import run_node
 from psl_sim.task import TaskDefinition, TaskError, load_task, task_id
-from psl_sim.node_main import run_node
 
 MODES = ('batch', 'graph')
 
@@ -47,41 +47,43 @@ class Cancelled(Exception):
 class ServiceSkill:
     """The skill `name` inside the skill_memory node, with the interface Learner expects."""
 
-    def __init__(self, node: 'LearnerNode', name: str, timeout: float):
-        self.node, self.name, self.timeout = node, name, timeout
+    def __init__(self, node: 'LearnerNode', task: TaskDefinition, timeout: float):
+        self.node, self.task, self.name, self.timeout = node, task, task.name, timeout
 
-    def _call(self, service: str, request):
-        client = self.node.memory_clients[service]
-        if not client.wait_for_service(timeout_sec=self.timeout):
-            raise RuntimeError(f'the skill memory service {client.srv_name} is not available')
-        response = wait_for(client.call_async(request), self.timeout, client.srv_name)
+    def _call(self, service: str, **fields):
+        try:
+            response = self.node.memory.call(service, self.timeout, **fields)
+        except TimeoutError as exc:
+            raise RuntimeError(str(exc)) from exc
         if not response.success:
-            raise RuntimeError(f'{client.srv_name}: {response.message}')
+            raise RuntimeError(f'skill_memory/{service}: {response.message}')
         return response
 
     def query(self, tau: np.ndarray) -> np.ndarray:
-        response = self._call('query', QuerySkill.Request(skill=self.name,
-                                                          tau=[float(x) for x in tau]))
-        return np.asarray(response.theta)
+        return np.asarray(self._call('query', skill=self.name, tau=[float(x) for x in tau]).theta)
 
     def variance(self, tau: np.ndarray) -> np.ndarray | None:
         """Predictive variance per theta dimension, None when the node's readout has none."""
-        response = self._call('query', QuerySkill.Request(skill=self.name,
-                                                          tau=[float(x) for x in tau]))
+        response = self._call('query', skill=self.name, tau=[float(x) for x in tau])
         return np.asarray(response.variance) if response.variance else None
 
     def add(self, tau: np.ndarray, theta: np.ndarray) -> None:
-        self._call('add_sample', AddSample.Request(skill=self.name, tau=[float(x) for x in tau],
-                                                   theta=[float(x) for x in theta]))
+        self._call('add_sample', skill=self.name, tau=[float(x) for x in tau],
+                   theta=[float(x) for x in theta])
 
     def save(self, path: Path) -> None:
-        self._call('save', SaveMemory.Request(path=str(Path(path).resolve())))
+        self._call('save', path=str(Path(path).resolve()))
 
     def restore(self, path: Path | None) -> None:
         """From a checkpoint: load it into the memory node. Without one, the session starts
-        from the skill the memory node holds now (empty on a fresh node)."""
+        from the skill the memory node holds now, created from the task if it has none."""
         if path is not None:
-            self._call('load', LoadMemory.Request(path=str(Path(path).resolve())))
+            self._call('load', path=str(Path(path).resolve()))
+            return
+        task = self.task
+        self._call('create_skill', skill=self.name, tau_low=task.tau_low.tolist(),
+                   tau_high=task.tau_high.tolist(),
+                   theta_reference=policy_for(task).default_theta.tolist())
 
 
 class LearnerNode(Node):
@@ -109,20 +111,15 @@ class LearnerNode(Node):
         if self.mode not in MODES:
             raise ValueError(f"parameter mode must be one of {MODES}, got {self.mode!r}")
         clients = ReentrantCallbackGroup()
-        self.memory_clients = {
-            name: self.create_client(srv, f'skill_memory/{name}', callback_group=clients)
-            for name, srv in (('query', QuerySkill), ('add_sample', AddSample),
-                              ('save', SaveMemory), ('load', LoadMemory))}
-        names = ['/'.join(filter(None, (w.strip('/'), 'execute_rollout')))
-                 for w in self.get_parameter('workers').value]
-        self.rollout_clients = [(name, ActionClient(self, ExecuteRollout, name,
-                                                    callback_group=clients)) for name in names]
+        self.memory = MemoryClient(self, callback_group=clients)
+        self.rollout_clients = [RolloutClient(self, worker, callback_group=clients)
+                                for worker in self.get_parameter('workers').value]
         if not self.rollout_clients:
             raise ValueError("parameter workers needs at least one namespace ('' = own)")
         self._busy = threading.Lock()
         self._evaluators: dict[str, object] = {}    # batch evaluators per task, built once
         self._server = ActionServer(
-            self, LearnSkill, 'learn_skill', execute_callback=self.execute,
+            self, LearnSkill, names.LEARN_SKILL, execute_callback=self.execute,
             goal_callback=lambda goal: GoalResponse.ACCEPT,
             cancel_callback=lambda handle: CancelResponse.ACCEPT,
             callback_group=MutuallyExclusiveCallbackGroup())
@@ -149,7 +146,7 @@ class LearnerNode(Node):
                                    f'mode -> {out}')
             learner = Learner(task, settings, out,
                               evaluate=lambda thetas, taus: evaluate(thetas, taus),
-                              skill=ServiceSkill(self, task.name,
+                              skill=ServiceSkill(self, task,
                                                  self.get_parameter('service_timeout').value))
             evaluate = self._evaluate(goal_handle, task, learner, mode)
             try:
@@ -253,19 +250,10 @@ class LearnerNode(Node):
         with ThreadPoolExecutor(max_workers=len(self.rollout_clients)) as pool:
             return list(pool.map(one, range(len(thetas))))
 
-    def _graph_rollout(self, worker: tuple[str, ActionClient], task: TaskDefinition,
+    def _graph_rollout(self, worker: RolloutClient, task: TaskDefinition,
                        tau: np.ndarray, theta: np.ndarray):
-        timeout = self.get_parameter('rollout_timeout').value
-        name, client = worker
-        if not client.wait_for_server(timeout_sec=min(timeout, 10.0)):
-            raise RuntimeError(f'the action server {name} is not available (is the graph '
-                               'up?)')
-        goal = ExecuteRollout.Goal(task=task_id(task), tau=[float(x) for x in tau],
-                                   theta=[float(x) for x in theta])
-        handle = wait_for(client.send_goal_async(goal), timeout, f'{name} (goal)')
-        if not handle.accepted:
-            raise RuntimeError('the rollout goal was rejected')
-        result = wait_for(handle.get_result_async(), timeout, name).result
+        result = worker.rollout(task_id(task), tau, theta,
+                                timeout=self.get_parameter('rollout_timeout').value)
         if not result.success:
             raise RuntimeError(f'rollout failed: {result.message}')
         return result.evaluation

@@ -10,27 +10,18 @@ from __future__ import annotations
 
 import numpy as np
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
 from psl_msgs.msg import RolloutEvaluation, TaskInstance
 from psl_optimizer.reward import evaluate_rollout
+from psl_ros import names
+from psl_ros.hot_path import HotPath
+from psl_ros.node_main import run_node
+from psl_ros.qos import LATCHED, RELIABLE, WHOLE_EPISODE
+from psl_ros.stamps import to_ns
 from psl_sim.arm_model import ArmModel
-from psl_sim.hot_path import HotPath
 from psl_sim.task import TaskError, load_task
-from psl_sim.node_main import run_node
-
-RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-# The evaluator may lag behind the loop (it is not on the lockstep path): a history longer
-# than any episode keeps every state until it is taken.
-WHOLE_EPISODE = QoSProfile(depth=20000, reliability=ReliabilityPolicy.RELIABLE)
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
 BUFFER = 5000   # messages kept per stream while the episode announcement is on its way
-
-
-def time_ns(stamp) -> int:
-    return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
 class RewardEvaluator(Node):
@@ -41,22 +32,22 @@ class RewardEvaluator(Node):
         self.episode: TaskInstance | None = None
         self.states: dict[int, JointState] = {}
         self.references: dict[int, JointState] = {}
-        self.pub = self.create_publisher(RolloutEvaluation, 'rollout_evaluation', RELIABLE)
+        self.pub = self.create_publisher(RolloutEvaluation, names.ROLLOUT_EVALUATION, RELIABLE)
         self.hot_path = HotPath(self)
-        self.hot_path.subscribe(TaskInstance, 'task_instance', self.on_task, LATCHED)
-        self.hot_path.subscribe(JointState, 'joint_states', self.on_state, WHOLE_EPISODE)
-        self.hot_path.subscribe(JointState, 'reference', self.on_reference, WHOLE_EPISODE)
+        self.hot_path.subscribe(TaskInstance, names.TASK_INSTANCE, self.on_task, LATCHED)
+        self.hot_path.subscribe(JointState, names.JOINT_STATES, self.on_state, WHOLE_EPISODE)
+        self.hot_path.subscribe(JointState, names.REFERENCE, self.on_reference, WHOLE_EPISODE)
         self.hot_path.start()
         self.get_logger().info('evaluating episodes announced on task_instance')
 
     def on_task(self, msg: TaskInstance) -> None:
         if self.episode is not None:
             self.get_logger().warning(
-                f'episode at {time_ns(self.episode.stamp)} ns was not evaluated: got '
+                f'episode at {to_ns(self.episode.stamp)} ns was not evaluated: got '
                 f'{len(self.states)} states and {len(self.references)} references of '
                 f'{self.episode.num_steps + 1}')
         self.episode = msg
-        t0 = time_ns(msg.stamp)
+        t0 = to_ns(msg.stamp)
         for stream in (self.states, self.references):
             for t in [t for t in stream if t < t0]:
                 del stream[t]
@@ -69,7 +60,7 @@ class RewardEvaluator(Node):
         self._store(self.references, msg)
 
     def _store(self, stream: dict[int, JointState], msg: JointState) -> None:
-        stream[time_ns(msg.header.stamp)] = msg
+        stream[to_ns(msg.header.stamp)] = msg
         if len(stream) > BUFFER:
             del stream[min(stream)]
         self._try_finish()
@@ -80,7 +71,7 @@ class RewardEvaluator(Node):
             return
         if min(len(self.states), len(self.references)) <= ep.num_steps:
             return
-        t0, period = time_ns(ep.stamp), int(round(ep.control_period * 1e9))
+        t0, period = to_ns(ep.stamp), int(round(ep.control_period * 1e9))
         times = [t0 + k * period for k in range(ep.num_steps + 1)]
         if not all(t in self.states and t in self.references for t in times):
             return

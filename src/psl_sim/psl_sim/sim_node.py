@@ -25,12 +25,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
@@ -38,17 +36,12 @@ from std_msgs.msg import Float64MultiArray
 from psl_msgs.msg import TaskInstance
 from psl_msgs.srv import ResetTask
 from psl_sim.arm_model import ArmModel
-from psl_sim.hot_path import HotPath
+from psl_ros import names
+from psl_ros.hot_path import HotPath
+from psl_ros.node_main import run_node
+from psl_ros.qos import LATCHED, RELIABLE
+from psl_ros.stamps import time_msg
 from psl_sim.task import TaskError, load_task, task_id
-from psl_sim.node_main import run_node
-
-RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-
-def stamp(t_ns: int) -> Time:
-    return Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
 
 
 class SimNode(Node):
@@ -75,13 +68,14 @@ class SimNode(Node):
         self.pending: np.ndarray | None = None   # command answering the last state
         self.episode = {}
 
-        self.pub_joints = self.create_publisher(JointState, 'joint_states', RELIABLE)
-        self.pub_pose = self.create_publisher(PoseStamped, 'ee_pose', RELIABLE)
-        self.pub_clock = self.create_publisher(Clock, '/clock', 10)
-        self.pub_task = self.create_publisher(TaskInstance, 'task_instance', LATCHED)
-        self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.pub_joints = self.create_publisher(JointState, names.JOINT_STATES, RELIABLE)
+        self.pub_pose = self.create_publisher(PoseStamped, names.EE_POSE, RELIABLE)
+        self.pub_clock = self.create_publisher(Clock, names.CLOCK, 10)
+        self.pub_task = self.create_publisher(TaskInstance, names.TASK_INSTANCE, LATCHED)
+        self.pub_diag = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self.hot_path = HotPath(self)
-        self.hot_path.subscribe(Float64MultiArray, 'effort_command', self.on_command, RELIABLE)
+        self.hot_path.subscribe(Float64MultiArray, names.EFFORT_COMMAND, self.on_command,
+                                RELIABLE)
         self.hot_path.start()
         self.create_service(ResetTask, '~/reset', self.on_reset)
         if self.mode == 'realtime':
@@ -134,11 +128,11 @@ class SimNode(Node):
             self.episode = {'t0': self.t_ns, 'misses': 0, 'start': time.perf_counter(),
                             'steps': num_steps}
             self.pub_task.publish(TaskInstance(
-                stamp=stamp(self.t_ns), task=task_id(arm.task), tau=tau.tolist(),
+                stamp=time_msg(self.t_ns), task=task_id(arm.task), tau=tau.tolist(),
                 num_steps=num_steps, control_period=arm.task.control_period))
             self._publish_state()
         response.success, response.message = True, f'episode of {num_steps} steps started'
-        response.stamp, response.num_steps = stamp(self.t_ns), num_steps
+        response.stamp, response.num_steps = time_msg(self.t_ns), num_steps
         response.joint_names = list(arm.joint_names)
         return response
 
@@ -205,12 +199,12 @@ class SimNode(Node):
                 ('deadline_misses', ep['misses']), ('wall_time_s', f'{wall:.6f}'),
                 ('steps_per_second', f'{done / wall:.1f}'))])
         diag = DiagnosticArray(status=[status])
-        diag.header.stamp = stamp(self.t_ns)
+        diag.header.stamp = time_msg(self.t_ns)
         self.pub_diag.publish(diag)
 
     # -- state --------------------------------------------------------------------------
     def _publish_state(self) -> None:
-        t = stamp(self.t_ns)
+        t = time_msg(self.t_ns)
         arm = self.arm
         js = JointState()
         js.header.stamp = t

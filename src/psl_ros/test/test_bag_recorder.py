@@ -15,7 +15,7 @@ from psl_msgs.msg import TaskInstance
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from psl_cli.bag_recorder import make_typestore, read_bag_summary, record
+from psl_ros.bag_recorder import make_typestore, read_bag_summary, record
 
 N_EFFORT = 50
 N_JOINT_STATES = 30

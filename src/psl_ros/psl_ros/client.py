@@ -1,0 +1,245 @@
+"""One Python client for the graph's services and actions, shared by the CLI, the learner node,
+the benchmarks and the tests.
+
+- `MemoryClient`: the skill memory's services (query, add_sample, complete, create_skill,
+  save, load, info) on any node;
+- `RolloutClient`: one rollout worker's ``execute_rollout`` action and ``sim/reset`` service,
+  and whether its loop is connected;
+- `LearnClient`: the learner's ``learn_skill`` action;
+- `RosClient`: all three on a node of its own, in its own rclpy context, spun in a background
+  thread (for programs that are not nodes: the CLI, benchmarks, tests); a context manager.
+
+Calls are made from a thread that does not spin the node and wait on the future
+(`psl_ros.futures.wait_for`), never with ``rclpy.spin_until_future_complete`` (which gets
+slower with every call in rclpy 7.1.6); every wait has a timeout that names what did not answer.
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from std_srvs.srv import Trigger
+
+from psl_msgs.action import ExecuteRollout, LearnSkill
+from psl_msgs.msg import RolloutEvaluation
+from psl_msgs.srv import (AddSample, CompletePattern, CreateSkill, LoadMemory, QuerySkill,
+                          ResetTask, SaveMemory)
+from psl_ros import names
+from psl_ros.action_client import ActionClient
+from psl_ros.futures import wait_for
+
+MEMORY_SERVICES = {'query': QuerySkill, 'add_sample': AddSample, 'complete': CompletePattern,
+                   'create_skill': CreateSkill, 'save': SaveMemory, 'load': LoadMemory,
+                   'info': Trigger}
+
+
+def _floats(values) -> list[float]:
+    return [float(x) for x in np.ravel(values)]
+
+
+class MemoryClient:
+    """The skill memory node's services, relative to the node's namespace."""
+
+    def __init__(self, node: Node, callback_group=None):
+        self.clients = {name: node.create_client(srv, names.under(names.SKILL_MEMORY, name),
+                                                 callback_group=callback_group)
+                        for name, srv in MEMORY_SERVICES.items()}
+
+    def call(self, service: str, timeout: float = 10.0, **fields):
+        """Call one service with the request fields given; returns the response (check its
+        ``success``). Raises TimeoutError when the service is not there or does not answer."""
+        client = self.clients[service]
+        if not client.wait_for_service(timeout_sec=timeout):
+            raise TimeoutError(f'the skill memory service {client.srv_name} is not available')
+        request = MEMORY_SERVICES[service].Request(**fields)
+        return wait_for(client.call_async(request), timeout, client.srv_name)
+
+
+class RolloutClient:
+    """One rollout worker: its executor's ``execute_rollout`` and its simulator's reset, under
+    ``worker`` (relative to the node's namespace; '' = the node's own)."""
+
+    def __init__(self, node: Node, worker: str = '', callback_group=None):
+        self.node, self.worker = node, worker
+        self.name = names.under(worker, names.EXECUTE_ROLLOUT)
+        self.rollout_client = ActionClient(node, ExecuteRollout, self.name,
+                                           callback_group=callback_group)
+        self.reset_client = node.create_client(ResetTask, names.under(worker, names.RESET),
+                                               callback_group=callback_group)
+        self._ready = False      # the loop was seen complete once
+
+    def missing_endpoints(self) -> str:
+        """What the worker's loop still lacks, as text ('' when complete)."""
+        missing = []
+        if not self.rollout_client.server_is_ready():
+            missing.append(f'{self.name} action server')
+        if not self.reset_client.service_is_ready():
+            missing.append(f'{self.reset_client.srv_name} service')
+        for topic, (pubs, subs) in names.LOOP_TOPICS.items():
+            topic = names.under(self.worker, topic)
+            p, s = self.node.count_publishers(topic), self.node.count_subscribers(topic)
+            if p < pubs or s < subs:
+                missing.append(f'{topic} ({p}/{pubs} publishers, {s}/{subs} subscribers)')
+        return ', '.join(missing)
+
+    def ready(self, timeout: float) -> bool:
+        """True when the action server, the reset service and every topic of the loop have
+        their endpoints discovered (waits up to about `timeout` s)."""
+        if not (self.rollout_client.wait_for_server(timeout_sec=timeout)
+                and self.reset_client.wait_for_service(timeout_sec=timeout)):
+            return False
+        if self.missing_endpoints():
+            time.sleep(timeout)
+            return False
+        time.sleep(0.2)   # discovery seen from here; give the pairwise matching a moment
+        return True
+
+    def wait_until_ready(self, timeout: float) -> None:
+        """Block until `ready`; TimeoutError naming what is missing after `timeout` s."""
+        deadline = time.monotonic() + timeout
+        while not self.ready(timeout=0.5):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f'the rollout worker {self.worker or "/"} is not up: '
+                                   + self.missing_endpoints())
+        self._ready = True
+
+    def reset(self, task: str, tau, timeout: float = 10.0) -> ResetTask.Response:
+        if not self.reset_client.wait_for_service(timeout_sec=timeout):
+            raise TimeoutError(f'the simulator service {self.reset_client.srv_name} is not '
+                               'available')
+        request = ResetTask.Request(task=task, tau=_floats(tau))
+        return wait_for(self.reset_client.call_async(request), timeout,
+                        self.reset_client.srv_name)
+
+    def rollout(self, task: str, tau, theta, timeout: float = 120.0,
+                feedback=None) -> ExecuteRollout.Result:
+        """One rollout; returns the action result (success, message, evaluation). The first
+        call waits until the loop is connected. Raises TimeoutError when the worker does not
+        answer, RuntimeError when it rejects the goal."""
+        if not self._ready:
+            self.wait_until_ready(min(timeout, 30.0))
+        goal = ExecuteRollout.Goal(task=task, tau=_floats(tau), theta=_floats(theta))
+        start = time.monotonic()
+        handle = wait_for(self.rollout_client.send_goal_async(goal, feedback_callback=feedback),
+                          timeout, f'{self.name} (goal)')
+        if not handle.accepted:
+            raise RuntimeError(f'{self.name} rejected the rollout goal')
+        remaining = max(1.0, timeout - (time.monotonic() - start))
+        return wait_for(handle.get_result_async(), remaining, f'{self.name} (result)').result
+
+
+class LearnClient:
+    """The learner node's ``learn_skill`` action."""
+
+    def __init__(self, node: Node, callback_group=None):
+        self.learn_client = ActionClient(node, LearnSkill, names.LEARN_SKILL,
+                                         callback_group=callback_group)
+
+    def send_goal(self, timeout: float = 30.0, feedback=None, **fields):
+        """Send a goal (fields of psl_msgs/LearnSkill.Goal); returns the accepted goal handle
+        (`.get_result_async()`, `.cancel_goal_async()`)."""
+        if not self.learn_client.wait_for_server(timeout_sec=timeout):
+            raise TimeoutError('the learner action server learn_skill is not available '
+                               '(is the graph up?)')
+        handle = wait_for(self.learn_client.send_goal_async(
+            LearnSkill.Goal(**fields), feedback_callback=feedback), timeout, 'learn_skill goal')
+        if not handle.accepted:
+            raise RuntimeError('the learn_skill goal was rejected')
+        return handle
+
+
+class RosClient:
+    """A node of its own (rclpy context, background spin thread) with the graph's clients;
+    service and action names relative to ``namespace``. Use as a context manager."""
+
+    def __init__(self, namespace: str = '', name: str = 'psl_cli'):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = Node(f'{name}_{id(self) % 100000}', namespace=namespace or '/',
+                         context=self.context)
+        self.memory_client = MemoryClient(self.node)
+        self.worker = RolloutClient(self.node)
+        self.learner = LearnClient(self.node)
+        self.rollout_client, self.reset_client = (self.worker.rollout_client,
+                                                  self.worker.reset_client)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except Exception:  # noqa: BLE001 - the context was shut down under us
+            pass
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        self._thread.join(timeout=2.0)
+
+    def __enter__(self) -> 'RosClient':
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    wait = staticmethod(wait_for)     # the future's result, or TimeoutError
+
+    def memory(self, service: str, timeout: float = 10.0, **fields):
+        """`MemoryClient.call`: one of the skill memory's services."""
+        return self.memory_client.call(service, timeout, **fields)
+
+    def rollout(self, task: str, tau, theta, timeout: float = 120.0,
+                feedback=None) -> ExecuteRollout.Result:
+        """`RolloutClient.rollout` on the rollout worker of this namespace."""
+        return self.worker.rollout(task, tau, theta, timeout, feedback)
+
+    def reset(self, task: str, tau, timeout: float = 10.0) -> ResetTask.Response:
+        return self.worker.reset(task, tau, timeout)
+
+    def graph_ready(self, timeout: float) -> bool:
+        return self.worker.ready(timeout)
+
+    def missing_endpoints(self) -> str:
+        return self.worker.missing_endpoints()
+
+    def wait_for_subscribers(self, topics, extra: int = 1, timeout: float = 15.0) -> None:
+        """Wait until each topic of the loop has `extra` more subscribers than the graph's
+        own (e.g. a recorder that just started); raise TimeoutError otherwise."""
+        deadline = time.monotonic() + timeout
+        for topic in topics:
+            want = names.LOOP_TOPICS.get(topic.lstrip('/'), (0, 0))[1] + extra
+            while self.node.count_subscribers(topic) < want:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f'{topic} has {self.node.count_subscribers(topic)} '
+                                       f'subscribers, expected {want}')
+                time.sleep(0.05)
+        time.sleep(0.3)   # seen from here; give the pairwise matching a moment
+
+    def send_learn_goal(self, timeout: float = 30.0, feedback=None, **fields):
+        """`LearnClient.send_goal`."""
+        return self.learner.send_goal(timeout, feedback, **fields)
+
+    def learn(self, timeout: float = 3600.0, feedback=None, **fields) -> LearnSkill.Result:
+        """One learning session through the learner node; returns its result."""
+        handle = self.send_learn_goal(feedback=feedback, **fields)
+        return wait_for(handle.get_result_async(), timeout, 'learn_skill result').result
+
+
+def evaluation_dict(evaluation: RolloutEvaluation) -> dict:
+    """A RolloutEvaluation as plain data (JSON-able)."""
+    return {
+        'task': evaluation.task,
+        'tau': list(evaluation.tau),
+        'reward': evaluation.reward,
+        'fulfilled': evaluation.fulfilled,
+        'components': dict(zip(evaluation.component_names, evaluation.component_values)),
+        'tracking_error': evaluation.tracking_error,
+        'num_steps': evaluation.num_steps,
+    }
