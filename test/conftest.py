@@ -54,15 +54,16 @@ def client(graph):
 @pytest.fixture(scope='module')
 def graph_matches_batch(client):
     """A check: roll out theta on (task, tau) through the graph (recording its joint_states)
-    and in batch mode; assert that the joint trajectories, the rewards and every reward
+    and in batch mode (with `law`, default the task's: what the graph's controller runs);
+    assert that the joint trajectories, the rewards and every reward
     component agree; return (graph evaluation, batch result)."""
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import JointState
 
-    from psl_optimizer.batch_rollout import BatchRollout
+    from psl_optimizer.batch_rollout import BatchRollouts
     from psl_sim.task import task_id
 
-    def check(task, tau, theta):
+    def check(task, tau, theta, law=None):
         states = {}
         sub = client.node.create_subscription(
             JointState, 'joint_states',
@@ -79,7 +80,7 @@ def graph_matches_batch(client):
         t0 = stamp.sec * 10**9 + stamp.nanosec
         q_graph = np.array([states[t0 + k * task.control_period_ns].position
                             for k in range(task.num_steps + 1)])
-        batch = BatchRollout(task).run(np.asarray(theta)[None], tau)[0]
+        batch = BatchRollouts(task, law=law).run(np.asarray(theta)[None], tau)[0]
         assert q_graph.shape == batch.q.shape == (task.num_steps + 1, task.n_joints)
         assert np.abs(q_graph - batch.q).max() < Q_TOLERANCE
         assert result.evaluation.reward == pytest.approx(batch.evaluation.reward,

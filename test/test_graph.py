@@ -44,7 +44,7 @@ def test_demonstration_rollout_ends_at_goal(reference_result, task):
     assert ev.num_steps == task.num_steps
     assert components(ev)['goal_error'] < GOAL_TOLERANCE
     assert components(ev)['penetration'] == 0.0
-    assert ev.fulfilled and ev.reward >= task.reward['success_threshold']
+    assert ev.fulfilled and ev.reward >= task.reward.success_threshold
 
 
 def test_lockstep_rollouts_are_identical(client, task, theta, reference_result):
@@ -186,3 +186,38 @@ def test_a_gmr_encoded_task_runs_in_the_graph_as_in_batch_mode(graph_matches_bat
     evaluation, _ = graph_matches_batch(mine, mine.tau_default,
                                         theta + rng.normal(0.0, 0.02, theta.size))
     assert evaluation.task == str(path.resolve())
+
+
+def test_both_modes_follow_a_changed_law(client, graph_matches_batch, task, theta):
+    """Other gains and torque limits set on the running controller (its ROS parameters), and
+    the same law given to batch mode: the rollouts agree, and differ from the task's law."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    from psl_controller.pd_law import PDLaw, law_for
+
+    default = law_for(task)
+    limit = 0.5 * np.maximum(-default.torque_low, default.torque_high)
+    changed = PDLaw(0.5 * default.kp, 2.0 * default.kd, -limit, limit)
+    service = client.node.create_client(SetParameters, 'pd_controller/set_parameters')
+
+    def set_law(kp, kd, torque_limit):
+        values = {'kp': kp, 'kd': kd, 'torque_limit': torque_limit}
+        request = SetParameters.Request(parameters=[Parameter(name=name, value=ParameterValue(
+            type=ParameterType.PARAMETER_DOUBLE_ARRAY, double_array_value=list(map(float, v))))
+            for name, v in values.items()])
+        assert service.wait_for_service(timeout_sec=10)
+        response = client.wait(service.call_async(request), 10, 'set_parameters')
+        assert all(r.successful for r in response.results), response.results
+
+    strong = theta * 1.3                       # a motion that loads the torque limits
+    try:
+        set_law(changed.kp, changed.kd, limit)
+        graph_changed, batch_changed = graph_matches_batch(task, task.tau_default, strong,
+                                                           law=changed)
+    finally:
+        set_law([0.0], [0.0], [0.0])           # back to the task's law for the other tests
+        client.node.destroy_client(service)
+    default_batch = graph_matches_batch(task, task.tau_default, strong)[1]
+    assert np.abs(batch_changed.q - default_batch.q).max() > 1e-3
+    assert np.abs(batch_changed.torque).max() <= limit.max() + 1e-12

@@ -6,7 +6,7 @@ import yaml
 
 from psl_controller.policy import policy_for
 from psl_memory.parameterized_skill import scaler_around
-from psl_optimizer.batch_rollout import BatchRollout
+from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings, search
 from psl_sim.arm_model import ArmModel
@@ -32,7 +32,7 @@ def task():
 
 @pytest.fixture(scope='module')
 def batch(task):
-    return BatchRollout(task)
+    return BatchRollouts(task)
 
 
 def rewards_of(batch, thetas, taus):
@@ -53,7 +53,7 @@ def test_the_four_joint_task_loads(task):
     assert task.tau_names == ['post_x', 'post_y']
     np.testing.assert_array_equal(arm.torque_high, TORQUE_LIMITS)
     assert task.control_period == pytest.approx(0.004)
-    assert policy_for(task).num_parameters == 4 * task.policy['n_basis']
+    assert policy_for(task).num_parameters == 4 * task.policy.n_basis
     reference = policy_for(task).reference(policy_for(task).default_theta)
     assert reference.q.shape == (task.num_steps + 1, 4)
 
@@ -79,8 +79,9 @@ def test_the_demonstration_fulfils_some_instances_but_not_all(task, batch):
     # the start and the goal posture are clear of the post everywhere: no instance is lost
     # before the motion starts
     for tau in taus:
-        _, distance = batch.arm.replay(np.array([task.start_posture, task.goal_posture]), tau)
-        assert distance.min() > task.reward['clearance_margin']
+        distance = batch.geometry.replay(np.array([[task.start_posture, task.goal_posture]]),
+                                         np.asarray(tau)[None]).distance
+        assert distance.min() > task.reward.clearance_margin
 
 
 @pytest.mark.parametrize('corner', [(0, 0), (0, 1), (1, 0), (1, 1), (0.5, 0.5)])

@@ -64,11 +64,11 @@ def bench_rollout(args) -> int:
     alone on the same model with the same controls, in the same run."""
     from mujoco import rollout as mj_rollout
 
-    from psl_optimizer.batch_rollout import CONTROL, BatchRollout
+    from psl_optimizer.batch_rollout import CONTROL, BatchRollouts
     from psl_sim.task import load_task
 
     task = load_task(args.task)
-    batch = BatchRollout(task)
+    batch = BatchRollouts(task)
     rng = np.random.default_rng(0)
     default = batch.policy.default_theta
     thetas = default + rng.normal(0.0, 0.1 * np.abs(default).max(), (args.population,

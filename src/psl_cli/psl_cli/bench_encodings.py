@@ -39,9 +39,9 @@ def _mean_sd(values: Sequence[float]) -> str:
 
 def encoding_variant(task, kind: str, n_components: int):
     """The task with theta_K encoded by `kind` ('dmp' or 'gmr'); everything else unchanged."""
-    policy = dict(task.policy, kind=kind)
+    policy = dataclasses.replace(task.policy, kind=kind)
     if kind == 'gmr':
-        policy['n_components'] = n_components
+        policy = dataclasses.replace(policy, n_components=n_components)
     return dataclasses.replace(task, policy=policy)
 
 
@@ -49,7 +49,7 @@ def run_encodings(task_name: str, seeds: Sequence[int], num_tasks: int, budget: 
                   num_test: int, after: int, n_components: int,
                   progress: Callable[[str], None] = lambda line: None) -> dict:
     from psl_controller.policy import policy_for
-    from psl_optimizer.batch_rollout import BatchRollout
+    from psl_optimizer.batch_rollout import BatchRollouts
     from psl_optimizer.learning import Learner, LearnSettings, held_out_tasks
     from psl_optimizer.policy_search import SearchSettings
     from psl_sim.task import load_task
@@ -58,7 +58,7 @@ def run_encodings(task_name: str, seeds: Sequence[int], num_tasks: int, budget: 
     rows: dict[str, list[dict]] = {}
     for kind in ('dmp', 'gmr'):
         task = encoding_variant(base, kind, n_components)
-        batch = BatchRollout(task)
+        batch = BatchRollouts(task)
         theta0 = policy_for(task).default_theta
         for seed in seeds:
             settings = LearnSettings(strategy='bootstrap', num_tasks=num_tasks, seed=seed,
@@ -87,13 +87,13 @@ def run_encodings(task_name: str, seeds: Sequence[int], num_tasks: int, budget: 
 
 def run_selection(task_name: str, seeds: Sequence[int], num_tasks: int, budget: int,
                   num_test: int, progress: Callable[[str], None] = lambda line: None) -> dict:
-    from psl_optimizer.batch_rollout import BatchRollout
+    from psl_optimizer.batch_rollout import BatchRollouts
     from psl_optimizer.learning import Learner, LearnSettings, held_out_tasks
     from psl_optimizer.policy_search import SearchSettings
     from psl_sim.task import load_task
 
     task = load_task(task_name)
-    batch = BatchRollout(task)
+    batch = BatchRollouts(task)
     rows: dict[str, list[dict]] = {}
     for selection in ('random', 'variance'):
         for seed in seeds:

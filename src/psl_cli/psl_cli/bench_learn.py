@@ -109,7 +109,7 @@ def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None
         ValueError: bad settings, or a run folder holding another session.
         RuntimeError: strategies of one seed saw different task instances.
     """
-    from psl_optimizer.batch_rollout import BatchRollout
+    from psl_optimizer.batch_rollout import BatchRollouts
     from psl_optimizer.learning import Learner, LearnSettings
     from psl_optimizer.policy_search import STRATEGIES, SearchSettings
     from psl_sim.task import load_task
@@ -127,7 +127,7 @@ def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None
     base = LearnSettings()
     skill = base.skill if readout is None else dataclasses.replace(base.skill, readout=readout)
     task = load_task(task_name)
-    evaluator = BatchRollout(task)
+    evaluator = BatchRollouts(task)
     temporary = tempfile.TemporaryDirectory(prefix='psl-bench-learn-') if out is None else None
     root = Path(temporary.name if temporary else out)
     runs: dict[int, dict[str, dict]] = {}
@@ -141,7 +141,7 @@ def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None
                 folder = run_folder(root, task.name, strategy, seed, readout)
                 reused = _reusable(folder, settings)
                 if not reused:
-                    Learner(task, settings, folder, evaluator=evaluator).run()
+                    Learner(task, settings, folder, rollouts=evaluator).run()
                 record = read_run(folder, after)
                 record['reused'] = reused
                 runs[seed][strategy] = record

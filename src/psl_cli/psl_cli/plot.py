@@ -237,8 +237,7 @@ def _task_info(task_name: str) -> tuple[list[str] | None, float | None]:
     except (ImportError, OSError, ValueError):    # TaskError is a ValueError
         return None, None
     names = [f'{p.name} [{p.unit}]' if p.unit else p.name for p in task.parameters]
-    threshold = task.reward.get('success_threshold') if isinstance(task.reward, dict) else None
-    return names, (None if threshold is None else float(threshold))
+    return names, task.reward.success_threshold
 
 
 def _tau_name(names: list[str] | None, d: int, dim: int) -> str:

@@ -27,26 +27,17 @@ DPI = 100
 
 def dynamics_rollouts(task, tau: np.ndarray, theta: np.ndarray) -> dict:
     """Batch rollouts of theta's commanded path on tau with PD only, theta's own theta_D and
-    the oracle's: {variant: (BatchResult, Reference)}.
+    the oracle's (`feedforward_variants`): {variant: RolloutResult}.
 
     Raises:
         ValueError: a task without feed-forward.
     """
-    from psl_controller.policy import policy_for
-    from psl_optimizer.batch_rollout import BatchRollout
-    from psl_optimizer.inverse_dynamics import oracle_theta
+    from psl_optimizer.batch_rollout import BatchRollouts
+    from psl_optimizer.learning import feedforward_variants
 
-    policy = policy_for(task)
-    if not policy.has_feedforward:
-        raise ValueError(f'task {task.name!r} has no feed-forward (policy.feedforward); the '
-                         'dynamics figure needs one')
-    n_dyn = policy.dynamics.stop - policy.dynamics.start
-    thetas = {'pd_only': policy.with_feedforward(theta, np.zeros(n_dyn)),
-              'learned': np.asarray(theta, dtype=float),
-              'oracle': oracle_theta(task, tau, theta, policy)}
-    results = BatchRollout(task).run(np.array(list(thetas.values())), tau)
-    return {name: (result, policy.reference(thetas[name]))
-            for name, result in zip(thetas, results)}
+    variants = feedforward_variants(task, tau, theta)
+    results = BatchRollouts(task).run(np.vstack(list(variants.values())), tau)
+    return dict(zip(variants, results))
 
 
 def plot_dynamics(directory: str | Path, out_path: str | Path, test_index: int = 0) -> Path:
@@ -89,14 +80,15 @@ def plot_dynamics(directory: str | Path, out_path: str | Path, test_index: int =
     fig = Figure(figsize=(FIGSIZE_PER_JOINT[0] * n, FIGSIZE_PER_JOINT[1]), dpi=DPI,
                  layout='constrained')
     axes = np.asarray(fig.subplots(2, n, sharex=True, squeeze=False))
-    reference = rollouts['learned'][1]
+    reference = rollouts['learned'].reference
     t = reference.t
     for j, name in enumerate(joints):
         ax_q, ax_u = axes[0, j], axes[1, j]
         ax_q.plot(t, reference.q[:, j], color='black', linestyle='--', linewidth=1.5,
                   label='commanded')
         for key, label, color in VARIANTS:
-            result, ref = rollouts[key]
+            result = rollouts[key]
+            ref = result.reference
             rmse = np.sqrt(np.mean((result.q_ref - result.q) ** 2))
             ax_q.plot(t, result.q[:, j], color=color, linewidth=1.2,
                       label=f'{label} (RMSE {rmse:.4f} rad)')

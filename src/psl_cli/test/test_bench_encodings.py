@@ -17,7 +17,7 @@ TASK = 'reach_over_obstacle'
 def test_the_gmr_variant_changes_only_the_encoding():
     base = load_task(TASK)
     gmr = bench_encodings.encoding_variant(base, 'gmr', 5)
-    assert gmr.policy['kind'] == 'gmr' and base.policy.get('kind', 'dmp') == 'dmp'
+    assert gmr.policy.kind == 'gmr' and base.policy.kind == 'dmp'
     assert policy_for(gmr).num_parameters == 2 * 5 * base.n_joints
     assert gmr.tau_names == base.tau_names and gmr.reward == base.reward
 

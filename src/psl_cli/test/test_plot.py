@@ -13,7 +13,7 @@ from psl_cli.plot import (DPI, FIGSIZE, bayesian_stand_in, load_run, plot_runs,
                           variance_grid)
 from psl_memory.parameterized_skill import SkillConfig
 from psl_memory.skill_memory import SkillMemory
-from psl_optimizer.batch_rollout import BatchRollout
+from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
 from psl_sim.task import EMBEDDED_TASKS, load_task
@@ -40,7 +40,7 @@ def task():
 
 @pytest.fixture(scope='module')
 def evaluator(task):
-    return BatchRollout(task)
+    return BatchRollouts(task)
 
 
 @pytest.fixture(scope='module')

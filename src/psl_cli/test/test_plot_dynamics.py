@@ -37,10 +37,10 @@ def test_rollouts_share_the_commanded_path():
     theta = policy_for(task).default_theta
     rollouts = dynamics_rollouts(task, np.array([1.0]), theta)
     assert set(rollouts) == {'pd_only', 'learned', 'oracle'}
-    q_refs = [result.q_ref for result, _ in rollouts.values()]
+    q_refs = [result.q_ref for result in rollouts.values()]
     np.testing.assert_array_equal(q_refs[0], q_refs[1])
     np.testing.assert_array_equal(q_refs[0], q_refs[2])
-    np.testing.assert_array_equal(rollouts['pd_only'][1].u_ffwd, 0.0)
+    np.testing.assert_array_equal(rollouts['pd_only'].reference.u_ffwd, 0.0)
 
 
 def test_a_task_without_feedforward_is_refused():

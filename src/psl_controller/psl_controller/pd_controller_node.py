@@ -20,9 +20,8 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory
 
-from psl_controller.pd_law import pd_feedforward
+from psl_controller.pd_law import PDLaw, law_for
 from psl_controller.trajectory_sampling import SampledTrajectory
-from psl_sim.arm_model import ArmModel
 from psl_ros import names
 from psl_ros.hot_path import HotPath
 from psl_ros.node_main import run_node
@@ -72,11 +71,10 @@ class PDController(Node):
                            ('torque_limit', 'symmetric torque limits [N m], one per joint')):
             self.declare_parameter(name, [0.0], ParameterDescriptor(
                 description=f'{text}; [0.0] = from the task'))
-        arm = ArmModel(load_task(self.get_parameter('task').value))
-        self.defaults = {'kp': arm.task.kp, 'kd': arm.task.kd,
-                         'torque_limit': np.maximum(-arm.torque_low, arm.torque_high)}
-        self.n_joints = len(arm.joint_names)
-        self.gains = {name: self._param(name) for name in self.defaults}
+        self.default_law = law_for(load_task(self.get_parameter('task').value))
+        self.n_joints = self.default_law.n_joints
+        self.law = self._law({name: self.get_parameter(name).value
+                              for name in ('kp', 'kd', 'torque_limit')})
         self.add_on_set_parameters_callback(self.on_set_parameters)
 
         self.joint_names: list[str] | None = None
@@ -94,24 +92,38 @@ class PDController(Node):
                                 RELIABLE)
         self.hot_path.subscribe(JointState, names.JOINT_STATES, self.on_state, RELIABLE)
         self.hot_path.start()
+        law = self.law
         self.get_logger().info(
-            f'PD + feed-forward controller, kp={self.gains["kp"].tolist()} '
-            f'kd={self.gains["kd"].tolist()} limit={self.gains["torque_limit"].tolist()}')
+            f'PD + feed-forward controller, kp={law.kp.tolist()} kd={law.kd.tolist()} '
+            f'limits={law.torque_low.tolist()}..{law.torque_high.tolist()}')
 
-    def _param(self, name: str, value=None) -> np.ndarray:
-        value = np.asarray(self.get_parameter(name).value if value is None else value, float)
-        if value.size == 1 and value[0] == 0.0:
-            return np.asarray(self.defaults[name], dtype=float)
-        if value.size != self.n_joints or not np.all(np.isfinite(value)) or np.any(value < 0):
-            raise ValueError(f'{name} needs {self.n_joints} finite values >= 0')
-        return value
+    def _law(self, values: dict) -> PDLaw:
+        """The law with the given parameter values ([0.0] = the task's); ValueError if one is
+        not n_joints finite values >= 0."""
+        chosen = {}
+        for name, value in values.items():
+            value = np.asarray(value, dtype=float).ravel()
+            if value.size == 1 and value[0] == 0.0:
+                continue
+            if value.size != self.n_joints or not np.all(np.isfinite(value)) \
+                    or np.any(value < 0):
+                raise ValueError(f'{name} needs {self.n_joints} finite values >= 0')
+            chosen[name] = value
+        d = self.default_law
+        limit = chosen.get('torque_limit')
+        return PDLaw(chosen.get('kp', d.kp), chosen.get('kd', d.kd),
+                     d.torque_low if limit is None else -limit,
+                     d.torque_high if limit is None else limit)
 
     def on_set_parameters(self, params) -> SetParametersResult:
+        names = ('kp', 'kd', 'torque_limit')
+        values = {name: self.get_parameter(name).value for name in names}
+        values.update({p.name: p.value for p in params if p.name in names})
         try:
-            new = {p.name: self._param(p.name, p.value) for p in params if p.name in self.gains}
+            law = self._law(values)
         except ValueError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
-        self.gains.update(new)
+        self.law = law                  # one object: a step sees the old law or the new one
         return SetParametersResult(successful=True)
 
     def on_trajectory(self, msg: JointTrajectory) -> None:
@@ -140,6 +152,10 @@ class PDController(Node):
             self.get_logger().warning('joint_states does not match the robot joints',
                                       throttle_duration_sec=1.0)
             return
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qd))):
+            self.get_logger().warning('no command: joint_states holds NaN or inf',
+                                      throttle_duration_sec=1.0)
+            return
         t = to_ns(msg.header.stamp)
         if self.trajectory is not None:
             if self.start_ns is None:
@@ -149,12 +165,7 @@ class PDController(Node):
             if self.hold is None:
                 self.hold = q.copy()
             q_ref, qd_ref, u_ffwd = self.hold, np.zeros_like(q), np.zeros_like(q)
-        try:
-            u = pd_feedforward(q, qd, q_ref, qd_ref, u_ffwd, self.gains['kp'],
-                               self.gains['kd'], self.gains['torque_limit'])
-        except ValueError as exc:
-            self.get_logger().warning(f'no command: {exc}', throttle_duration_sec=1.0)
-            return
+        u = self.law.torque(q, qd, q_ref, qd_ref, u_ffwd)
         self.pub_command.publish(Float64MultiArray(data=u.tolist()))
         ref = JointState()
         ref.header.stamp = msg.header.stamp

@@ -43,34 +43,27 @@ class TaskPolicy:
     """theta (flat vector) -> Reference, for one task."""
 
     def __init__(self, task: TaskDefinition):
-        cfg = task.policy
-        kind = cfg.get('kind', 'dmp')
-        if kind not in KINDS:
-            raise ValueError(f'task {task.name!r}: unknown policy kind {kind!r}; known: '
+        spec = task.policy
+        if spec.kind not in KINDS:
+            raise ValueError(f'task {task.name!r}: unknown policy kind {spec.kind!r}; known: '
                              f'{", ".join(KINDS)}')
         self.task = task
         # the DMP's phase and basis also carry the feed-forward, whatever encodes theta_K
-        self.dmp = DMP(n_dims=task.n_joints, n_basis=int(cfg['n_basis']),
-                       duration=task.duration, y0=task.start_posture, goal=task.goal_posture,
-                       k_s=float(cfg.get('k_s', 400.0)),
-                       canonical=str(cfg.get('canonical', 'linear')))
+        self.dmp = DMP(n_dims=task.n_joints, n_basis=spec.n_basis, duration=task.duration,
+                       y0=task.start_posture, goal=task.goal_posture, k_s=spec.k_s,
+                       canonical=spec.canonical)
         dt = task.control_period
         t, y = demonstration_from_waypoints(task.demo_times, task.demo_positions, dt)
         self.dmp.fit(t, y, dt)
-        if kind == 'gmr':
-            self.movement = GMRTrajectory(task.n_joints, int(cfg.get('n_components', 6)),
-                                          task.duration)
-            self.movement.fit(t, y, seed=int(cfg.get('fit_seed', 0)))
+        if spec.kind == 'gmr':
+            self.movement = GMRTrajectory(task.n_joints, spec.n_components, task.duration)
+            self.movement.fit(t, y, seed=spec.fit_seed)
         else:
             self.movement = self.dmp
-        feedforward = cfg.get('feedforward', False)
-        if not isinstance(feedforward, bool):
-            raise ValueError(f'task {task.name!r}: policy.feedforward must be true or false, '
-                             f'got {feedforward!r}')
         self.feedforward = (FeedForward(self.dmp.canonical, self.dmp.basis, task.n_joints)
-                            if feedforward else None)
+                            if spec.feedforward else None)
         n_kin = self.movement.num_parameters
-        n_dyn = self.feedforward.num_parameters if feedforward else 0
+        n_dyn = self.feedforward.num_parameters if spec.feedforward else 0
         self.kinematics = slice(0, n_kin)               # theta_K in theta
         self.dynamics = slice(n_kin, n_kin + n_dyn)     # theta_D in theta (empty without)
         self.default_theta = np.concatenate([self.movement.get_theta(), np.zeros(n_dyn)])

@@ -52,7 +52,7 @@ def test_fit_rejects_bad_torques(feedforward):
 def test_policy_with_feedforward_has_theta_k_then_theta_d():
     task = load_task('payload_transport')
     policy = policy_for(task)
-    n_kin = task.n_joints * task.policy['n_basis']
+    n_kin = task.n_joints * task.policy.n_basis
     assert policy.has_feedforward and policy.num_parameters == 2 * n_kin
     assert policy.kinematics == slice(0, n_kin) and policy.dynamics == slice(n_kin, 2 * n_kin)
     np.testing.assert_array_equal(policy.default_theta[policy.dynamics], 0.0)
@@ -68,7 +68,7 @@ def test_tasks_without_the_option_keep_their_theta(name):
     task = load_task(name)
     policy = policy_for(task)
     assert not policy.has_feedforward
-    assert policy.num_parameters == task.n_joints * task.policy['n_basis']
+    assert policy.num_parameters == task.n_joints * task.policy.n_basis
     with pytest.raises(ValueError):
         policy.with_feedforward(policy.default_theta, np.zeros(1))
 

@@ -1,83 +1,70 @@
 """Batch mode: a whole population of policies rolled out in-process with `mujoco.rollout`.
 
-The PD + feed-forward law is realised inside the model, so no Python runs per physics step:
-every actuator becomes a general actuator with ``force = ctrl - Kp q - Kd qd`` (gain 1, affine
-bias ``[0, -Kp, -Kd]``) clipped to the model's torque limits (``forcerange``), and the control
-of step k is ``ctrl_k = Kp q_ref(t_k) + Kd qd_ref(t_k) + u_ffwd(t_k)`` from the policy's reference
-on the control grid. That is the graph's controller law evaluated on the same state at the same
-step; only the order of the floating-point additions differs. The task parameters that move
-things (mocap bodies) enter through the control vector (``mjSTATE_MOCAP_POS``); those that
-change the model (body masses) get a copy of the batch model per task instance. The obstacle
-distances and the end-effector position are MuJoCo sensors appended to the batch model (after
-any sensors of the task's own model), so the reward needs no Python loop over steps either.
-Imports no ROS.
+The task's PD + feed-forward law (`psl_controller.pd_law.PDLaw`) is realised inside the model,
+so no Python runs per physics step: every actuator becomes a general actuator with gain 1 and
+the law's affine bias (`PDLaw.actuator_bias`), clipped to the law's torque limits
+(``forcerange``), and the control of step k is the law's state-independent part
+(`PDLaw.actuator_control`) of the policy's reference on the control grid. That is the graph's
+controller law evaluated on the same state at the same step; only the order of the
+floating-point additions differs. The task parameters that move things (mocap bodies) enter
+through the control vector (``mjSTATE_MOCAP_POS``); those that change the model (body masses)
+get a copy of the batch model per task instance. The reward's sensors
+(`psl_sim.reward_geometry`) are part of the batch model, so the reward needs no Python loop
+over steps either. Imports no ROS.
 """
 from __future__ import annotations
 
 import copy
-import dataclasses
 
 import mujoco
 import numpy as np
 from mujoco import rollout as mj_rollout
 
-from psl_controller.policy import Reference, policy_for
-from psl_optimizer.reward import RewardResult, evaluate_population
+from psl_controller.pd_law import PDLaw, law_for
+from psl_controller.policy import Reference
+from psl_optimizer.reward import Reward
+from psl_optimizer.rollouts import RolloutResult, Rollouts
 from psl_sim.arm_model import ArmModel
+from psl_sim.reward_geometry import RewardGeometry
 from psl_sim.task import TaskDefinition
 
 FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
 CONTROL = mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_MOCAP_POS
 
 
-@dataclasses.dataclass(frozen=True)
-class BatchResult:
-    """One rollout of a population member: the arrays the graph's evaluator sees."""
-
-    q: np.ndarray          # (N+1, n) measured joint angles, S_0..S_N
-    torque: np.ndarray     # (N+1, n) torque applied in the step before each state (row 0: 0)
-    q_ref: np.ndarray      # (N+1, n) commanded joint angles
-    evaluation: RewardResult
-
-
-def batch_model(task: TaskDefinition, arm: ArmModel) -> mujoco.MjModel:
-    """The task's model with PD actuators (gains from the task) and reward sensors."""
+def batch_model(task: TaskDefinition, law: PDLaw, geometry: RewardGeometry) -> mujoco.MjModel:
+    """The task's model with the law as its actuators and the reward's sensors."""
     spec = mujoco.MjSpec.from_file(str(task.model_path))
+    bias = law.actuator_bias()
     for i, actuator in enumerate(spec.actuators):
         actuator.gaintype = mujoco.mjtGain.mjGAIN_FIXED
         actuator.gainprm[0] = 1.0
         actuator.biastype = mujoco.mjtBias.mjBIAS_AFFINE
-        actuator.biasprm[0:3] = [0.0, -task.kp[i], -task.kd[i]]
-        actuator.forcerange = [arm.torque_low[i], arm.torque_high[i]]
+        actuator.biasprm[0:3] = bias[i]
+        actuator.forcerange = [law.torque_low[i], law.torque_high[i]]
         actuator.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
         actuator.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
-    model = arm.model
-    for g1 in arm.arm_geoms:
-        for g2 in arm.obstacle_geoms:
-            sensor = spec.add_sensor()
-            sensor.type = mujoco.mjtSensor.mjSENS_GEOMDIST
-            sensor.objtype = sensor.reftype = mujoco.mjtObj.mjOBJ_GEOM
-            sensor.objname, sensor.refname = model.geom(g1).name, model.geom(g2).name
-            sensor.cutoff = 10.0
-    sensor = spec.add_sensor()
-    sensor.type = mujoco.mjtSensor.mjSENS_FRAMEPOS
-    sensor.objtype = mujoco.mjtObj.mjOBJ_SITE
-    sensor.objname = task.end_effector_site
+    geometry.add_sensors(spec)
     return spec.compile()
 
 
-class BatchRollout:
-    """Evaluate many thetas (and task instances) of one task at once."""
+class BatchRollouts(Rollouts):
+    """Evaluate many thetas (and task instances) of one task at once.
 
-    def __init__(self, task: TaskDefinition, n_threads: int = 2):
-        self.task = task
+    Args:
+        task: the task.
+        n_threads: MjData per thread of ``mujoco.rollout``.
+        law: the PD + feed-forward law (default: the task's, `law_for`).
+    """
+
+    def __init__(self, task: TaskDefinition, n_threads: int = 2, law: PDLaw | None = None):
+        super().__init__(task)
         self.arm = ArmModel(task)
-        self.policy = policy_for(task)
-        self.model = batch_model(task, self.arm)
+        self.law = law or law_for(task)
+        self.geometry = RewardGeometry(self.arm)
+        self.reward = Reward(task, self.geometry)
+        self.model = batch_model(task, self.law, self.geometry)
         self.datas = [mujoco.MjData(self.model) for _ in range(max(1, n_threads))]
-        self.n_pairs = len(self.arm.arm_geoms) * len(self.arm.obstacle_geoms)
-        self.sensor_start = self.arm.model.nsensordata   # ours follow the model's own sensors
-        self.n_steps = task.num_steps
         data = self.datas[0]
         mujoco.mj_resetData(self.model, data)
         data.qpos[self.arm.qpos_adr] = task.start_posture
@@ -86,9 +73,10 @@ class BatchRollout:
         self.mocap_template = data.mocap_pos.copy()          # (n_mocap, 3)
 
     def controls(self, references: list[Reference], taus: np.ndarray) -> np.ndarray:
-        """(B, N+1, nu + 3 n_mocap): ctrl_k = Kp q_ref + Kd qd_ref + u_ffwd, then mocap."""
-        kp, kd = self.task.kp, self.task.kd
-        ctrl = np.stack([kp * r.q + kd * r.qd + r.u_ffwd for r in references])   # (B, N+1, nu)
+        """(B, N+1, nu + 3 n_mocap): the law's control of each reference, then the mocap
+        positions of each (validated) task instance."""
+        ctrl = np.stack([self.law.actuator_control(r.q, r.qd, r.u_ffwd)
+                         for r in references])                       # (B, N+1, nu)
         mocap = np.empty((len(taus), self.model.nmocap, 3))
         for b, tau in enumerate(taus):
             data = self.datas[0]
@@ -113,12 +101,9 @@ class BatchRollout:
                 copies[tuple(tau)] = model
         return [copies[tuple(tau)] for tau in taus]
 
-    def run(self, thetas: np.ndarray, taus: np.ndarray) -> list[BatchResult]:
+    def run(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
         """Roll out thetas (B, F) on task instances taus (B, E) or one tau (E,)."""
-        thetas = np.atleast_2d(np.asarray(thetas, dtype=float))
-        taus = np.asarray(taus, dtype=float)
-        taus = np.broadcast_to(taus, (len(thetas), taus.shape[-1])) if taus.ndim == 1 else taus
-        taus = np.array([self.task.validate_tau(t) for t in taus])
+        thetas, taus = self._inputs(thetas, taus)
         references = [self.policy.reference(theta) for theta in thetas]
         control = self.controls(references, taus)
         # N+1 steps: the sensors of step k see state k, so step N gives state N's sensors;
@@ -135,13 +120,9 @@ class BatchRollout:
         q_ref = np.stack([r.q for r in references])                 # (B, N+1, n)
         qd_ref = np.stack([r.qd for r in references])
         u_ffwd = np.stack([r.u_ffwd for r in references])
-        # torque applied in step k: the same law, clipped like the actuator's forcerange
-        u = np.clip(self.task.kp * (q_ref - q) + self.task.kd * (qd_ref - qd) + u_ffwd,
-                    self.arm.torque_low, self.arm.torque_high)
+        # torque applied in step k: the law on state k (the actuator's force, clipped alike)
+        u = self.law.torque(q, qd, q_ref, qd_ref, u_ffwd)
         torque = np.concatenate([np.zeros((len(thetas), 1, n)), u[:, :-1]], axis=1)
-        start, n_pairs = self.sensor_start, self.n_pairs
-        distance = sensors[:, :, start:start + n_pairs].min(axis=2) if n_pairs else None
-        ee_final = sensors[:, -1, start + n_pairs:start + n_pairs + 3]
-        evaluations = evaluate_population(self.arm, q, torque, q_ref, ee_final, distance)
-        return [BatchResult(q=q[b], torque=torque[b], q_ref=q_ref[b], evaluation=evaluations[b])
-                for b in range(len(thetas))]
+        evaluations = self.reward.evaluate(q, torque, q_ref, self.geometry.read(sensors))
+        return [RolloutResult(evaluation=evaluations[b], q=q[b], torque=torque[b],
+                              reference=references[b]) for b in range(len(thetas))]

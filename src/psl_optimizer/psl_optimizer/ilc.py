@@ -1,7 +1,7 @@
 """Iterative learning control of theta_D: the second optimiser of the dynamics modality.
 
-After each rollout the torque the PD feedback had to add, ``u_fb(t) = Kp (q_ref - q) +
-Kd (qd_ref - qd)``, is what the feed-forward lacked. Taken ``lead`` seconds ahead (the feedback
+After each rollout the torque the PD feedback had to add (`PDLaw.feedback`: the applied torque
+minus the feed-forward, after clipping), is what the feed-forward lacked. Taken ``lead`` seconds ahead (the feedback
 reacts late to an error the feed-forward must prevent; without the lead the update oscillates)
 and projected onto the feed-forward basis, a share ``gain`` of it is added to theta_D::
 
@@ -9,8 +9,9 @@ and projected onto the feed-forward basis, a share ``gain`` of it is added to th
 
 One rollout per iteration; the commanded path (theta_K) is left as it is. It stops at the first
 rollout that fulfils the task instance, when the budget is spent, or after ``patience``
-iterations in a row without a better reward. Batch mode only (it needs the joint trajectory,
-not only the reward). Imports no ROS.
+iterations in a row without a better reward. It needs the applied torque of each rollout: it
+asks the results (`RolloutResult.has_trajectory`) and ends after the first rollout whose
+result carries none (the caller's search goes on from there). Imports no ROS.
 """
 from __future__ import annotations
 
@@ -18,8 +19,10 @@ import dataclasses
 
 import numpy as np
 
-from psl_optimizer.batch_rollout import BatchRollout
+from psl_controller.pd_law import PDLaw
+from psl_controller.policy import TaskPolicy
 from psl_optimizer.policy_search import SearchResult
+from psl_optimizer.rollouts import RolloutResult, Rollouts
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,42 +40,42 @@ class ILCSettings:
                              f'{self.lead}')
 
 
-def feedback_torque(batch: BatchRollout, theta: np.ndarray, result) -> np.ndarray:
-    """The PD part of the torque applied at each control period (T, n): the applied torque
-    (after clipping) minus the feed-forward; the last period repeats the one before."""
-    reference = batch.policy.reference(theta)
+def feedback_torque(result: RolloutResult) -> np.ndarray:
+    """The PD part of the torque applied at each control period (T, n) of a measured rollout
+    (`PDLaw.feedback`); the last period repeats the one before."""
     applied = result.torque[1:]                       # row k+1: torque applied in step k
-    feedback = applied - reference.u_ffwd[:-1]
+    feedback = PDLaw.feedback(applied, result.reference.u_ffwd[:-1])
     return np.vstack([feedback, feedback[-1:]])
 
 
-def ilc_step(batch: BatchRollout, theta: np.ndarray, result, settings: ILCSettings
-             ) -> np.ndarray:
+def ilc_step(policy: TaskPolicy, theta: np.ndarray, result: RolloutResult,
+             settings: ILCSettings) -> np.ndarray:
     """theta with theta_D updated from one rollout's feedback torque (see the module doc)."""
-    policy = batch.policy
-    feedback = feedback_torque(batch, theta, result)
-    shift = int(round(settings.lead / batch.task.control_period))
+    feedback = feedback_torque(result)
+    dt = policy.task.control_period
+    shift = int(round(settings.lead / dt))
     ahead = np.vstack([feedback[shift:], np.repeat(feedback[-1:], min(shift, len(feedback)),
                                                    axis=0)])[:len(feedback)]
-    t = np.arange(len(feedback)) * batch.task.control_period
+    t = np.arange(len(feedback)) * dt
     update = policy.feedforward.fit(t, ahead)
     return policy.with_feedforward(theta, theta[policy.dynamics] + settings.gain * update)
 
 
-def ilc_search(batch: BatchRollout, tau: np.ndarray, start: np.ndarray,
+def ilc_search(rollouts: Rollouts, tau: np.ndarray, start: np.ndarray,
                settings: ILCSettings = ILCSettings()) -> SearchResult:
     """ILC on theta_D from `start` for task instance tau; every rollout counted.
 
     Raises:
         ValueError: a task without feed-forward.
     """
-    if not batch.policy.has_feedforward:
-        raise ValueError(f'task {batch.task.name!r} has no feed-forward to learn')
+    policy = rollouts.policy
+    if not policy.has_feedforward:
+        raise ValueError(f'task {rollouts.task.name!r} has no feed-forward to learn')
     theta = np.asarray(start, dtype=float).copy()
     rewards: list[float] = []
     best_theta, best_reward, fulfilled, idle = theta, -np.inf, False, 0
     for _ in range(settings.iterations):
-        result = batch.run(theta[None], tau)[0]
+        result = rollouts.run(theta[None], tau)[0]
         reward = result.evaluation.reward
         rewards.append(reward)
         if reward > best_reward:
@@ -82,9 +85,9 @@ def ilc_search(batch: BatchRollout, tau: np.ndarray, start: np.ndarray,
         if result.evaluation.fulfilled:
             best_theta, best_reward, fulfilled = theta, reward, True
             break
-        if idle >= settings.patience:
+        if idle >= settings.patience or not result.has_trajectory:
             break
-        theta = ilc_step(batch, theta, result, settings)
+        theta = ilc_step(policy, theta, result, settings)
     return SearchResult(theta=best_theta.copy(), reward=float(best_reward), fulfilled=fulfilled,
                         rollouts=len(rewards), start_theta=np.asarray(start, dtype=float),
                         rewards=rewards)

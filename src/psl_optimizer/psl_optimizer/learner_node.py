@@ -3,22 +3,21 @@
 One goal is one learning session of `psl_optimizer.learning.Learner`: for each task instance a
 CMA-ES search started from the skill, the solution added to the skill memory at once. The skill
 lives in the ``skill_memory`` node and is used through its services (query, add_sample, save,
-load), so other clients can query it while it learns. Rollouts run in batch mode (in-process
-``mujoco.rollout``, the default: fast) or, with ``mode: graph``, through the robot loop's
-``execute_rollout`` action, one rollout at a time.
+load, create_skill), so other clients can query it while it learns. Rollouts run in batch mode
+(in-process ``mujoco.rollout``, the default: fast) or, with ``mode: graph``, through the rollout
+workers' ``execute_rollout`` action (`psl_optimizer.rollouts`: the one place a mode is chosen).
 
 A session writes into ``<output_root>/<task>-<strategy>-seed<seed>``: after every task a
 checkpoint (the memory node's memory saved there + the progress as JSON), at the end
 ``metrics.json``. Sending the same goal again, after a cancel, an abort or a crash of this
 node, resumes from the checkpoint: the memory node is loaded from it, no finished task is
 lost. Feedback comes after every batch of rollouts. A bad goal (unknown task or strategy, zero
-tasks, a skill the memory does not hold) ends with success=false and the reason.
+tasks, a skill of the task's name but other sizes in the memory) ends with success=false and
+the reason; a skill the memory does not hold is created from the task.
 """
 from __future__ import annotations
 
-import queue
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -29,15 +28,15 @@ from rclpy.node import Node
 
 from psl_controller.policy import policy_for
 from psl_msgs.action import LearnSkill
-from psl_optimizer.batch_rollout import BatchRollout
-from psl_optimizer.learning import Learner, LearnSettings, batch_evaluator
+from psl_optimizer.batch_rollout import BatchRollouts
+from psl_optimizer.graph_rollout import GraphRollouts
+from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import STRATEGIES, SearchSettings
+from psl_optimizer.rollouts import MODES, Rollouts
 from psl_ros import names
 from psl_ros.client import MemoryClient, RolloutClient
 from psl_ros.node_main import run_node
-from psl_sim.task import TaskDefinition, TaskError, load_task, task_id
-
-MODES = ('batch', 'graph')
+from psl_sim.task import TaskDefinition, TaskError, load_task
 
 
 class Cancelled(Exception):
@@ -117,7 +116,7 @@ class LearnerNode(Node):
         if not self.rollout_clients:
             raise ValueError("parameter workers needs at least one namespace ('' = own)")
         self._busy = threading.Lock()
-        self._evaluators: dict[str, object] = {}    # batch evaluators per task, built once
+        self._batch: dict[Path, BatchRollouts] = {}     # batch mode's rollouts per task
         self._server = ActionServer(
             self, LearnSkill, names.LEARN_SKILL, execute_callback=self.execute,
             goal_callback=lambda goal: GoalResponse.ACCEPT,
@@ -144,11 +143,15 @@ class LearnerNode(Node):
             self.get_logger().info(f'learning {task.name} with {settings.strategy}, seed '
                                    f'{settings.seed}, {settings.num_tasks} tasks, {mode} '
                                    f'mode -> {out}')
-            learner = Learner(task, settings, out,
-                              evaluate=lambda thetas, taus: evaluate(thetas, taus),
-                              skill=ServiceSkill(self, task,
-                                                 self.get_parameter('service_timeout').value))
-            evaluate = self._evaluate(goal_handle, task, learner, mode)
+            try:
+                learner = Learner(task, settings, out, rollouts=self._rollouts(task, mode),
+                                  skill=ServiceSkill(self, task,
+                                                     self.get_parameter('service_timeout').value))
+            except (TaskError, ValueError) as exc:
+                goal_handle.abort()
+                result.message = str(exc)
+                return result
+            learner.rollouts = WatchedRollouts(learner.rollouts, goal_handle, learner)
             try:
                 metrics = learner.run()
             except Cancelled:
@@ -198,65 +201,44 @@ class LearnerNode(Node):
                 f'checkpoint in {learner.out} keeps them: send the same goal to resume')
 
     # -- rollouts -----------------------------------------------------------------------------
-    def _evaluate(self, goal_handle, task: TaskDefinition, learner: Learner, mode: str):
-        """evaluate(thetas, taus) -> (rewards, fulfilled) in batch or graph mode, checking for
-        a cancel before each batch and publishing feedback after it."""
-        if mode == 'batch':
-            if task.name not in self._evaluators:
-                self._evaluators[task.name] = batch_evaluator(BatchRollout(task))
-            run = self._evaluators[task.name]
-        else:
-            def run(thetas, taus):
-                results = self._graph_rollouts(task, thetas, taus)
-                return (np.array([r.reward for r in results]),
-                        np.array([r.fulfilled for r in results]))
-        current = {'index': -1, 'rollouts': 0, 'best': -np.inf, 'fulfilled': False}
+    def _rollouts(self, task: TaskDefinition, mode: str) -> Rollouts:
+        """The session's rollouts: batch mode in this process (built once per task) or graph
+        mode through the rollout workers."""
+        if mode == 'graph':
+            return GraphRollouts(task, self.rollout_clients,
+                                 timeout=self.get_parameter('rollout_timeout').value)
+        if task.path not in self._batch:
+            self._batch[task.path] = BatchRollouts(task)
+        return self._batch[task.path]
 
-        def evaluate(thetas: np.ndarray, taus: np.ndarray):
-            if goal_handle.is_cancel_requested:
-                raise Cancelled()
-            rewards, fulfilled = run(thetas, taus)
-            if len(learner.done) >= learner.settings.num_tasks:
-                return rewards, fulfilled                   # the held-out test at the end
-            if current['index'] != len(learner.done):      # a new task
-                current.update(index=len(learner.done), rollouts=0, best=-np.inf,
-                               fulfilled=False)
-            current['rollouts'] += len(thetas)
-            current['best'] = max(current['best'], float(np.max(rewards)))
-            current['fulfilled'] = current['fulfilled'] or bool(np.any(fulfilled))
-            goal_handle.publish_feedback(LearnSkill.Feedback(
-                task_index=current['index'],
-                rollouts=sum(d['rollouts'] for d in learner.done) + current['rollouts'],
-                best_reward=current['best'], fulfilled=current['fulfilled']))
-            return rewards, fulfilled
-        return evaluate
 
-    def _graph_rollouts(self, task: TaskDefinition, thetas: np.ndarray, taus: np.ndarray):
-        """Evaluations of the population, in its order, the rollouts spread over the workers
-        (each worker runs one at a time; lockstep results do not depend on which one)."""
-        if len(self.rollout_clients) == 1:
-            return [self._graph_rollout(self.rollout_clients[0], task, tau, theta)
-                    for theta, tau in zip(thetas, taus)]
-        free: queue.Queue = queue.Queue()
-        for worker in self.rollout_clients:
-            free.put(worker)
+class WatchedRollouts(Rollouts):
+    """The session's rollouts, checked for a cancel before each batch and reported as goal
+    feedback after it (task index, rollouts so far, best reward, fulfilled)."""
 
-        def one(i: int):
-            worker = free.get()
-            try:
-                return self._graph_rollout(worker, task, taus[i], thetas[i])
-            finally:
-                free.put(worker)
-        with ThreadPoolExecutor(max_workers=len(self.rollout_clients)) as pool:
-            return list(pool.map(one, range(len(thetas))))
+    def __init__(self, inner: Rollouts, goal_handle, learner: Learner):
+        super().__init__(inner.task)
+        self.inner, self.goal_handle, self.learner = inner, goal_handle, learner
+        self.current = {'index': -1, 'rollouts': 0, 'best': -np.inf, 'fulfilled': False}
 
-    def _graph_rollout(self, worker: RolloutClient, task: TaskDefinition,
-                       tau: np.ndarray, theta: np.ndarray):
-        result = worker.rollout(task_id(task), tau, theta,
-                                timeout=self.get_parameter('rollout_timeout').value)
-        if not result.success:
-            raise RuntimeError(f'rollout failed: {result.message}')
-        return result.evaluation
+    def run(self, thetas: np.ndarray, taus: np.ndarray):
+        if self.goal_handle.is_cancel_requested:
+            raise Cancelled()
+        results = self.inner.run(thetas, taus)
+        done, current = self.learner.done, self.current
+        if len(done) >= self.learner.settings.num_tasks:
+            return results                                  # the held-out test at the end
+        if current['index'] != len(done):                   # a new task
+            current.update(index=len(done), rollouts=0, best=-np.inf, fulfilled=False)
+        current['rollouts'] += len(results)
+        current['best'] = max(current['best'], max(r.evaluation.reward for r in results))
+        current['fulfilled'] = current['fulfilled'] or any(r.evaluation.fulfilled
+                                                           for r in results)
+        self.goal_handle.publish_feedback(LearnSkill.Feedback(
+            task_index=current['index'],
+            rollouts=sum(d['rollouts'] for d in done) + current['rollouts'],
+            best_reward=current['best'], fulfilled=current['fulfilled']))
+        return results
 
 
 def main(args=None):

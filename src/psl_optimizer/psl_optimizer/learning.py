@@ -7,11 +7,14 @@ separate stream and are never trained on. After every task the loop writes a che
 crash or a cancel loses no finished task. Imports no ROS; the learner node and ``psl learn``
 wrap it.
 
+Rollouts come from one `psl_optimizer.rollouts.Rollouts` object (batch mode in-process by
+default, or graph mode through the rollout workers): the learner does not know which.
+
 Dynamics modality (a task with ``policy.feedforward: true``): the search covers the whole
-theta = [theta_K, theta_D], with theta_D in its own CMA-ES units (`search_normalisation`); in
-batch mode each instance first gets ILC of theta_D from the search's start (`psl_optimizer.ilc`,
-far fewer rollouts than CMA-ES: docs/benchmarks.md, ``psl bench dynamics``), and CMA-ES goes on
-from ILC's best if that falls short. The summary then adds the held-out tracking errors of the
+theta = [theta_K, theta_D], with theta_D in its own CMA-ES units (`search_normalisation`); each
+instance first gets ILC of theta_D from the search's start (`psl_optimizer.ilc`, far fewer
+rollouts than CMA-ES: docs/benchmarks.md, ``psl bench dynamics``; it needs rollouts that carry
+their measured trajectories), and CMA-ES goes on from ILC's best if that falls short. The summary then adds the held-out tracking errors of the
 learned feed-forward beside PD only and the inverse-dynamics oracle (`tracking_comparison`).
 """
 from __future__ import annotations
@@ -25,14 +28,15 @@ from typing import Callable
 
 import numpy as np
 
+from psl_controller.pd_law import law_for
 from psl_controller.policy import policy_for
 from psl_memory.parameterized_skill import SkillConfig, scaler_around
 from psl_memory.skill_memory import SkillMemory
-from psl_optimizer.batch_rollout import BatchRollout
+from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.ilc import ILCSettings, ilc_search
 from psl_optimizer.inverse_dynamics import oracle_theta
 from psl_optimizer.policy_search import SearchResult, SearchSettings, search
-from psl_sim.arm_model import ArmModel
+from psl_optimizer.rollouts import Rollouts
 from psl_sim.task import TaskDefinition
 
 TEST_SEED_OFFSET = 1_000_003     # held-out instances: a stream no training sequence uses
@@ -80,8 +84,8 @@ class LearnSettings:
     search: SearchSettings = SearchSettings()
     skill: SkillConfig = SkillConfig()  # bayes, fixed precisions: ridge's mean + variance
     add_only_fulfilled: bool = True     # a failed search's best theta would teach the skill a miss
-    # tasks with feed-forward, batch mode: ILC of theta_D from the search's start first, then
-    # CMA-ES over [theta_K, theta_D] with the rest of the budget (iterations=0: CMA-ES only)
+    # tasks with feed-forward: ILC of theta_D from the search's start first, then CMA-ES over
+    # [theta_K, theta_D] with the rest of the budget (iterations=0: CMA-ES only)
     ilc: ILCSettings = ILCSettings()
     # which instance comes next: 'random' (the seeded sequence) or 'variance' (the candidate
     # with the largest predictive variance of the skill, `most_uncertain`)
@@ -127,15 +131,6 @@ class InProcessSkill:
         self.memory.save(path)
 
 
-def batch_evaluator(evaluator: BatchRollout):
-    """(thetas (B, F), taus (B, E)) -> rewards (B,), fulfilled (B,), all in one batch."""
-    def evaluate(thetas: np.ndarray, taus: np.ndarray):
-        results = evaluator.run(thetas, taus)
-        return (np.array([r.evaluation.reward for r in results]),
-                np.array([r.evaluation.fulfilled for r in results]))
-    return evaluate
-
-
 def search_normalisation(task: TaskDefinition, default_theta: np.ndarray
                          ) -> tuple[np.ndarray, np.ndarray]:
     """CMA-ES coordinates theta = centre + scale * z: around the default theta with the
@@ -149,8 +144,8 @@ def search_normalisation(task: TaskDefinition, default_theta: np.ndarray
     centre[policy.kinematics] = 0.5 * (scaler.high + scaler.low)
     scale[policy.kinematics] = 0.5 * (scaler.high - scaler.low)
     if policy.has_feedforward:
-        arm = ArmModel(task)
-        limit = np.maximum(np.abs(arm.torque_low), np.abs(arm.torque_high))   # (n_joints,)
+        law = law_for(task)
+        limit = np.maximum(np.abs(law.torque_low), np.abs(law.torque_high))   # (n_joints,)
         scale[policy.dynamics] = np.repeat(FEEDFORWARD_SCALE * limit,
                                            policy.feedforward.n_basis)
     return centre, scale
@@ -160,21 +155,18 @@ class Learner:
     """Runs one learning session of one task, checkpointing into `out`.
 
     Args:
-        evaluate: (thetas, taus) -> (rewards, fulfilled); default: batch mode in-process.
-        skill: object with query/add/save/restore (InProcessSkill, or the skill_memory node
-            behind its services); default: InProcessSkill.
+        rollouts: where rollouts run (`Rollouts`: batch or graph mode); default: batch mode
+            in-process (`BatchRollouts`).
+        skill: object with query/variance/add/save/restore (InProcessSkill, or the
+            skill_memory node behind its services); default: InProcessSkill.
     """
 
     def __init__(self, task: TaskDefinition, settings: LearnSettings, out: str | Path,
-                 evaluator: BatchRollout | None = None, evaluate=None, skill=None):
+                 rollouts: Rollouts | None = None, skill=None):
         self.task, self.settings, self.out = task, settings, Path(out)
         self.policy = policy_for(task)
         self.default_theta = self.policy.default_theta
-        if evaluate is None:
-            evaluator = evaluator or BatchRollout(task)
-            evaluate = batch_evaluator(evaluator)
-        self.batch = evaluator                  # None when rollouts go elsewhere (the graph)
-        self.evaluate = evaluate
+        self.rollouts = rollouts or BatchRollouts(task)
         self.skill = skill or InProcessSkill(task, settings.skill, self.default_theta)
         self.done: list[dict] = []      # finished tasks' records (from the checkpoint, then run)
 
@@ -250,23 +242,23 @@ class Learner:
     def _search(self, tau: np.ndarray, index: int, centre: np.ndarray,
                 scale: np.ndarray) -> SearchResult:
         """One task instance: the strategy's CMA-ES search, preceded by ILC of theta_D for a
-        task with feed-forward in batch mode (`LearnSettings.ilc`)."""
+        task with feed-forward (`LearnSettings.ilc`)."""
         s = self.settings
 
-        def evaluate(thetas):
-            return self.evaluate(thetas, np.tile(tau, (len(thetas), 1)))
+        def objective(thetas):
+            return self.rollouts.evaluate(thetas, np.tile(tau, (len(thetas), 1)))
         seed = s.seed * 100_003 + index
-        if not (self.policy.has_feedforward and self.batch is not None and s.ilc.iterations):
-            return search(s.strategy, evaluate, tau, self.default_theta, self.skill.query,
+        if not (self.policy.has_feedforward and s.ilc.iterations):
+            return search(s.strategy, objective, tau, self.default_theta, self.skill.query,
                           centre, scale, self.task.tau_low, self.task.tau_high, s.search,
                           seed=seed)
         start = self.default_theta if s.strategy == 'scratch' else self.skill.query(tau)
-        ilc = ilc_search(self.batch, tau, start, s.ilc)
+        ilc = ilc_search(self.rollouts, tau, start, s.ilc)
         # CMA-ES (any strategy) goes on from ILC's best theta: it is the start and the estimate
         left = s.search.max_rollouts - ilc.rollouts
         if ilc.fulfilled or left <= 0:
             return ilc
-        rest = search(s.strategy, evaluate, tau, ilc.theta, lambda _: ilc.theta, centre, scale,
+        rest = search(s.strategy, objective, tau, ilc.theta, lambda _: ilc.theta, centre, scale,
                       self.task.tau_low, self.task.tau_high,
                       dataclasses.replace(s.search, max_rollouts=left), seed=seed)
         best = rest if (rest.fulfilled or rest.reward > ilc.reward) else ilc
@@ -277,7 +269,7 @@ class Learner:
     def summary(self, done: list[dict]) -> dict:
         test = held_out_tasks(self.task, self.settings.num_test, self.settings.seed)
         thetas = np.array([self.skill.query(t) for t in test])
-        rewards, fulfilled = self.evaluate(thetas, test)
+        rewards, fulfilled = self.rollouts.evaluate(thetas, test)
         rollouts = [d['rollouts'] for d in done]
         summary = {
             'total_rollouts': int(sum(rollouts)),
@@ -289,28 +281,39 @@ class Learner:
             'zero_shot_mean_reward': float(np.mean(rewards)),
         }
         if self.policy.has_feedforward:
-            summary.update(tracking_comparison(self.task, test, thetas, self.batch))
+            summary.update(tracking_comparison(self.rollouts, test, thetas))
         return summary
 
 
-def tracking_comparison(task: TaskDefinition, taus: np.ndarray, thetas: np.ndarray,
-                        batch: BatchRollout | None = None) -> dict:
-    """RMS tracking error [rad] on each task instance taus (B, E) of its policy thetas (B, F)
-    beside the same commanded path (theta_K) with theta_D = 0 (PD only) and with the
-    inverse-dynamics oracle's theta_D; per instance and the means. Batch mode (graph mode
-    rolls out the same, see the graph/batch equivalence test)."""
-    batch = batch or BatchRollout(task)
+def feedforward_variants(task: TaskDefinition, taus: np.ndarray, thetas: np.ndarray
+                         ) -> dict[str, np.ndarray]:
+    """The same commanded paths (theta_K of thetas (B, F)) with three feed-forwards:
+    ``pd_only`` (theta_D = 0), ``learned`` (thetas as they are) and ``oracle`` (the
+    inverse-dynamics theta_D on each task instance of taus (B, E)).
+
+    Raises:
+        ValueError: a task without feed-forward.
+    """
     policy = policy_for(task)
-    thetas = np.asarray(thetas, dtype=float)
-    variants = {
+    if not policy.has_feedforward:
+        raise ValueError(f'task {task.name!r} has no feed-forward (policy.feedforward)')
+    thetas = np.atleast_2d(np.asarray(thetas, dtype=float))
+    taus = np.atleast_2d(np.asarray(taus, dtype=float))
+    return {
         'pd_only': np.array([policy.with_feedforward(th, np.zeros(
                              policy.feedforward.num_parameters)) for th in thetas]),
         'learned': thetas,
         'oracle': np.array([oracle_theta(task, tau, th, policy) for tau, th in zip(taus, thetas)]),
     }
+
+
+def tracking_comparison(rollouts: Rollouts, taus: np.ndarray, thetas: np.ndarray) -> dict:
+    """RMS tracking error [rad] on each task instance taus (B, E) of its policy thetas (B, F)
+    beside the same commanded path with PD only and with the oracle's feed-forward
+    (`feedforward_variants`); per instance and the means."""
     out = {}
-    for name, variant in variants.items():
-        rmse = [r.evaluation.components['tracking_error'] for r in batch.run(variant, taus)]
+    for name, variant in feedforward_variants(rollouts.task, taus, thetas).items():
+        rmse = [r.evaluation.components['tracking_error'] for r in rollouts.run(variant, taus)]
         out[f'tracking_rmse_{name}'] = [float(v) for v in rmse]
         out[f'tracking_rmse_{name}_mean'] = float(np.mean(rmse))
     return out

@@ -26,8 +26,9 @@ import numpy as np
 
 STRATEGIES = ('scratch', 'bootstrap', 'bootstrap_cost', 'hybrid')
 
-# evaluate(thetas (B, F)) -> (rewards (B,), fulfilled (B,))
-Evaluate = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+# The objective of one task instance: objective(thetas (B, F)) -> (rewards (B,), fulfilled (B,))
+# (the learner binds its rollouts to the instance: `Rollouts.evaluate(thetas, tau)`)
+Objective = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,8 +63,8 @@ class SearchResult:
 class _Budget:
     """Counts rollouts, keeps the best, and says when to stop."""
 
-    def __init__(self, evaluate: Evaluate, max_rollouts: int):
-        self.evaluate, self.max_rollouts = evaluate, max_rollouts
+    def __init__(self, objective: Objective, max_rollouts: int):
+        self.objective, self.max_rollouts = objective, max_rollouts
         self.rewards: list[float] = []
         self.best_theta, self.best_reward, self.fulfilled = None, -np.inf, False
 
@@ -77,7 +78,7 @@ class _Budget:
 
     def __call__(self, thetas: np.ndarray) -> np.ndarray:
         thetas = thetas[: self.left]
-        rewards, fulfilled = self.evaluate(thetas)
+        rewards, fulfilled = self.objective(thetas)
         for theta, reward, ok in zip(thetas, rewards, fulfilled):
             self.rewards.append(float(reward))
             if (ok and not self.fulfilled) or (ok == self.fulfilled and reward > self.best_reward):
@@ -172,20 +173,21 @@ def hybrid_search(budget: _Budget, tau: np.ndarray, skill_estimate, to_theta, to
                    settings.popsize, seed + 7, budget.left)
 
 
-def search(strategy: str, evaluate: Evaluate, tau: np.ndarray, default_theta: np.ndarray,
+def search(strategy: str, objective: Objective, tau: np.ndarray, default_theta: np.ndarray,
            skill_estimate: Callable[[np.ndarray], np.ndarray], theta_centre: np.ndarray,
            theta_scale: np.ndarray, tau_low: np.ndarray, tau_high: np.ndarray,
            settings: SearchSettings = SearchSettings(), seed: int = 0) -> SearchResult:
     """Search theta for task instance tau with the given strategy (see the module docstring).
 
     Args:
-        evaluate: rolls out thetas (B, F), returns rewards (B,) and fulfilled flags (B,).
+        objective: rolls out thetas (B, F) on tau, returns rewards (B,) and fulfilled flags
+            (B,).
         skill_estimate: tau (E,) -> PS(tau) (F,), the current skill.
         theta_centre, theta_scale: normalisation theta = centre + scale * z.
     """
     if strategy not in STRATEGIES:
         raise ValueError(f'unknown strategy {strategy!r}; known: {", ".join(STRATEGIES)}')
-    budget = _Budget(evaluate, settings.max_rollouts)
+    budget = _Budget(objective, settings.max_rollouts)
 
     def to_theta(z):
         return theta_centre + theta_scale * z

@@ -1,9 +1,12 @@
 """Task reward assembled from named cost components (dm_control style: small pure functions).
 
-Every component is a non-negative cost; the reward is ``-sum(weight_i * cost_i)`` with the
-weights from the task YAML, and a rollout fulfils its task instance when the reward reaches
-the task's success threshold. The same code scores graph-mode and batch-mode rollouts.
-Imports no ROS.
+Every component is a non-negative cost, written once and vectorised over a population of
+rollouts (one rollout is a population of one): arrays carry the rollout first, ``(B, ...)``.
+The reward is ``-sum(weight_i * cost_i)`` with the weights from the task YAML, and a rollout
+fulfils its task instance when the reward reaches the task's success threshold. `Reward`
+scores graph-mode and batch-mode rollouts alike; the geometric components read the task's
+`psl_sim.reward_geometry` (MuJoCo sensors, recorded by batch mode's rollout or evaluated on a
+kinematic replay of the measured joint angles in graph mode). Imports no ROS.
 """
 from __future__ import annotations
 
@@ -11,71 +14,82 @@ import dataclasses
 
 import numpy as np
 
-from psl_sim.arm_model import ArmModel
+from psl_sim.reward_geometry import Measurements, RewardGeometry
+from psl_sim.task import TaskDefinition
 
 COMPONENTS = ('goal_error', 'penetration', 'clearance', 'smoothness', 'effort',
               'tracking_error')
 
 
-def _finite(name: str, array: np.ndarray) -> np.ndarray:
+def _finite(name: str, array: np.ndarray, ndim: int) -> np.ndarray:
     array = np.asarray(array, dtype=float)
+    if array.ndim != ndim:
+        raise ValueError(f'{name} must have {ndim} dimensions (rollout first), got shape '
+                         f'{array.shape}')
     if not np.all(np.isfinite(array)):
         raise ValueError(f'{name} must be finite')
     return array
 
 
-def goal_error(ee_final: np.ndarray, ee_goal: np.ndarray) -> float:
-    """Euclidean distance [m] of the final end-effector position (3,) to the goal (3,)."""
-    ee_final, ee_goal = _finite('ee_final', ee_final), _finite('ee_goal', ee_goal)
-    if ee_final.shape != (3,) or ee_goal.shape != (3,):
-        raise ValueError(f'ee_final {ee_final.shape} and ee_goal {ee_goal.shape} must be (3,)')
-    return float(np.linalg.norm(ee_final - ee_goal))
+def goal_error(ee_final: np.ndarray, ee_goal: np.ndarray) -> np.ndarray:
+    """Euclidean distance [m] of each rollout's final end-effector position to its goal:
+    ee_final (B, 3), ee_goal (B, 3) -> (B,)."""
+    ee_final, ee_goal = _finite('ee_final', ee_final, 2), _finite('ee_goal', ee_goal, 2)
+    if ee_final.shape != ee_goal.shape or ee_final.shape[1] != 3:
+        raise ValueError(f'ee_final {ee_final.shape} and ee_goal {ee_goal.shape} must both be '
+                         '(B, 3)')
+    return np.linalg.norm(ee_final - ee_goal, axis=1)
 
 
-def penetration(distance: np.ndarray) -> float:
-    """Deepest penetration [m] of the arm into an obstacle over the rollout: the largest
-    negative signed distance (T,), or 0 when the arm never touches one."""
-    distance = _finite('distance', distance)
-    if distance.size == 0:
+def penetration(distance: np.ndarray) -> np.ndarray:
+    """Deepest penetration [m] of the arm into an obstacle over each rollout: the largest
+    negative signed distance of distance (B, T), or 0 when the arm never touches one -> (B,)."""
+    distance = _finite('distance', distance, 2)
+    if distance.shape[1] == 0:
         raise ValueError('distance is empty')
-    return float(max(0.0, -np.min(distance)))
+    return np.maximum(0.0, -distance.min(axis=1))
 
 
-def clearance(distance: np.ndarray, margin: float) -> float:
-    """Mean shortfall [m] of the signed distance (T,) below the clearance margin >= 0."""
+def clearance(distance: np.ndarray, margin: float) -> np.ndarray:
+    """Mean shortfall [m] of the signed distance (B, T) below the clearance margin >= 0
+    -> (B,)."""
     if not margin >= 0:
         raise ValueError(f'margin must be >= 0, got {margin}')
-    distance = _finite('distance', distance)
-    if distance.size == 0:
+    distance = _finite('distance', distance, 2)
+    if distance.shape[1] == 0:
         raise ValueError('distance is empty')
-    return float(np.mean(np.maximum(0.0, margin - distance)))
+    return np.mean(np.maximum(0.0, margin - distance), axis=1)
 
 
-def smoothness(q: np.ndarray, dt: float) -> float:
-    """Mean squared joint acceleration [rad^2/s^4] of q (T, n), by second differences."""
-    q = _finite('q', q)
+def smoothness(q: np.ndarray, dt: float) -> np.ndarray:
+    """Mean squared joint acceleration [rad^2/s^4] of q (B, T, n), by second differences
+    -> (B,); zero for fewer than three states."""
+    q = _finite('q', q, 3)
     if dt <= 0:
         raise ValueError('dt must be > 0')
-    if len(q) < 3:
-        return 0.0
-    acc = np.diff(q, n=2, axis=0) / dt**2
-    return float(np.mean(acc**2))
+    if q.shape[1] < 3:
+        return np.zeros(len(q))
+    acc = np.diff(q, n=2, axis=1) / dt**2
+    return np.mean(acc**2, axis=(1, 2))
 
 
-def effort(torque: np.ndarray) -> float:
-    """Mean squared joint torque [N^2 m^2] of torque (T, n)."""
-    torque = _finite('torque', torque)
-    return float(np.mean(torque**2)) if torque.size else 0.0
+def effort(torque: np.ndarray) -> np.ndarray:
+    """Mean squared joint torque [N^2 m^2] of torque (B, T, n) -> (B,)."""
+    torque = _finite('torque', torque, 3)
+    if torque[0].size == 0:
+        return np.zeros(len(torque))
+    return np.mean(torque**2, axis=(1, 2))
 
 
-def tracking_error(q: np.ndarray, q_ref: np.ndarray) -> float:
-    """RMS [rad] of reference minus measured joint angle, over time and joints."""
-    q, q_ref = _finite('q', q), _finite('q_ref', q_ref)
+def tracking_error(q: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
+    """RMS [rad] of reference minus measured joint angle, over time and joints: q and q_ref
+    (B, T, n) -> (B,)."""
+    q, q_ref = _finite('q', q, 3), _finite('q_ref', q_ref, 3)
     if q.shape != q_ref.shape:
         raise ValueError(f'q {q.shape} and q_ref {q_ref.shape} differ in shape')
-    if q.size == 0:
+    if q[0].size == 0:
         raise ValueError('q is empty')
-    return float(np.sqrt(np.mean((q_ref - q) ** 2)))
+    return np.sqrt(np.mean((q_ref - q) ** 2, axis=(1, 2)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,84 +99,70 @@ class RewardResult:
     components: dict[str, float]   # unweighted costs, in COMPONENTS order
 
 
-def score(components: dict[str, float], weights: dict[str, float],
-          success_threshold: float) -> RewardResult:
-    """reward = -sum(weight * component); components without a weight count zero."""
+def check_weights(weights: dict[str, float]) -> None:
+    """ValueError for a weight of a component that does not exist."""
     unknown = set(weights) - set(COMPONENTS)
     if unknown:
         raise ValueError(f'unknown reward components {sorted(unknown)}; known: {COMPONENTS}')
+
+
+def score(components: dict[str, float], weights: dict[str, float],
+          success_threshold: float) -> RewardResult:
+    """reward = -sum(weight * component); components without a weight count zero."""
+    check_weights(weights)
     reward = -sum(float(weights.get(name, 0.0)) * value for name, value in components.items())
     return RewardResult(reward=reward, fulfilled=bool(reward >= success_threshold),
                         components=dict(components))
 
 
-def evaluate_rollout(arm: ArmModel, tau: np.ndarray, q: np.ndarray, torque: np.ndarray,
-                     q_ref: np.ndarray) -> RewardResult:
-    """Score one rollout of the arm's task (graph mode: geometry from a kinematic replay).
+class Reward:
+    """A task's reward: the components above with the weights, threshold and clearance margin
+    of its ``reward`` section, the goal and the distances from its `RewardGeometry`.
 
-    Args:
-        arm: the task's model (used for end-effector positions and obstacle distances).
-        tau: the task instance (E,).
-        q: measured joint angles (T, n), one row per control period, first = start.
-        torque: applied joint torques (T, n).
-        q_ref: commanded joint angles (T, n) the controller tracked.
-    Returns:
-        RewardResult with every component of COMPONENTS.
     Raises:
-        ValueError: non-finite data or inconsistent shapes.
+        ValueError: a weight of an unknown component.
     """
-    q = _finite('q', q)
-    if q.ndim != 2 or q.shape[1] != len(arm.joint_names):
-        raise ValueError(f'q {q.shape} must be (T, {len(arm.joint_names)})')
-    ee, dist = arm.replay(q, tau)
-    return evaluate_arrays(arm, q, torque, q_ref, ee[-1],
-                           dist if np.isfinite(dist).all() else None)
 
+    def __init__(self, task: TaskDefinition, geometry: RewardGeometry):
+        check_weights(task.reward.weights)
+        self.task, self.geometry = task, geometry
+        self.spec = task.reward
+        self.ee_goal = geometry.end_effector_at(task.goal_posture)      # (3,)
 
-def evaluate_arrays(arm: ArmModel, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,
-                    ee_final: np.ndarray, distance: np.ndarray | None) -> RewardResult:
-    """Score a rollout from its arrays; `distance` (T,) is the smallest arm-obstacle signed
-    distance per state, None when the task has no obstacle. Shared by graph and batch mode."""
-    task = arm.task
-    q, torque = _finite('q', q), _finite('torque', torque)
-    if q.ndim != 2 or q.shape[1] != len(arm.joint_names) or torque.shape != q.shape:
-        raise ValueError(f'q {q.shape} and torque {torque.shape} must both be '
-                         f'(T, {len(arm.joint_names)})')
-    cfg = task.reward
-    components = {
-        'goal_error': goal_error(ee_final, arm.ee_goal),
-        'penetration': penetration(distance) if distance is not None else 0.0,
-        'clearance': (clearance(distance, float(cfg.get('clearance_margin', 0.0)))
-                      if distance is not None else 0.0),
-        'smoothness': smoothness(q, task.control_period),
-        'effort': effort(torque),
-        'tracking_error': tracking_error(q, q_ref),
-    }
-    return score(components, cfg['weights'], float(cfg['success_threshold']))
+    def evaluate(self, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,
+                 measured: Measurements) -> list[RewardResult]:
+        """Score a population of rollouts.
 
+        Args:
+            q: measured joint angles (B, T, n), one row per control period, first = start.
+            torque: torque applied in the step before each state (B, T, n).
+            q_ref: commanded joint angles (B, T, n) the controller tracked.
+            measured: the geometry along the rollouts (`RewardGeometry.read` or `replay`).
+        Returns:
+            One RewardResult per rollout, with every component of COMPONENTS.
+        Raises:
+            ValueError: non-finite data or inconsistent shapes.
+        """
+        q, torque = _finite('q', q, 3), _finite('torque', torque, 3)
+        n = self.task.n_joints
+        if q.shape[2] != n or torque.shape != q.shape:
+            raise ValueError(f'q {q.shape} and torque {torque.shape} must both be (B, T, {n})')
+        distance = measured.distance
+        columns = {
+            'goal_error': goal_error(measured.end_effector[:, -1],
+                                     np.broadcast_to(self.ee_goal, (len(q), 3))),
+            'penetration': penetration(distance) if distance is not None else np.zeros(len(q)),
+            'clearance': (clearance(distance, self.spec.clearance_margin)
+                          if distance is not None else np.zeros(len(q))),
+            'smoothness': smoothness(q, self.task.control_period),
+            'effort': effort(torque),
+            'tracking_error': tracking_error(q, q_ref),
+        }
+        return [score({name: float(values[b]) for name, values in columns.items()},
+                      self.spec.weights, self.spec.success_threshold) for b in range(len(q))]
 
-def evaluate_population(arm: ArmModel, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,
-                        ee_final: np.ndarray, distance: np.ndarray | None) -> list[RewardResult]:
-    """`evaluate_arrays` for a whole population at once (batch mode): q, torque, q_ref
-    (B, T, n), ee_final (B, 3), distance (B, T) or None. Same components, vectorised."""
-    q, torque, q_ref = _finite('q', q), _finite('torque', torque), _finite('q_ref', q_ref)
-    if q.ndim != 3 or torque.shape != q.shape or q_ref.shape != q.shape:
-        raise ValueError(f'q {q.shape}, torque {torque.shape}, q_ref {q_ref.shape} must all be '
-                         '(B, T, n)')
-    task, cfg = arm.task, arm.task.reward
-    dt = task.control_period
-    acc = np.diff(q, n=2, axis=1) / dt**2
-    columns = {
-        'goal_error': np.linalg.norm(_finite('ee_final', ee_final) - arm.ee_goal, axis=1),
-        'penetration': (np.maximum(0.0, -_finite('distance', distance).min(axis=1))
-                        if distance is not None else np.zeros(len(q))),
-        'clearance': (np.mean(np.maximum(0.0, float(cfg.get('clearance_margin', 0.0))
-                                         - distance), axis=1)
-                      if distance is not None else np.zeros(len(q))),
-        'smoothness': (np.mean(acc**2, axis=(1, 2)) if q.shape[1] >= 3
-                       else np.zeros(len(q))),
-        'effort': np.mean(torque**2, axis=(1, 2)),
-        'tracking_error': np.sqrt(np.mean((q_ref - q) ** 2, axis=(1, 2))),
-    }
-    return [score({name: float(values[b]) for name, values in columns.items()},
-                  cfg['weights'], float(cfg['success_threshold'])) for b in range(len(q))]
+    def evaluate_replayed(self, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,
+                          taus: np.ndarray) -> list[RewardResult]:
+        """`evaluate` with the geometry from a kinematic replay of q on the task instances
+        taus (B, E): graph mode, where only joint states were measured."""
+        return self.evaluate(q, torque, q_ref, self.geometry.replay(q, taus))

@@ -3,7 +3,8 @@
 An episode is announced by the simulator on ``task_instance`` (task, tau, stamp of the first
 state, number of steps). The evaluator collects the ``joint_states`` of that episode and the
 controller's ``reference`` for each of them (matched by time stamp, so arrival order does not
-matter), scores the rollout with the task's reward (`psl_optimizer.reward`) and publishes a
+matter), scores the rollout with the task's reward (`psl_optimizer.reward.Reward`, the
+geometry from a kinematic replay of the measured joint angles) and publishes a
 psl_msgs/RolloutEvaluation stamped with the episode's first state.
 """
 from __future__ import annotations
@@ -13,13 +14,14 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
 from psl_msgs.msg import RolloutEvaluation, TaskInstance
-from psl_optimizer.reward import evaluate_rollout
+from psl_optimizer.reward import Reward
 from psl_ros import names
 from psl_ros.hot_path import HotPath
 from psl_ros.node_main import run_node
 from psl_ros.qos import LATCHED, RELIABLE, WHOLE_EPISODE
 from psl_ros.stamps import to_ns
 from psl_sim.arm_model import ArmModel
+from psl_sim.reward_geometry import RewardGeometry
 from psl_sim.task import TaskError, load_task
 BUFFER = 5000   # messages kept per stream while the episode announcement is on its way
 
@@ -28,7 +30,7 @@ class RewardEvaluator(Node):
 
     def __init__(self):
         super().__init__('reward_evaluator')
-        self._arms: dict[str, ArmModel] = {}
+        self._rewards: dict[str, Reward] = {}       # by task id
         self.episode: TaskInstance | None = None
         self.states: dict[int, JointState] = {}
         self.references: dict[int, JointState] = {}
@@ -84,13 +86,14 @@ class RewardEvaluator(Node):
             self.get_logger().error(f'cannot evaluate episode of {ep.task!r}: {exc}')
 
     def _evaluate(self, ep: TaskInstance, states, refs) -> RolloutEvaluation:
-        if ep.task not in self._arms:
-            self._arms[ep.task] = ArmModel(load_task(ep.task))
-        arm = self._arms[ep.task]
-        q = np.array([s.position for s in states])
-        torque = np.array([s.effort for s in states])
-        q_ref = np.array([r.position for r in refs])
-        result = evaluate_rollout(arm, np.asarray(ep.tau), q, torque, q_ref)
+        if ep.task not in self._rewards:
+            task = load_task(ep.task)
+            self._rewards[ep.task] = Reward(task, RewardGeometry(ArmModel(task)))
+        q = np.array([[s.position for s in states]])             # a population of one
+        torque = np.array([[s.effort for s in states]])
+        q_ref = np.array([[r.position for r in refs]])
+        result = self._rewards[ep.task].evaluate_replayed(q, torque, q_ref,
+                                                          np.asarray(ep.tau)[None])[0]
         return RolloutEvaluation(
             stamp=ep.stamp, task=ep.task, tau=list(ep.tau), reward=result.reward,
             fulfilled=result.fulfilled, component_names=list(result.components),

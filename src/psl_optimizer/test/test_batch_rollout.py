@@ -1,13 +1,15 @@
-"""Batch mode against a second implementation: the same law stepped in Python, step by step."""
+"""Batch mode against a second implementation: the same law stepped in Python, step by step,
+scored from a kinematic replay."""
 import numpy as np
 import pytest
 import yaml
 
-from psl_controller.pd_law import pd_feedforward
+from psl_controller.pd_law import PDLaw, law_for
 from psl_controller.policy import policy_for
-from psl_optimizer.batch_rollout import BatchRollout
-from psl_optimizer.reward import evaluate_rollout
+from psl_optimizer.batch_rollout import BatchRollouts
+from psl_optimizer.reward import Reward
 from psl_sim.arm_model import ArmModel
+from psl_sim.reward_geometry import RewardGeometry
 from psl_sim.task import EMBEDDED_TASKS, TaskError, load_task
 
 Q_TOLERANCE = 1e-12        # rad; only the order of floating-point additions differs
@@ -21,23 +23,26 @@ def task():
 
 @pytest.fixture(scope='module')
 def batch(task):
-    return BatchRollout(task)
+    return BatchRollouts(task)
 
 
-def step_by_step(task, theta, tau):
-    """The graph's semantics in one process: PD + feed-forward on each state, one mj_step."""
+def step_by_step(task, theta, tau, law=None):
+    """The graph's semantics in one process: the law on each state (as the controller node
+    computes it), one mj_step (as the simulator node), the reward from a replay (as the
+    evaluator node)."""
+    law = law or law_for(task)
     arm = ArmModel(task)
     ref = policy_for(task).reference(theta)
     arm.reset(tau)
-    limit = np.maximum(-arm.torque_low, arm.torque_high)
     q, torque = [arm.q], [np.zeros(len(arm.joint_names))]
     for k in range(task.num_steps):
-        u = pd_feedforward(arm.q, arm.qd, ref.q[k], ref.qd[k], ref.u_ffwd[k], task.kp, task.kd,
-                           limit)
+        u = law.torque(arm.q, arm.qd, ref.q[k], ref.qd[k], ref.u_ffwd[k])
         torque.append(arm.step(u))
         q.append(arm.q)
     q, torque = np.array(q), np.array(torque)
-    return q, torque, evaluate_rollout(arm, tau, q, torque, ref.q)
+    reward = Reward(task, RewardGeometry(arm))
+    return q, torque, reward.evaluate_replayed(q[None], torque[None], ref.q[None],
+                                               np.asarray(tau)[None])[0]
 
 
 def test_batch_equals_step_by_step_simulation(task, batch):
@@ -82,20 +87,37 @@ def test_bad_inputs_are_refused(task, batch):
 
 
 def test_population_reward_equals_member_by_member(task, batch):
-    """The vectorised reward against evaluate_arrays, one member at a time."""
-    from psl_optimizer.reward import evaluate_arrays
+    """The reward of a population (sensors recorded by mujoco.rollout) against the reward of
+    each member alone (a population of one, the same sensors on a kinematic replay)."""
     rng = np.random.default_rng(5)
     default = policy_for(task).default_theta
     thetas = default + rng.normal(0.0, 0.3 * np.abs(default).max(), (6, default.size))
     taus = np.array([task.sample_tau(rng) for _ in range(6)])
     for result, tau in zip(batch.run(thetas, taus), taus):
-        ee, distance = batch.arm.replay(result.q, tau)
-        single = evaluate_arrays(batch.arm, result.q, result.torque, result.q_ref, ee[-1],
-                                 distance)
+        single = batch.reward.evaluate_replayed(result.q[None], result.torque[None],
+                                                result.q_ref[None], tau[None])[0]
         assert result.evaluation.fulfilled == single.fulfilled
         for name, value in single.components.items():
             assert result.evaluation.components[name] == pytest.approx(value, rel=1e-9,
                                                                        abs=1e-12)
+
+
+def test_both_modes_follow_a_changed_law(task):
+    """Other gains and limits in the law: batch mode (the law as MuJoCo actuators) and the
+    graph's step-by-step semantics (the law on each state) change alike."""
+    default = law_for(task)
+    changed = PDLaw(0.5 * default.kp, 2.0 * default.kd, 0.5 * default.torque_low,
+                    0.5 * default.torque_high)
+    theta = policy_for(task).default_theta * 1.5
+    tau = task.tau_default
+    before = BatchRollouts(task).run(theta[None], tau)[0]
+    after = BatchRollouts(task, law=changed).run(theta[None], tau)[0]
+    q, torque, evaluation = step_by_step(task, theta, tau, law=changed)
+    assert np.abs(after.q - before.q).max() > 1e-3          # the law matters
+    assert np.abs(after.q - q).max() < Q_TOLERANCE
+    assert np.abs(after.torque - torque).max() < 1e-9
+    assert np.abs(torque).max() <= 0.5 * np.abs(default.torque_high).max() + 1e-12
+    assert after.evaluation.reward == pytest.approx(evaluation.reward, abs=REWARD_TOLERANCE)
 
 
 # -- a model unlike reach_over_obstacle's ------------------------------------------------------
@@ -125,7 +147,7 @@ def test_mass_parameters_own_sensors_and_no_mocap(tmp_path):
     """A task parameter that changes the model (a payload mass) reaches every rollout of the
     population; the model's own sensors and its lack of mocap bodies change nothing."""
     task = payload_task(tmp_path)
-    batch = BatchRollout(task)
+    batch = BatchRollouts(task)
     assert batch.model.nmocap == 0 and batch.arm.model.nsensor == 2
     theta = policy_for(task).default_theta
     taus = np.array([[0.1], [3.0], [0.1]])

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import yaml
 
-from psl_optimizer.batch_rollout import BatchRollout
+from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.ilc import ILCSettings, ilc_search
 from psl_optimizer.inverse_dynamics import inverse_dynamics_torque, oracle_theta
 from psl_optimizer.learning import (Learner, LearnSettings, search_normalisation,
@@ -26,7 +26,7 @@ def task():
 
 @pytest.fixture(scope='module')
 def batch(task):
-    return BatchRollout(task)
+    return BatchRollouts(task)
 
 
 def without_feedforward(task, folder):
@@ -41,7 +41,7 @@ def without_feedforward(task, folder):
 
 def test_zero_theta_d_is_pd_only_bit_for_bit(task, batch, tmp_path):
     pd_task = without_feedforward(task, tmp_path)
-    pd_batch = BatchRollout(pd_task)
+    pd_batch = BatchRollouts(pd_task)
     theta_k = pd_batch.policy.default_theta
     assert batch.policy.num_parameters == 2 * theta_k.size
     with_zero = batch.run(np.r_[theta_k, np.zeros(theta_k.size)][None], HEAVY)[0]
@@ -106,10 +106,10 @@ def test_skill_interpolates_the_feedforward_between_trained_masses(task, batch, 
             np.mean(summary[f'tracking_rmse_{key}']))
     between = np.array(BETWEEN)[:, None]
     thetas = np.array([learner.skill.query(tau) for tau in between])
-    comparison = tracking_comparison(task, between, thetas, batch)
+    comparison = tracking_comparison(batch, between, thetas)
     learned, pd_only, oracle = (np.array(comparison[f'tracking_rmse_{k}'])
                                 for k in ('learned', 'pd_only', 'oracle'))
     assert np.all(learned < 0.2 * pd_only)
     assert np.all(learned < 1.5 * oracle)
-    rewards, _ = learner.evaluate(thetas, between)
+    rewards, _ = learner.rollouts.evaluate(thetas, between)
     assert np.all(rewards > -0.3)        # PD only scores -2.5 (0.5 kg) to -8 (3 kg)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from psl_memory.skill_memory import SkillMemory
-from psl_optimizer.batch_rollout import BatchRollout
+from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.learning import Learner, LearnSettings, held_out_tasks, task_sequence
 from psl_optimizer.policy_search import SearchSettings
 from psl_sim.task import load_task
@@ -28,7 +28,7 @@ def task():
 
 @pytest.fixture(scope='module')
 def evaluator(task):
-    return BatchRollout(task)
+    return BatchRollouts(task)
 
 
 @pytest.fixture(scope='module')

@@ -1,13 +1,15 @@
-"""Tests of the reward: each cost component on hand-made data with known answers, the
-weighted score, and evaluate_rollout on the embedded task against closed-form kinematics."""
+"""Tests of the reward: each cost component on hand-made data with known answers (one rollout
+as a population of one, and a population against its members), the weighted score, and the
+task's Reward on the embedded task against closed-form kinematics."""
 
 import numpy as np
 import pytest
 
 from psl_controller.policy import TaskPolicy
-from psl_optimizer.reward import (COMPONENTS, clearance, effort, evaluate_rollout, goal_error,
+from psl_optimizer.reward import (COMPONENTS, Reward, clearance, effort, goal_error,
                                   penetration, score, smoothness, tracking_error)
 from psl_sim.arm_model import ArmModel
+from psl_sim.reward_geometry import RewardGeometry
 from psl_sim.task import load_task
 
 TOL = 1e-12             # hand-computed numbers
@@ -20,6 +22,11 @@ LINKS = np.array([0.5, 0.5, 0.3])   # reach_over_obstacle.xml, copied by hand
 ARM_RADIUS, OBSTACLE_RADIUS, OBSTACLE_LENGTH = 0.025, 0.04, 0.4
 
 
+def one(component, *arrays, **options):
+    """A component on one rollout: its arrays as a population of one, the one cost back."""
+    return component(*[np.asarray(a, dtype=float)[None] for a in arrays], **options)[0]
+
+
 def planar_fk(q):
     """Closed form for the planar arm with hinges about -y: phi_i = q_1 + ... + q_i,
     x = sum l_i cos phi_i, z = sum l_i sin phi_i."""
@@ -30,75 +37,76 @@ def planar_fk(q):
 # -- goal_error -------------------------------------------------------------------------------
 def test_goal_error_3_4_5():
     goal = np.array([0.2, -0.1, 0.7])
-    assert goal_error(goal + [3.0, 4.0, 0.0], goal) == pytest.approx(5.0, abs=TOL)
-    assert goal_error(goal + [0.0, -0.3, 0.4], goal) == pytest.approx(0.5, abs=TOL)
-    assert goal_error([2.0, 3.0, 6.0], [0.0, 0.0, 0.0]) == pytest.approx(7.0, abs=TOL)
-    assert goal_error(goal, goal) == 0.0
+    assert one(goal_error, goal + [3.0, 4.0, 0.0], goal) == pytest.approx(5.0, abs=TOL)
+    assert one(goal_error, goal + [0.0, -0.3, 0.4], goal) == pytest.approx(0.5, abs=TOL)
+    assert one(goal_error, [2.0, 3.0, 6.0], [0.0, 0.0, 0.0]) == pytest.approx(7.0, abs=TOL)
+    assert one(goal_error, goal, goal) == 0.0
 
 
 @pytest.mark.parametrize('final, goal', [
     ([np.nan, 0, 0], [0, 0, 0]), ([0, 0, 0], [0, np.inf, 0])])
 def test_goal_error_rejects_non_finite(final, goal):
     with pytest.raises(ValueError, match='finite'):
-        goal_error(final, goal)
+        one(goal_error, final, goal)
 
 
 def test_goal_error_rejects_incompatible_shapes():
     with pytest.raises(ValueError):
-        goal_error([1.0, 2.0, 3.0], [1.0, 2.0])
+        one(goal_error, [1.0, 2.0, 3.0], [1.0, 2.0])
 
 
 @pytest.mark.parametrize('final, goal', [
     ([3.0, 4.0, 0.0], [0.0]), ([[3.0, 4.0, 0.0], [0.0, 0.0, 0.0]], [0.0, 0.0, 0.0])])
 def test_goal_error_rejects_broadcastable_shape_mismatch(final, goal):
     with pytest.raises(ValueError):
-        goal_error(final, goal)
+        goal_error(final, goal)            # as given: no population axis, or one goal for two
 
 
 # -- penetration ------------------------------------------------------------------------------
 def test_penetration_is_deepest_negative_distance():
-    assert penetration([0.1, -0.03, -0.01, 0.2]) == pytest.approx(0.03, abs=TOL)
-    assert penetration([-0.5]) == pytest.approx(0.5, abs=TOL)
+    assert one(penetration, [0.1, -0.03, -0.01, 0.2]) == pytest.approx(0.03, abs=TOL)
+    assert one(penetration, [-0.5]) == pytest.approx(0.5, abs=TOL)
 
 
 def test_penetration_zero_when_clear():
-    assert penetration([0.1, 0.02, 0.3]) == 0.0
-    assert penetration([0.0, 0.5]) == 0.0          # touching is not penetrating
+    assert one(penetration, [0.1, 0.02, 0.3]) == 0.0
+    assert one(penetration, [0.0, 0.5]) == 0.0          # touching is not penetrating
 
 
 def test_penetration_rejects_empty():
     with pytest.raises(ValueError, match='empty'):
-        penetration([])
+        one(penetration, [])
 
 
 def test_penetration_rejects_nan():
     with pytest.raises(ValueError):
-        penetration([0.1, np.nan, -0.2])
+        one(penetration, [0.1, np.nan, -0.2])
 
 
 # -- clearance --------------------------------------------------------------------------------
 def test_clearance_mean_shortfall():
     # margin 0.02: shortfalls 0, 0.01, 0.04, 0 -> mean 0.0125
-    assert clearance([0.05, 0.01, -0.02, 0.03], 0.02) == pytest.approx(0.0125, abs=TOL)
+    assert one(clearance, [0.05, 0.01, -0.02, 0.03], margin=0.02) == pytest.approx(0.0125,
+                                                                                abs=TOL)
     # margin 0: only penetration counts, mean over all samples: (0 + 0.1) / 2
-    assert clearance([0.3, -0.1], 0.0) == pytest.approx(0.05, abs=TOL)
+    assert one(clearance, [0.3, -0.1], margin=0.0) == pytest.approx(0.05, abs=TOL)
 
 
 def test_clearance_zero_when_beyond_margin():
-    assert clearance([0.05, 0.02, 1.0], 0.02) == 0.0
+    assert one(clearance, [0.05, 0.02, 1.0], margin=0.02) == 0.0
 
 
 @pytest.mark.parametrize('distance, margin, message', [
     ([0.1], -0.01, 'margin'), ([], 0.02, 'empty')])
 def test_clearance_rejects_bad_input(distance, margin, message):
     with pytest.raises(ValueError, match=message):
-        clearance(distance, margin)
+        one(clearance, distance, margin=margin)
 
 
 @pytest.mark.parametrize('distance, margin', [([0.1, np.nan], 0.02), ([0.1, 0.0], np.nan)])
 def test_clearance_rejects_nan(distance, margin):
     with pytest.raises(ValueError):
-        clearance(distance, margin)
+        one(clearance, distance, margin=margin)
 
 
 # -- smoothness -------------------------------------------------------------------------------
@@ -108,74 +116,74 @@ def test_smoothness_of_parabola_is_acceleration_squared():
     accel = np.array([2.0, -3.0, 0.5])                  # rad/s^2 per joint
     q = 0.5 * t[:, None] ** 2 * accel + np.array([0.1, -0.4, 1.2])   # (T, 3)
     expected = np.mean(accel**2)                        # (4 + 9 + 0.25) / 3
-    assert smoothness(q, dt) == pytest.approx(expected, rel=TOL_SMOOTH)
+    assert one(smoothness, q, dt=dt) == pytest.approx(expected, rel=TOL_SMOOTH)
 
 
 def test_smoothness_of_linear_trajectory_is_zero():
     dt = 0.01
     t = np.arange(50) * dt
     q = np.column_stack([1.0 + 2.0 * t, -0.5 * t])
-    assert smoothness(q, dt) == pytest.approx(0.0, abs=TOL_LINEAR)
-    assert smoothness(np.ones((10, 2)), dt) == 0.0
+    assert one(smoothness, q, dt=dt) == pytest.approx(0.0, abs=TOL_LINEAR)
+    assert one(smoothness, np.ones((10, 2)), dt=dt) == 0.0
 
 
 def test_smoothness_by_hand():
     # second differences of [0, 1, 0, 0] are [-2, 1]; dt = 0.5 -> accel [-8, 4]; mean 40
-    assert smoothness(np.array([[0.0], [1.0], [0.0], [0.0]]), 0.5) == pytest.approx(40.0,
-                                                                                      abs=TOL)
+    assert one(smoothness, np.array([[0.0], [1.0], [0.0], [0.0]]), dt=0.5) == pytest.approx(
+        40.0, abs=TOL)
 
 
 @pytest.mark.parametrize('dt', [0.0, -0.002])
 def test_smoothness_rejects_non_positive_dt(dt):
     with pytest.raises(ValueError, match='dt'):
-        smoothness(np.zeros((5, 2)), dt)
+        one(smoothness, np.zeros((5, 2)), dt=dt)
 
 
 def test_smoothness_rejects_nan():
     q = np.zeros((5, 2))
     q[2, 1] = np.nan
     with pytest.raises(ValueError, match='finite'):
-        smoothness(q, 0.002)
+        one(smoothness, q, dt=0.002)
 
 
 # -- effort -----------------------------------------------------------------------------------
 def test_effort_mean_square():
-    assert effort(np.array([[1.0, 2.0], [3.0, -4.0]])) == pytest.approx(7.5, abs=TOL)
-    assert effort(np.full((4, 3), -2.0)) == pytest.approx(4.0, abs=TOL)
-    assert effort(np.zeros((10, 3))) == 0.0
+    assert one(effort, np.array([[1.0, 2.0], [3.0, -4.0]])) == pytest.approx(7.5, abs=TOL)
+    assert one(effort, np.full((4, 3), -2.0)) == pytest.approx(4.0, abs=TOL)
+    assert one(effort, np.zeros((10, 3))) == 0.0
 
 
 @pytest.mark.parametrize('bad', [np.nan, np.inf])
 def test_effort_rejects_non_finite(bad):
     with pytest.raises(ValueError, match='finite'):
-        effort(np.array([[1.0, bad]]))
+        one(effort, np.array([[1.0, bad]]))
 
 
 # -- tracking_error ---------------------------------------------------------------------------
 def test_tracking_error_rms():
     q = np.array([[0.0, 1.0], [2.0, -1.0]])
     q_ref = q + np.array([[0.1, -0.2], [0.3, 0.0]])
-    assert tracking_error(q, q_ref) == pytest.approx(np.sqrt(0.14 / 4), abs=TOL)
-    assert tracking_error(q, q + 0.25) == pytest.approx(0.25, abs=TOL)
-    assert tracking_error(q, q) == 0.0
+    assert one(tracking_error, q, q_ref) == pytest.approx(np.sqrt(0.14 / 4), abs=TOL)
+    assert one(tracking_error, q, q + 0.25) == pytest.approx(0.25, abs=TOL)
+    assert one(tracking_error, q, q) == 0.0
 
 
 def test_tracking_error_rejects_shape_mismatch():
     with pytest.raises(ValueError, match='shape'):
-        tracking_error(np.zeros((5, 3)), np.zeros((4, 3)))
+        one(tracking_error, np.zeros((5, 3)), np.zeros((4, 3)))
     with pytest.raises(ValueError, match='shape'):
-        tracking_error(np.zeros((5, 3)), np.zeros((5, 1)))   # would broadcast
+        one(tracking_error, np.zeros((5, 3)), np.zeros((5, 1)))   # would broadcast
 
 
 def test_tracking_error_rejects_nan():
     with pytest.raises(ValueError, match='finite'):
-        tracking_error(np.zeros((2, 2)), np.array([[0.0, np.nan], [0.0, 0.0]]))
+        one(tracking_error, np.zeros((2, 2)), np.array([[0.0, np.nan], [0.0, 0.0]]))
 
 
 @pytest.mark.filterwarnings('ignore::RuntimeWarning')
 def test_tracking_error_rejects_empty():
     with pytest.raises(ValueError):
-        tracking_error(np.zeros((0, 3)), np.zeros((0, 3)))
+        one(tracking_error, np.zeros((0, 3)), np.zeros((0, 3)))
 
 
 # -- score ------------------------------------------------------------------------------------
@@ -217,17 +225,35 @@ def test_components_nonnegative_and_reward_nonpositive_on_random_data():
     rng = np.random.default_rng(0)
     for _ in range(20):
         q = rng.normal(size=(30, 3))
-        comps = {'goal_error': goal_error(rng.normal(size=3), rng.normal(size=3)),
-                 'penetration': penetration(rng.normal(size=30)),
-                 'clearance': clearance(rng.normal(size=30), 0.02),
-                 'smoothness': smoothness(q, 0.01),
-                 'effort': effort(rng.normal(size=(30, 3))),
-                 'tracking_error': tracking_error(q, q + rng.normal(size=q.shape))}
+        comps = {'goal_error': one(goal_error, rng.normal(size=3), rng.normal(size=3)),
+                 'penetration': one(penetration, rng.normal(size=30)),
+                 'clearance': one(clearance, rng.normal(size=30), margin=0.02),
+                 'smoothness': one(smoothness, q, dt=0.01),
+                 'effort': one(effort, rng.normal(size=(30, 3))),
+                 'tracking_error': one(tracking_error, q, q + rng.normal(size=q.shape))}
         assert all(value >= 0.0 for value in comps.values())
         assert score(comps, WEIGHTS_EXAMPLE, 0.0).reward <= 0.0
 
 
-# -- evaluate_rollout on the embedded task ----------------------------------------------------
+def test_each_component_of_a_population_equals_its_members_alone():
+    rng = np.random.default_rng(1)
+    q, q_ref, torque = rng.normal(size=(3, 5, 40, 3))          # (B, T, n) each
+    distance, ee, goal = rng.normal(size=(5, 40)), rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
+    population = {'goal_error': goal_error(ee, goal), 'penetration': penetration(distance),
+                  'clearance': clearance(distance, 0.1), 'smoothness': smoothness(q, 0.01),
+                  'effort': effort(torque), 'tracking_error': tracking_error(q, q_ref)}
+    for b in range(5):
+        alone = {'goal_error': one(goal_error, ee[b], goal[b]),
+                 'penetration': one(penetration, distance[b]),
+                 'clearance': one(clearance, distance[b], margin=0.1),
+                 'smoothness': one(smoothness, q[b], dt=0.01), 'effort': one(effort, torque[b]),
+                 'tracking_error': one(tracking_error, q[b], q_ref[b])}
+        for name, value in alone.items():
+            assert population[name].shape == (5,)
+            assert population[name][b] == pytest.approx(value, rel=1e-12, abs=1e-15)
+
+
+# -- the task's Reward on the embedded task (graph mode: geometry from a replay) ---------------
 @pytest.fixture(scope='module')
 def task():
     return load_task('reach_over_obstacle')
@@ -238,17 +264,30 @@ def arm(task):
     return ArmModel(task)
 
 
+@pytest.fixture(scope='module')
+def reward(task, arm):
+    return Reward(task, RewardGeometry(arm))
+
+
+def evaluate_rollout(reward, tau, q, torque, q_ref):
+    """One rollout scored from a replay of its joint angles (what the evaluator node does)."""
+    return reward.evaluate_replayed(np.asarray(q, dtype=float)[None],
+                                    np.asarray(torque, dtype=float)[None],
+                                    np.asarray(q_ref, dtype=float)[None],
+                                    np.asarray(tau, dtype=float)[None])[0]
+
+
 def _segment_distance(p, a, b):
     ab = b - a
     t = np.clip(np.dot(p - a, ab) / np.dot(ab, ab), 0.0, 1.0)
     return np.linalg.norm(p - (a + t * ab))
 
 
-def test_evaluate_rollout_holding_start_posture(task, arm):
+def test_evaluate_rollout_holding_start_posture(task, reward):
     steps = task.num_steps + 1
     q = np.tile(task.start_posture, (steps, 1))
     torque = np.zeros((steps, task.n_joints))
-    result = evaluate_rollout(arm, task.tau_default, q, torque, q.copy())
+    result = evaluate_rollout(reward, task.tau_default, q, torque, q.copy())
     expected_goal_error = np.linalg.norm(planar_fk(task.start_posture)
                                          - planar_fk(task.goal_posture))
     c = result.components
@@ -271,46 +310,54 @@ def test_evaluate_rollout_holding_start_posture(task, arm):
                   _segment_distance(joints[i], bottom, top),
                   _segment_distance(joints[i + 1], bottom, top)) for i in range(3))
     signed = seg - ARM_RADIUS - OBSTACLE_RADIUS
-    margin = task.reward['clearance_margin']
+    margin = task.reward.clearance_margin
     assert c['penetration'] == pytest.approx(max(0.0, -signed), abs=1e-9)
     assert c['clearance'] == pytest.approx(max(0.0, margin - signed), abs=1e-9)
-    weights = task.reward['weights']
+    weights = task.reward.weights
     assert result.reward == pytest.approx(-sum(weights[k] * c[k] for k in c), abs=TOL)
-    assert result.fulfilled == (result.reward >= task.reward['success_threshold'])
+    assert result.fulfilled == (result.reward >= task.reward.success_threshold)
     assert result.fulfilled is False        # standing still does not reach the goal
 
 
-def test_evaluate_rollout_demonstration_reference(task, arm):
+def test_evaluate_rollout_demonstration_reference(task, reward):
     policy = TaskPolicy(task)
     reference = policy.reference(policy.default_theta)
     q = reference.q
     assert q.shape == (task.num_steps + 1, task.n_joints)
     torque = np.zeros_like(q)
-    result = evaluate_rollout(arm, task.tau_default, q, torque, q.copy())
+    result = evaluate_rollout(reward, task.tau_default, q, torque, q.copy())
     assert result.components['penetration'] == 0.0
     assert result.components['goal_error'] < DEMO_GOAL_ERROR
     assert result.components['tracking_error'] == 0.0
     assert result.components['smoothness'] > 0.0      # it moves
 
 
-def test_evaluate_rollout_penetrating_posture(task, arm):
+def test_evaluate_rollout_penetrating_posture(task, reward):
     """The flat arm crosses the pillar: penetration = both radii."""
     q = np.zeros((5, task.n_joints))
-    result = evaluate_rollout(arm, task.tau_default, q, np.zeros_like(q), q)
+    result = evaluate_rollout(reward, task.tau_default, q, np.zeros_like(q), q)
     assert result.components['penetration'] == pytest.approx(ARM_RADIUS + OBSTACLE_RADIUS,
                                                              abs=1e-9)
     assert result.fulfilled is False
 
 
-def test_evaluate_rollout_rejects_nan(task, arm):
+def test_evaluate_rollout_rejects_nan(task, reward):
     q = np.tile(task.start_posture, (5, 1))
     q[3, 0] = np.nan
     with pytest.raises(ValueError):
-        evaluate_rollout(arm, task.tau_default, q, np.zeros((5, 3)), np.zeros((5, 3)))
+        evaluate_rollout(reward, task.tau_default, q, np.zeros((5, 3)), np.zeros((5, 3)))
 
 
 @pytest.mark.parametrize('torque_shape', [(5, 2), (1, 3)])
-def test_evaluate_rollout_rejects_torque_shape_mismatch(task, arm, torque_shape):
+def test_evaluate_rollout_rejects_torque_shape_mismatch(task, reward, torque_shape):
     q = np.tile(task.start_posture, (5, 1))
     with pytest.raises(ValueError):
-        evaluate_rollout(arm, task.tau_default, q, np.ones(torque_shape), q)
+        evaluate_rollout(reward, task.tau_default, q, np.ones(torque_shape), q)
+
+
+def test_a_task_weighting_an_unknown_component_is_refused(task, arm):
+    import dataclasses
+    typo = dataclasses.replace(task, reward=dataclasses.replace(
+        task.reward, weights={**task.reward.weights, 'goal_eror': 1.0}))
+    with pytest.raises(ValueError, match='goal_eror'):
+        Reward(typo, RewardGeometry(arm))

@@ -1,10 +1,8 @@
 """The physics of a task: its MuJoCo model with the task parameters applied.
 
 `ArmModel` steps the simulation with joint torques (one physics step per control period) and
-gives named accessors (joint names, torque limits, end-effector position, obstacle distance).
-`ArmModel.replay` recomputes end-effector positions and obstacle distances along a recorded
-joint trajectory with a private MjData, so the reward can be computed from joint states
-alone, in the graph and in batch mode alike. Imports no ROS.
+gives named accessors (joint names, torque limits, end-effector pose) and the task parameters'
+bindings. What the reward measures on it is `psl_sim.reward_geometry`. Imports no ROS.
 """
 from __future__ import annotations
 
@@ -26,7 +24,6 @@ class ArmModel:
         except ValueError as exc:
             raise TaskError(f'cannot load model {task.model_path}: {exc}') from exc
         self.data = mujoco.MjData(self.model)
-        self._replay_data = mujoco.MjData(self.model)
         m = self.model
         if m.nu != m.nv or m.nq != m.nv:
             raise TaskError(
@@ -58,17 +55,13 @@ class ArmModel:
             self.torque_low[limited] = np.maximum(self.torque_low, limits[:, 0])[limited]
             self.torque_high[limited] = np.minimum(self.torque_high, limits[:, 1])[limited]
         self.ee_site = self._id(mujoco.mjtObj.mjOBJ_SITE, task.end_effector_site)
-        reward = task.reward
-        self.obstacle_geoms = [self._id(mujoco.mjtObj.mjOBJ_GEOM, g)
-                               for g in reward.get('obstacle_geoms', [])]
-        self.arm_geoms = [self._id(mujoco.mjtObj.mjOBJ_GEOM, g)
-                          for g in reward.get('arm_geoms', [])]
+        for name in task.reward.arm_geoms + task.reward.obstacle_geoms:
+            self.geom(name)                    # the reward's geoms exist: fail at load
         self._bindings = [self._binding(p.binds) for p in task.parameters]
-        # bindings that move things (data-level); replay applies only these, so a kinematic
-        # replay never changes the dynamics (e.g. a payload mass) of the live simulation
+        # bindings that move things (data-level); a kinematic replay applies only these, so it
+        # never changes the dynamics (e.g. a payload mass) of the live simulation
         self._kinematic = [p.binds['kind'] == 'mocap_position' for p in task.parameters]
         self.tau = task.tau_default.copy()
-        self.ee_goal = self.end_effector_at(task.goal_posture)
 
     # -- set-up -------------------------------------------------------------------------
     def _check_motors(self) -> None:
@@ -87,6 +80,10 @@ class ArmModel:
                 f'{self.task.model_path}: actuators {names} are not plain joint motors; psl '
                 'needs <motor joint="..." ctrlrange="-limit limit"/> (gear 1) on every joint, '
                 'ctrl = joint torque')
+
+    def geom(self, name: str) -> int:
+        """The id of the geom called `name`; TaskError if the model has none."""
+        return self._id(mujoco.mjtObj.mjOBJ_GEOM, name)
 
     def _id(self, kind: mujoco.mjtObj, name: str) -> int:
         idx = mujoco.mj_name2id(self.model, kind, name)
@@ -128,8 +125,8 @@ class ArmModel:
 
     def move_bodies(self, tau: np.ndarray, data: mujoco.MjData) -> None:
         """Apply only the task parameters that move things (mocap positions) to data; the
-        model, and so the dynamics, stay as they are."""
-        tau = self.task.validate_tau(tau)
+        model, and so the dynamics, stay as they are. tau must be valid already
+        (`TaskDefinition.validate_tau`): this runs on every rollout of a population."""
         for apply, kinematic, value in zip(self._bindings, self._kinematic, tau):
             if kinematic:
                 apply(self.model, data, value)
@@ -166,30 +163,6 @@ class ArmModel:
         quat = np.empty(4)
         mujoco.mju_mat2Quat(quat, self.data.site_xmat[self.ee_site])
         return self.data.site_xpos[self.ee_site].copy(), quat
-
-    # -- kinematic replay ---------------------------------------------------------------
-    def end_effector_at(self, q: np.ndarray) -> np.ndarray:
-        return self.replay(np.asarray(q, dtype=float)[None, :], self.tau)[0][0]
-
-    def replay(self, q: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """End-effector positions (T, 3) and the smallest arm-obstacle signed distance (T,)
-        along joint positions q (T, n_joints) for the task instance tau. The distance is
-        +inf when the task names no obstacle."""
-        d = self._replay_data
-        self.move_bodies(tau, d)
-        ee = np.empty((len(q), 3))
-        dist = np.full(len(q), np.inf)
-        fromto = np.empty(6)
-        distmax = 10.0
-        for k, qk in enumerate(q):
-            d.qpos[self.qpos_adr] = qk
-            mujoco.mj_kinematics(self.model, d)
-            ee[k] = d.site_xpos[self.ee_site]
-            for g1 in self.arm_geoms:
-                for g2 in self.obstacle_geoms:
-                    dist[k] = min(dist[k], mujoco.mj_geomDistance(
-                        self.model, d, g1, g2, distmax, fromto))
-        return ee, dist
 
 
 @functools.lru_cache(maxsize=32)

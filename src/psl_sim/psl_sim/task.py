@@ -3,7 +3,9 @@
 A task YAML holds the model file, the task parameters tau (names, ranges, and how each one
 is applied to the model), the start and goal postures, the controller gains, the movement
 representation, the demonstration the default policy is fitted to, the reward weights and
-the success threshold. Tasks are found by name in the embedded ``tasks/`` folder and in the
+the success threshold. The ``controller``, ``policy`` and ``reward`` sections are typed
+(`ControllerSpec`, `PolicySpec`, `RewardSpec`): every optional key has its default here and only
+here, and a key a section does not know is refused (a typo never passes silently). Tasks are found by name in the embedded ``tasks/`` folder and in the
 folders listed in ``PSL_TASK_PATH`` (colon-separated), or given as a path to a YAML file.
 The ``model`` key is a path to the MJCF file: absolute (``~`` expanded), or relative to the
 folder of the YAML file (not to the working directory).
@@ -40,6 +42,41 @@ class TaskParameter:
     unit: str = ''
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class ControllerSpec:
+    """The ``controller`` section: gains of the PD + feed-forward law, per joint (actuator
+    order). Torque limits come from the model."""
+
+    kp: np.ndarray                  # (n_joints,) N m / rad
+    kd: np.ndarray                  # (n_joints,) N m s / rad
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicySpec:
+    """The ``policy`` section: how theta encodes the commanded trajectory
+    (`psl_controller.policy`)."""
+
+    n_basis: int                    # Gaussians per joint of the DMP (and the feed-forward)
+    kind: str = 'dmp'               # dmp | gmr (psl_controller.policy.KINDS)
+    k_s: float = 400.0              # DMP spring constant of eq. 2.23 (k_d = 2 sqrt(k_s))
+    canonical: str = 'linear'       # canonical system of the phase: linear | exponential
+    feedforward: bool = False       # theta = [theta_K, theta_D]: feed-forward torque on the basis
+    n_components: int = 6           # gmr: Gaussians of the mixture
+    fit_seed: int = 0               # gmr: seed of the EM fit to the demonstration
+
+
+@dataclasses.dataclass(frozen=True)
+class RewardSpec:
+    """The ``reward`` section: weights of the named components (`psl_optimizer.reward`), the
+    success threshold and what the geometric components measure."""
+
+    weights: dict[str, float]       # component name -> weight; missing components count zero
+    success_threshold: float        # fulfilled when reward >= this
+    clearance_margin: float = 0.0   # m; closer than this to an obstacle costs (clearance)
+    obstacle_geoms: tuple[str, ...] = ()    # geoms the arm must keep clear of
+    arm_geoms: tuple[str, ...] = ()         # the arm's geoms measured against them
+
+
 @dataclasses.dataclass(frozen=True, eq=False)   # hashed by identity: load_task caches
 class TaskDefinition:
     """Everything a task varies and how it is scored (see the module docstring)."""
@@ -55,12 +92,11 @@ class TaskDefinition:
     start_posture: np.ndarray       # (n_joints,)
     goal_posture: np.ndarray        # (n_joints,)
     parameters: tuple[TaskParameter, ...]
-    kp: np.ndarray                  # (n_joints,)
-    kd: np.ndarray                  # (n_joints,)
-    policy: dict[str, Any]
+    controller: ControllerSpec
+    policy: PolicySpec
     demo_times: np.ndarray          # (n_waypoints,)
     demo_positions: np.ndarray      # (n_waypoints, n_joints)
-    reward: dict[str, Any]
+    reward: RewardSpec
 
     @property
     def tau_names(self) -> list[str]:
@@ -217,15 +253,12 @@ def _build(path: Path, data: Any) -> TaskDefinition:
             name=str(entry['name']), low=low, high=high,
             default=float(entry.get('default', 0.5 * (low + high))),
             binds=binds, unit=str(entry.get('unit', ''))))
-    controller = _require(data, 'controller', path)
+    controller = _section(data, 'controller', path)
     demo = _require(data, 'demonstration', path)
     demo_positions = np.asarray(demo['positions'], dtype=float)
     if demo_positions.ndim != 2 or demo_positions.shape[1] != n:
         raise TaskError(f'{path}: demonstration positions must be rows of {n} joint angles')
     demo_times = _vector(demo['times'], 'demonstration times', len(demo_positions), path)
-    reward = dict(_require(data, 'reward', path))
-    for key in ('weights', 'success_threshold'):
-        _require(reward, key, path)
     return TaskDefinition(
         name=str(data.get('name', path.stem)),
         path=path,
@@ -238,10 +271,58 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         start_posture=start,
         goal_posture=_vector(_require(data, 'goal_posture', path), 'goal_posture', n, path),
         parameters=tuple(params),
-        kp=_vector(controller['kp'], 'controller.kp', n, path),
-        kd=_vector(controller['kd'], 'controller.kd', n, path),
-        policy=dict(_require(data, 'policy', path)),
+        controller=ControllerSpec(
+            kp=_vector(_require(controller, 'kp', path), 'controller.kp', n, path),
+            kd=_vector(_require(controller, 'kd', path), 'controller.kd', n, path)),
+        policy=_policy(_section(data, 'policy', path), path),
         demo_times=demo_times,
         demo_positions=demo_positions,
-        reward=reward,
+        reward=_reward(_section(data, 'reward', path), path),
     )
+
+
+def _section(data: dict, key: str, path: Path) -> dict:
+    section = _require(data, key, path)
+    if not isinstance(section, dict):
+        raise TaskError(f'{path}: {key} must be a mapping of keys')
+    return section
+
+
+def _known_keys(section: dict, spec: type, key: str, path: Path) -> None:
+    known = [f.name for f in dataclasses.fields(spec)]
+    unknown = sorted(set(section) - set(known))
+    if unknown:
+        raise TaskError(f'{path}: {key} has unknown keys {unknown}; known: {", ".join(known)}')
+
+
+def _policy(section: dict, path: Path) -> PolicySpec:
+    _known_keys(section, PolicySpec, 'policy', path)
+    feedforward = section.get('feedforward', PolicySpec.feedforward)
+    if not isinstance(feedforward, bool):
+        raise TaskError(f'{path}: policy.feedforward must be true or false, got '
+                        f'{feedforward!r}')
+    n_basis = int(_require(section, 'n_basis', path))
+    if n_basis < 1:
+        raise TaskError(f'{path}: policy.n_basis must be at least 1, got {n_basis}')
+    return PolicySpec(n_basis=n_basis,
+                      kind=str(section.get('kind', PolicySpec.kind)),
+                      k_s=float(section.get('k_s', PolicySpec.k_s)),
+                      canonical=str(section.get('canonical', PolicySpec.canonical)),
+                      feedforward=feedforward,
+                      n_components=int(section.get('n_components', PolicySpec.n_components)),
+                      fit_seed=int(section.get('fit_seed', PolicySpec.fit_seed)))
+
+
+def _reward(section: dict, path: Path) -> RewardSpec:
+    _known_keys(section, RewardSpec, 'reward', path)
+    weights = _require(section, 'weights', path)
+    if not isinstance(weights, dict):
+        raise TaskError(f'{path}: reward.weights must map component names to weights')
+    margin = float(section.get('clearance_margin', RewardSpec.clearance_margin))
+    if not margin >= 0.0:
+        raise TaskError(f'{path}: reward.clearance_margin must be >= 0, got {margin}')
+    return RewardSpec(weights={str(k): float(v) for k, v in weights.items()},
+                      success_threshold=float(_require(section, 'success_threshold', path)),
+                      clearance_margin=margin,
+                      obstacle_geoms=tuple(str(g) for g in section.get('obstacle_geoms', ())),
+                      arm_geoms=tuple(str(g) for g in section.get('arm_geoms', ())))

@@ -1,5 +1,6 @@
-"""Tests of ArmModel against closed-form planar kinematics and capsule geometry, plus
-dm_control-style properties (finite observations of the declared shape, determinism)."""
+"""Tests of ArmModel and of its reward geometry (the reward's sensors on a kinematic replay)
+against closed-form planar kinematics and capsule geometry, plus dm_control-style properties
+(finite observations of the declared shape, determinism)."""
 
 import textwrap
 
@@ -8,6 +9,7 @@ import pytest
 import yaml
 
 from psl_sim.arm_model import ArmModel, joint_names_of
+from psl_sim.reward_geometry import RewardGeometry
 from psl_sim.task import EMBEDDED_TASKS, TaskError, load_task
 
 DEFAULT_TASK = 'reach_over_obstacle'
@@ -26,6 +28,20 @@ TOL_POLICY_GOAL = 1e-3  # rad, |reference(default theta)[-1] - goal posture|
 
 N_RANDOM_POSTURES = 300
 N_ROLLOUT_STEPS = 400
+
+
+# -- the reward geometry of one rollout ---------------------------------------------------------
+def replay(arm, q, tau):
+    """The reward sensors along one rollout's joint angles q (T, n): end-effector positions
+    (T, 3) and arm-obstacle distances (T,) (None without an obstacle)."""
+    measured = RewardGeometry(arm).replay(np.asarray(q, dtype=float)[None],
+                                          np.asarray(tau, dtype=float)[None])
+    distance = None if measured.distance is None else measured.distance[0]
+    return measured.end_effector[0], distance
+
+
+def ee_at(arm, q):
+    return RewardGeometry(arm).end_effector_at(q)
 
 
 # -- independent references -------------------------------------------------------------------
@@ -91,14 +107,14 @@ def arm(task):
 
 # -- kinematics -------------------------------------------------------------------------------
 def test_sign_convention_positive_angle_lifts(arm):
-    ee_flat = arm.end_effector_at(np.zeros(3))
+    ee_flat = ee_at(arm, np.zeros(3))
     np.testing.assert_allclose(ee_flat, [LINKS.sum(), 0.0, 0.0], atol=TOL_FK)
-    ee_up = arm.end_effector_at(np.array([0.5, 0.0, 0.0]))
+    ee_up = ee_at(arm, np.array([0.5, 0.0, 0.0]))
     assert ee_up[2] > 0.0
     np.testing.assert_allclose(ee_up, LINKS.sum() * np.array([np.cos(0.5), 0, np.sin(0.5)]),
                                atol=TOL_FK)
     # Straight up: the end effector is above the base.
-    np.testing.assert_allclose(arm.end_effector_at(np.array([np.pi / 2, 0.0, 0.0])),
+    np.testing.assert_allclose(ee_at(arm, np.array([np.pi / 2, 0.0, 0.0])),
                                [0.0, 0.0, LINKS.sum()], atol=TOL_FK)
 
 
@@ -107,13 +123,13 @@ def test_sign_convention_positive_angle_lifts(arm):
     [-1.0, 2.5, -2.9], [np.pi / 2, -np.pi / 2, -np.pi / 2]])
 def test_forward_kinematics_closed_form(arm, q):
     q = np.array(q)
-    np.testing.assert_allclose(arm.end_effector_at(q), planar_fk(q), rtol=0, atol=TOL_FK)
+    np.testing.assert_allclose(ee_at(arm, q), planar_fk(q), rtol=0, atol=TOL_FK)
 
 
 def test_replay_end_effector_matches_closed_form_on_random_postures(arm, task):
     rng = np.random.default_rng(0)
     q = rng.uniform(-3.0, 3.0, size=(50, 3))
-    ee, _ = arm.replay(q, task.tau_default)
+    ee, _ = replay(arm, q, task.tau_default)
     assert ee.shape == (50, 3)
     expected = np.array([planar_fk(qk) for qk in q])
     np.testing.assert_allclose(ee, expected, rtol=0, atol=TOL_FK)
@@ -131,7 +147,8 @@ def test_end_effector_pose_after_reset(arm, task):
 
 
 def test_ee_goal_is_fk_of_goal_posture(arm, task):
-    np.testing.assert_allclose(arm.ee_goal, planar_fk(task.goal_posture), atol=TOL_FK)
+    np.testing.assert_allclose(ee_at(arm, task.goal_posture), planar_fk(task.goal_posture),
+                               atol=TOL_FK)
 
 
 def test_joint_names(arm, task):
@@ -144,7 +161,7 @@ def test_joint_names(arm, task):
 def test_replay_distance_arm_straight_up_is_gap_minus_radii(arm, tau):
     """Arm vertical along x = 0, obstacle vertical at x = tau[0] and overlapping in height:
     the capsules are parallel, distance = gap - radii."""
-    _, dist = arm.replay(np.array([[np.pi / 2, 0.0, 0.0]]), tau)
+    _, dist = replay(arm, np.array([[np.pi / 2, 0.0, 0.0]]), tau)
     np.testing.assert_allclose(dist, [tau[0] - ARM_RADIUS - OBSTACLE_RADIUS], atol=TOL_DISTANCE)
 
 
@@ -152,7 +169,7 @@ def test_replay_distance_arm_straight_up_is_gap_minus_radii(arm, tau):
 def test_replay_distance_arm_through_obstacle_is_negative(arm, tau):
     """Arm flat along +x at height 0 crosses the pillar (which spans z = 0): the segments
     intersect, so the signed distance is minus both radii."""
-    _, dist = arm.replay(np.zeros((1, 3)), tau)
+    _, dist = replay(arm, np.zeros((1, 3)), tau)
     assert dist[0] < 0.0
     np.testing.assert_allclose(dist, [-(ARM_RADIUS + OBSTACLE_RADIUS)], atol=TOL_DISTANCE)
 
@@ -165,7 +182,7 @@ def test_replay_distance_grazing_the_top():
     angle = 0.28          # the arm passes just above the top end (0.7 tan 0.28 > 0.16)
     z_top = height - OBSTACLE_RADIUS
     expected = abs(z_top * np.cos(angle) - x * np.sin(angle)) - ARM_RADIUS - OBSTACLE_RADIUS
-    _, dist = arm.replay(np.array([[angle, 0.0, 0.0]]), [x, height])
+    _, dist = replay(arm, np.array([[angle, 0.0, 0.0]]), [x, height])
     assert -(ARM_RADIUS + OBSTACLE_RADIUS) < dist[0] < 0.0
     np.testing.assert_allclose(dist, [expected], atol=TOL_DISTANCE)
 
@@ -176,7 +193,7 @@ def test_replay_distance_matches_closed_form_on_random_postures(arm, task):
                          rng.uniform(-2.5, 1.0, N_RANDOM_POSTURES),
                          rng.uniform(-2.0, 2.0, N_RANDOM_POSTURES)])
     for tau in (task.tau_low, task.tau_default, task.tau_high):
-        _, dist = arm.replay(q, tau)
+        _, dist = replay(arm, q, tau)
         expected = np.array([closed_form_signed_distance(qk, tau) for qk in q])
         # The sample covers clear, grazing and crossing postures.
         assert np.any(expected > 0.05) and np.any(expected < 0.0)
@@ -188,7 +205,7 @@ def test_replay_leaves_the_live_simulation_alone(arm, task):
     arm.reset(tau)
     arm.step(np.array([5.0, -3.0, 1.0]))
     q_before, mocap_before = arm.q, arm.data.mocap_pos.copy()
-    arm.replay(np.zeros((3, 3)), task.tau_high)
+    replay(arm, np.zeros((3, 3)), task.tau_high)
     np.testing.assert_array_equal(arm.tau, tau)
     np.testing.assert_array_equal(arm.q, q_before)
     np.testing.assert_array_equal(arm.data.mocap_pos, mocap_before)
@@ -196,7 +213,7 @@ def test_replay_leaves_the_live_simulation_alone(arm, task):
 
 def test_replay_rejects_tau_out_of_range(arm):
     with pytest.raises(TaskError, match='outside its range'):
-        arm.replay(np.zeros((1, 3)), [0.1, 0.25])
+        replay(arm, np.zeros((1, 3)), [0.1, 0.25])
 
 
 # -- tau binding ------------------------------------------------------------------------------
@@ -322,7 +339,7 @@ def test_observations_finite_and_of_declared_shape(task, seed):
 
 def test_replay_output_shapes(arm, task):
     q = np.tile(task.start_posture, (7, 1))
-    ee, dist = arm.replay(q, task.tau_default)
+    ee, dist = replay(arm, q, task.tau_default)
     assert ee.shape == (7, 3) and dist.shape == (7,)
     assert np.all(np.isfinite(ee)) and np.all(np.isfinite(dist))
 
@@ -424,14 +441,14 @@ def test_other_mjcf_four_joints_without_code_changes(tmp_path):
 
     # Replay: closed-form FK and sphere-to-segment distances.
     q = np.array([START4, GOAL4, [0.0, 0.0, 0.0, 0.0], [np.pi / 2, 0.0, 0.0, 0.0]])
-    ee, dist = arm.replay(q, [0.6])
+    ee, dist = replay(arm, q, [0.6])
     np.testing.assert_allclose(ee, [planar_fk(qk, LINKS4) for qk in q], atol=TOL_FK)
     centre = np.array([0.6, 0.2])
     for qk, dk in zip(q, dist):
         points = planar_joint_points(qk, LINKS4)[:, [0, 2]]
         seg = min(_point_segment_distance(centre, points[i], points[i + 1]) for i in range(4))
         assert dk == pytest.approx(seg - POST_RADIUS - ARM4_RADIUS, abs=TOL_DISTANCE)
-    np.testing.assert_allclose(arm.ee_goal, planar_fk(GOAL4, LINKS4), atol=TOL_FK)
+    np.testing.assert_allclose(ee_at(arm, GOAL4), planar_fk(GOAL4, LINKS4), atol=TOL_FK)
 
 
 def test_other_mjcf_policy(tmp_path):
@@ -478,7 +495,7 @@ def test_replay_with_mass_parameter_leaves_dynamics_alone(tmp_path):
 
     arm = ArmModel(task)
     arm.reset(np.array([0.2]))
-    arm.replay(np.zeros((1, 4)), [5.0])          # scoring another task instance
+    replay(arm, np.zeros((1, 4)), [5.0])          # scoring another task instance
     states = [arm.q]
     for u in torques:
         arm.step(u)

@@ -77,7 +77,7 @@ def test_embedded_task_postures_and_demonstration_shapes():
     assert task.n_joints == 3
     np.testing.assert_array_equal(task.start_posture, data['start_posture'])
     np.testing.assert_array_equal(task.goal_posture, data['goal_posture'])
-    assert task.kp.shape == task.kd.shape == (3,)
+    assert task.controller.kp.shape == task.controller.kd.shape == (3,)
     assert task.demo_positions.shape == (len(task.demo_times), 3)
     # The demonstration goes from the start posture to the goal posture.
     np.testing.assert_array_equal(task.demo_positions[0], task.start_posture)
@@ -337,3 +337,45 @@ def test_sample_tau_reproducible_with_seed():
     np.testing.assert_array_equal(seq_a, seq_b)
     other = task.sample_tau(np.random.default_rng(124))
     assert not np.array_equal(first[0], other)
+
+
+# -- the typed sections -----------------------------------------------------------------------
+def test_sections_are_typed_with_their_defaults(tmp_path):
+    from psl_sim.task import ControllerSpec, PolicySpec, RewardSpec
+    task = load_task(DEFAULT_TASK)
+    assert isinstance(task.controller, ControllerSpec)
+    assert isinstance(task.policy, PolicySpec) and isinstance(task.reward, RewardSpec)
+    data = embedded_data()
+    assert task.policy.n_basis == data['policy']['n_basis']
+    assert task.reward.weights == data['reward']['weights']
+    assert task.reward.arm_geoms == tuple(data['reward']['arm_geoms'])
+    # optional keys left out take the defaults of the dataclasses
+    for key in ('kind', 'k_s', 'canonical'):
+        del data['policy'][key]
+    del data['reward']['clearance_margin']
+    bare = load_task(str(write_task(tmp_path, data)))
+    assert (bare.policy.kind, bare.policy.k_s, bare.policy.canonical, bare.policy.feedforward) \
+        == (PolicySpec.kind, PolicySpec.k_s, PolicySpec.canonical, PolicySpec.feedforward)
+    assert bare.reward.clearance_margin == RewardSpec.clearance_margin
+
+
+@pytest.mark.parametrize('section, key', [('policy', 'n_basiss'), ('reward', 'weight'),
+                                          ('reward', 'clearance')])
+def test_an_unknown_key_of_a_section_is_refused(tmp_path, section, key):
+    data = embedded_data()
+    data[section][key] = 1
+    with pytest.raises(TaskError, match=f"{section} has unknown keys \\['{key}'\\]"):
+        load_task(str(write_task(tmp_path, data)))
+
+
+@pytest.mark.parametrize('section, key, value, words', [
+    ('policy', 'feedforward', 'yes', 'true or false'),
+    ('policy', 'n_basis', 0, 'at least 1'),
+    ('reward', 'clearance_margin', -0.1, '>= 0'),
+    ('reward', 'weights', [1.0], 'map component names'),
+])
+def test_a_bad_section_value_is_refused(tmp_path, section, key, value, words):
+    data = embedded_data()
+    data[section][key] = value
+    with pytest.raises(TaskError, match=words):
+        load_task(str(write_task(tmp_path, data)))

@@ -1,0 +1,62 @@
+"""Graph mode: each rollout through a rollout worker's ``execute_rollout`` action.
+
+The population is spread over the workers (sim, controller, executor and evaluator running as
+processes, each worker under its own namespace), one rollout per worker at a time; lockstep
+rollouts do not depend on the worker, so the results are those of one worker. The results
+carry the evaluator's evaluation; the measured trajectories stay in the graph (the
+`RolloutResult` fields are None) until the rollout action returns them.
+"""
+from __future__ import annotations
+
+import queue
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from psl_optimizer.reward import RewardResult
+from psl_optimizer.rollouts import RolloutResult, Rollouts
+from psl_ros.client import RolloutClient
+from psl_sim.task import TaskDefinition, task_id
+
+
+class GraphRollouts(Rollouts):
+    """Rollouts of `task` through the given workers' ``execute_rollout``.
+
+    Args:
+        task: the task (sent by name, or by its YAML's path when the name does not find it).
+        workers: one `RolloutClient` per rollout worker.
+        timeout: seconds to wait for one rollout.
+    """
+
+    def __init__(self, task: TaskDefinition, workers: list[RolloutClient],
+                 timeout: float = 120.0):
+        super().__init__(task)
+        if not workers:
+            raise ValueError('graph mode needs at least one rollout worker')
+        self.workers, self.timeout = list(workers), timeout
+
+    def run(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
+        thetas, taus = self._inputs(thetas, taus)
+        if len(self.workers) == 1:
+            return [self._one(self.workers[0], tau, theta) for theta, tau in zip(thetas, taus)]
+        free: queue.Queue = queue.Queue()
+        for worker in self.workers:
+            free.put(worker)
+
+        def one(i: int) -> RolloutResult:
+            worker = free.get()
+            try:
+                return self._one(worker, taus[i], thetas[i])
+            finally:
+                free.put(worker)
+        with ThreadPoolExecutor(max_workers=len(self.workers)) as pool:
+            return list(pool.map(one, range(len(thetas))))
+
+    def _one(self, worker: RolloutClient, tau: np.ndarray, theta: np.ndarray) -> RolloutResult:
+        result = worker.rollout(task_id(self.task), tau, theta, timeout=self.timeout)
+        if not result.success:
+            raise RuntimeError(f'rollout failed: {result.message}')
+        ev = result.evaluation
+        return RolloutResult(evaluation=RewardResult(
+            reward=ev.reward, fulfilled=ev.fulfilled,
+            components=dict(zip(ev.component_names, ev.component_values))))

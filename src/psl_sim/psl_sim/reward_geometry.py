@@ -1,0 +1,99 @@
+"""What the reward measures on the arm, written once as MuJoCo sensors, read in both modes.
+
+The geometric reward components need, per state of a rollout, the end-effector position and
+the smallest signed distance between the arm's geoms and the obstacles' (``reward.arm_geoms``,
+``reward.obstacle_geoms`` of the task). `RewardGeometry` defines them as sensors, appended
+after any sensors of the task's own model: one ``geomdist`` per (arm geom, obstacle geom) pair
+and one ``framepos`` of the end-effector site. Batch mode adds them to its rollout model
+(`add_sensors`) and `read`s what ``mujoco.rollout`` recorded; graph mode gets the same sensors
+evaluated on a kinematic replay of the measured joint angles (`replay`). Either way the
+numbers come from the same sensors of the same model at the same joint angles.
+Imports no ROS.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import mujoco
+import numpy as np
+
+from psl_sim.arm_model import ArmModel
+
+CUTOFF = 10.0    # m; distances beyond this read as the cutoff (no obstacle is that far)
+
+
+@dataclasses.dataclass(frozen=True)
+class Measurements:
+    """The reward's geometry along a population of rollouts."""
+
+    end_effector: np.ndarray        # (B, T, 3) end-effector position per state
+    distance: np.ndarray | None     # (B, T) smallest arm-obstacle signed distance; None when
+                                    # the task names no obstacle
+
+
+class RewardGeometry:
+    """The reward sensors of one task's arm (see the module docstring)."""
+
+    def __init__(self, arm: ArmModel):
+        self.arm = arm
+        reward = arm.task.reward
+        self.pairs = [(arm.geom(g1), arm.geom(g2)) for g1 in reward.arm_geoms
+                      for g2 in reward.obstacle_geoms]        # (arm geom id, obstacle geom id)
+        self.first = arm.model.nsensordata      # ours follow the model's own sensors
+        spec = mujoco.MjSpec.from_file(str(arm.task.model_path))
+        self.add_sensors(spec)
+        self.model = spec.compile()             # the arm's model with the reward sensors
+        self._data = mujoco.MjData(self.model)
+
+    def add_sensors(self, spec: mujoco.MjSpec) -> None:
+        """Append the reward sensors to a spec of the task's model (after its own sensors)."""
+        model = self.arm.model
+        for g1, g2 in self.pairs:
+            sensor = spec.add_sensor()
+            sensor.type = mujoco.mjtSensor.mjSENS_GEOMDIST
+            sensor.objtype = sensor.reftype = mujoco.mjtObj.mjOBJ_GEOM
+            sensor.objname, sensor.refname = model.geom(g1).name, model.geom(g2).name
+            sensor.cutoff = CUTOFF
+        sensor = spec.add_sensor()
+        sensor.type = mujoco.mjtSensor.mjSENS_FRAMEPOS
+        sensor.objtype = mujoco.mjtObj.mjOBJ_SITE
+        sensor.objname = self.arm.task.end_effector_site
+
+    def read(self, sensordata: np.ndarray) -> Measurements:
+        """The measurements in sensor data (B, T, nsensordata) of a model with the sensors."""
+        first, n_pairs = self.first, len(self.pairs)
+        distance = sensordata[:, :, first:first + n_pairs].min(axis=2) if n_pairs else None
+        return Measurements(end_effector=sensordata[:, :, first + n_pairs:first + n_pairs + 3],
+                            distance=distance)
+
+    def replay(self, q: np.ndarray, taus: np.ndarray) -> Measurements:
+        """The sensors on a kinematic replay: joint angles q (B, T, n) of rollouts on the task
+        instances taus (B, E). Only the task parameters that move things (mocap bodies) are
+        applied; the replay has its own data and changes nothing of the arm's simulation.
+
+        Raises:
+            ValueError: q not (B, T, n) or not finite; TaskError: a tau the task refuses.
+        """
+        q = np.asarray(q, dtype=float)
+        taus = np.atleast_2d(np.asarray(taus, dtype=float))
+        n = len(self.arm.joint_names)
+        if q.ndim != 3 or q.shape[2] != n or len(taus) != len(q):
+            raise ValueError(f'q {q.shape} must be (B, T, {n}) with one tau per rollout, got '
+                             f'{len(taus)}')
+        if not np.all(np.isfinite(q)):
+            raise ValueError('q must be finite')
+        model, data = self.model, self._data
+        sensordata = np.empty(q.shape[:2] + (model.nsensordata,))
+        for b, tau in enumerate(taus):
+            self.arm.move_bodies(self.arm.task.validate_tau(tau), data)
+            for k, qk in enumerate(q[b]):
+                data.qpos[self.arm.qpos_adr] = qk
+                mujoco.mj_fwdPosition(model, data)
+                mujoco.mj_sensorPos(model, data)
+                sensordata[b, k] = data.sensordata
+        return self.read(sensordata)
+
+    def end_effector_at(self, q: np.ndarray) -> np.ndarray:
+        """End-effector position (3,) at joint angles q (n,) (the task's default instance)."""
+        q = np.asarray(q, dtype=float)[None, None, :]
+        return self.replay(q, self.arm.task.tau_default[None]).end_effector[0, 0].copy()
