@@ -32,8 +32,9 @@ from typing import Callable
 import numpy as np
 
 from psl_memory.elm import ELMFeatures, RangeScaler
-from psl_memory.parameterized_skill import ParameterizedSkill, SkillConfig, scaler_around
-from psl_memory.readout import make_readout
+from psl_memory.parameterized_skill import ParameterizedSkill, scaler_around
+from psl_memory.registry import READOUTS
+from psl_memory.skill_config import SkillConfig
 
 SIZES = (10, 100, 1000, 10000)
 # (label, SkillConfig overrides): every readout with the node's defaults, and the Bayesian one
@@ -91,8 +92,7 @@ def measure_readouts(sizes=SIZES, n_hidden: int = 100, tau_dim: int = 2, theta_d
             if config.readout == 'ridge' and n > ridge_max_samples:
                 points.append({'n': n, 'skipped': f'N > ridge_max_samples = {ridge_max_samples}'})
                 continue
-            readout = make_readout(config.readout, n_hidden, theta_dim,
-                                   **config.readout_options())
+            readout = READOUTS[config.readout].from_config(n_hidden, theta_dim, config)
             if n > 1:
                 readout.update(hidden[:n - 1], data.targets[:n - 1])       # one chunk
             update = _timed(lambda i: readout.update(hidden[i], data.targets[i]),

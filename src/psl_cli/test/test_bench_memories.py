@@ -5,7 +5,8 @@ import pytest
 
 from psl_cli import bench_memories
 from psl_memory.elm import RangeScaler
-from psl_memory.parameterized_skill import ParameterizedSkill, SkillConfig, scaler_around
+from psl_memory.parameterized_skill import ParameterizedSkill, scaler_around
+from psl_memory.skill_config import SkillConfig
 
 
 @pytest.fixture(scope='module')

@@ -11,7 +11,7 @@ from matplotlib.image import imread
 
 from psl_cli.plot import (DPI, FIGSIZE, bayesian_stand_in, load_run, plot_runs,
                           variance_grid)
-from psl_memory.parameterized_skill import SkillConfig
+from psl_memory.skill_config import SkillConfig
 from psl_memory.skill_memory import SkillMemory
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.learning import Learner, LearnSettings

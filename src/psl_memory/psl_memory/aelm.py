@@ -27,28 +27,13 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import solve
 
-from psl_memory.associative_memory import AssociativeMemory
+from psl_memory.associative_memory import AssociativeMemory, modality_slices
 from psl_memory.elm import ELMFeatures, RangeScaler
 
 # Tag that separates the synthetic-noise streams from the ELM weight stream of the same seed.
 _NOISE_STREAM = 0x5E1F
 
 
-def modality_slices(modality_sizes: tuple[int, ...] | None, dim: int) -> list[slice]:
-    """Slices of v for each modality; None means one modality over all ``dim`` entries.
-
-    Raises:
-        ValueError: sizes that are not positive integers or do not add up to ``dim``.
-    """
-    if modality_sizes is None:
-        return [slice(0, dim)]
-    sizes = tuple(modality_sizes)
-    if not sizes or any(int(s) != s or s < 1 for s in sizes):
-        raise ValueError(f'modality_sizes must be positive integers, got {modality_sizes}')
-    if sum(sizes) != dim:
-        raise ValueError(f'modality_sizes {sizes} must add up to the pattern size {dim}')
-    bounds = np.cumsum((0,) + sizes)
-    return [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 class AELM(AssociativeMemory):
@@ -68,6 +53,13 @@ class AELM(AssociativeMemory):
     Raises:
         ValueError: invalid argument.
     """
+
+    @classmethod
+    def from_config(cls, scaler: RangeScaler, modality_sizes: tuple[int, int],
+                    config) -> 'AELM':
+        """The memory a `SkillConfig` asks for: at least 100 hidden neurons (the skill's N_H if larger)."""
+        return cls(scaler, n_hidden=max(config.n_hidden, 100), seed=config.seed,
+                   modality_sizes=modality_sizes)
 
     def __init__(self, scaler: RangeScaler, n_hidden: int = 200, seed: int = 0,
                  alpha: float = 1.0, regularization: float = 1e-3, n_synthetic: int = 20,

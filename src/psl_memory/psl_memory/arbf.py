@@ -16,8 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import solve
 
-from psl_memory.aelm import modality_slices
-from psl_memory.associative_memory import AssociativeMemory
+from psl_memory.associative_memory import AssociativeMemory, modality_slices
 from psl_memory.elm import RangeScaler
 
 
@@ -39,6 +38,12 @@ class ARBF(AssociativeMemory):
     Raises:
         ValueError: invalid argument.
     """
+
+    @classmethod
+    def from_config(cls, scaler: RangeScaler, modality_sizes: tuple[int, int],
+                    config) -> 'ARBF':
+        """The memory a `SkillConfig` asks for: one centre per sample."""
+        return cls(scaler, modality_sizes=modality_sizes)
 
     def __init__(self, scaler: RangeScaler, modality_sizes: tuple[int, ...] | None = None,
                  beta: tuple[float, ...] | None = None, width: float = 0.3,

@@ -21,6 +21,23 @@ import numpy as np
 from psl_memory.elm import RangeScaler
 
 
+def modality_slices(modality_sizes: tuple[int, ...] | None, dim: int) -> list[slice]:
+    """Slices of v for each modality; None means one modality over all ``dim`` entries.
+
+    Raises:
+        ValueError: sizes that are not positive integers or do not add up to ``dim``.
+    """
+    if modality_sizes is None:
+        return [slice(0, dim)]
+    sizes = tuple(modality_sizes)
+    if not sizes or any(int(s) != s or s < 1 for s in sizes):
+        raise ValueError(f'modality_sizes must be positive integers, got {modality_sizes}')
+    if sum(sizes) != dim:
+        raise ValueError(f'modality_sizes {sizes} must add up to the pattern size {dim}')
+    bounds = np.cumsum((0,) + sizes)
+    return [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
 @dataclass(frozen=True, eq=False)
 class CompletionResult:
     """Outcome of :meth:`AssociativeMemory.complete`.
@@ -94,6 +111,13 @@ class AssociativeMemory(ABC):
         return self.scaler.dim
 
     @property
+    @classmethod
+    @abstractmethod
+    def from_config(cls, scaler: RangeScaler, modality_sizes: tuple[int, int],
+                    config) -> 'AssociativeMemory':
+        """The memory a `psl_memory.skill_config.SkillConfig` asks for, over v = [tau, theta]
+        with the given ranges and modality sizes (E, F)."""
+
     @abstractmethod
     def num_patterns(self) -> int:
         """Number of stored training patterns."""

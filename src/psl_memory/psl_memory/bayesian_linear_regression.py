@@ -50,8 +50,8 @@ class BayesianLinearRegression(Readout):
     Args:
         n_hidden: hidden states N_H.
         n_out: outputs F.
-        alpha: prior precision (> 0); the initial value when `estimate` is True.
-        beta: noise precision 1 / sigma^2 (> 0); the initial value when `estimate` is True.
+        prior_precision: alpha (> 0); the initial value when `estimate` is True.
+        noise_precision: beta = 1 / sigma^2 (> 0); the initial value when `estimate` is True.
         estimate: re-estimate alpha and beta by evidence maximisation after every update.
         tolerance: relative change of alpha and beta that ends the evidence iteration.
         max_iterations: cap on evidence iterations per update (the last iterate is kept).
@@ -59,11 +59,12 @@ class BayesianLinearRegression(Readout):
 
     name = 'bayes'
 
-    def __init__(self, n_hidden: int, n_out: int, alpha: float = 1e-6, beta: float = 1.0,
-                 estimate: bool = False, *, tolerance: float = 1e-6, max_iterations: int = 100):
+    def __init__(self, n_hidden: int, n_out: int, prior_precision: float = 1e-6,
+                 noise_precision: float = 1.0, estimate: bool = False, *,
+                 tolerance: float = 1e-6, max_iterations: int = 100):
         super().__init__(n_hidden, n_out)
-        self.alpha = check_positive('alpha', alpha)
-        self.beta = check_positive('beta', beta)
+        self.alpha = check_positive('prior_precision', prior_precision)     # alpha of eq. 2.12
+        self.beta = check_positive('noise_precision', noise_precision)      # beta of eq. 2.12
         if not isinstance(estimate, (bool, np.bool_)):
             raise ValueError(f'estimate must be a bool, got {estimate!r}')
         self.estimate = bool(estimate)
@@ -77,10 +78,11 @@ class BayesianLinearRegression(Readout):
         self._yty = 0.0                                          # sum of squared targets
         self._w, self._chol = posterior(self._hth, self._hty, self.alpha, self.beta)
 
-    @property
-    def posterior_covariance_factor(self) -> np.ndarray:
-        """Lower Cholesky factor C (N_H, N_H) of S_N^{-1} = C C^T."""
-        return self._chol.copy()
+    @classmethod
+    def from_config(cls, n_hidden: int, n_out: int, config) -> 'BayesianLinearRegression':
+        """The readout a `SkillConfig` asks for: prior precision = its regularization."""
+        return cls(n_hidden, n_out, prior_precision=config.regularization,
+                   noise_precision=config.noise_precision, estimate=config.estimate_precisions)
 
     def predict_variance(self, h: np.ndarray) -> np.ndarray:
         """Predictive variance 1/beta + h^T S_N h (eq. 2.14): (F,) for h (N_H,), (n, F) for

@@ -83,6 +83,12 @@ class Hopfield(AssociativeMemory):
         ValueError: invalid argument.
     """
 
+    @classmethod
+    def from_config(cls, scaler: RangeScaler, modality_sizes: tuple[int, int],
+                    config) -> 'Hopfield':
+        """The memory a `SkillConfig` asks for: one thermometer code for all of v (no modalities)."""
+        return cls(scaler)
+
     def __init__(self, scaler: RangeScaler, bits: int = 16):
         super().__init__(scaler)
         if not float(bits).is_integer() or bits < 1:

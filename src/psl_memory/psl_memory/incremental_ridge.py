@@ -34,6 +34,11 @@ class IncrementalRidge(Readout):
 
     name = 'incremental_ridge'
 
+    @classmethod
+    def from_config(cls, n_hidden: int, n_out: int, config) -> 'IncrementalRidge':
+        """The readout a `SkillConfig` asks for."""
+        return cls(n_hidden, n_out, regularization=config.regularization)
+
     def __init__(self, n_hidden: int, n_out: int, regularization: float = 1e-6):
         super().__init__(n_hidden, n_out)
         self.regularization = check_positive('regularization', regularization)

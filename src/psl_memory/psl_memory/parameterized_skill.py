@@ -2,7 +2,8 @@
 
 `ParameterizedSkill` composes:
 - `ELMFeatures` on tau (fixed random hidden layer, eq. 2.2) and one of the readouts
-  (`make_readout`: ridge, rls, incremental_ridge, bayes) learning normalised theta from h(tau);
+  (`psl_memory.registry.READOUTS`: ridge, rls, incremental_ridge, bayes) learning normalised
+  theta from h(tau);
 - an associative memory over v = [tau, theta] (AELM, eq. 2.20-2.21, or ARBF, eq. 2.22; the
   baselines RBM, eq. 2.17-2.19, and Hopfield, eq. 2.15-2.16) that completes a partial pattern
   in either direction (tau -> theta, theta -> tau);
@@ -16,61 +17,15 @@ Imports no ROS.
 """
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 
-from psl_memory.aelm import AELM
-from psl_memory.arbf import ARBF
 from psl_memory.elm import ELMFeatures, RangeScaler
-from psl_memory.hopfield import Hopfield
-from psl_memory.rbm import RBM
-from psl_memory.readout import make_readout
+from psl_memory.registry import ASSOCIATIVE_MEMORIES, READOUTS
+from psl_memory.skill_config import SkillConfig
 
-READOUTS = ('ridge', 'rls', 'incremental_ridge', 'bayes')
 MAX_SPREADS = 1e6    # a sample this many ranges away from the skill is a units error
-ASSOCIATIVE = ('aelm', 'arbf')                  # the parameterized skill memories (PSM)
-BASELINE_ASSOCIATIVE = ('rbm', 'hopfield')      # textbook baselines, coarser completion
 
 
-@dataclasses.dataclass(frozen=True)
-class SkillConfig:
-    """Hyper-parameters of a skill (the skill_memory node's ROS parameters)."""
-
-    readout: str = 'bayes'
-    n_hidden: int = 100
-    regularization: float = 1e-3     # ridge factor; the Bayesian prior precision alpha
-    forgetting: float = 1.0          # RLS only, 0 < lambda <= 1
-    seed: int = 0
-    alpha: float = 1.0               # slope of the hidden sigmoid
-    # aelm: O(1) per sample; arbf: one centre per sample; rbm, hopfield: baselines
-    # (docs/benchmarks.md, psl bench memories)
-    associative: str = 'aelm'
-    # bayes: evidence maximisation of alpha and beta. Off by default: with few samples it
-    # shrinks PS towards the default policy (docs/benchmarks.md, psl bench learn)
-    estimate_precisions: bool = False
-    noise_precision: float = 1.0     # bayes: beta (the initial value when estimated)
-    completion_tolerance: float = 1e-6    # recall stops when no entry moves more (normalised)
-    completion_max_iterations: int = 200
-
-    def __post_init__(self):
-        if self.readout not in READOUTS:
-            raise ValueError(f'unknown readout {self.readout!r}; known: {", ".join(READOUTS)}')
-        if self.associative not in ASSOCIATIVE + BASELINE_ASSOCIATIVE:
-            raise ValueError(f'unknown associative memory {self.associative!r}; known: '
-                             f'{", ".join(ASSOCIATIVE + BASELINE_ASSOCIATIVE)}')
-        if not 0.0 < self.forgetting <= 1.0:
-            raise ValueError(f'forgetting must be in (0, 1], got {self.forgetting}')
-        if int(self.n_hidden) < 1:
-            raise ValueError('n_hidden must be >= 1')
-
-    def readout_options(self) -> dict:
-        if self.readout == 'rls':
-            return {'forgetting': self.forgetting, 'regularization': self.regularization}
-        if self.readout == 'bayes':
-            return {'alpha': self.regularization, 'beta': self.noise_precision,
-                    'estimate': self.estimate_precisions}
-        return {'regularization': self.regularization}
 
 
 def scaler_around(reference: np.ndarray) -> RangeScaler:
@@ -88,20 +43,12 @@ class ParameterizedSkill:
         self.name, self.config = name, config
         self.tau_scaler, self.theta_scaler = tau_scaler, theta_scaler
         self.features = ELMFeatures(tau_scaler, config.n_hidden, config.seed, config.alpha)
-        self.readout = make_readout(config.readout, config.n_hidden, theta_scaler.dim,
-                                    **config.readout_options())
+        self.readout = READOUTS[config.readout].from_config(config.n_hidden, theta_scaler.dim,
+                                                            config)
         v_scaler = RangeScaler(np.r_[tau_scaler.low, theta_scaler.low],
                                np.r_[tau_scaler.high, theta_scaler.high])
-        sizes = (tau_scaler.dim, theta_scaler.dim)
-        if config.associative == 'aelm':
-            self.associative = AELM(v_scaler, n_hidden=max(config.n_hidden, 100),
-                                    seed=config.seed, modality_sizes=sizes)
-        elif config.associative == 'arbf':
-            self.associative = ARBF(v_scaler, modality_sizes=sizes)
-        elif config.associative == 'rbm':
-            self.associative = RBM(v_scaler, seed=config.seed, modality_sizes=sizes)
-        else:
-            self.associative = Hopfield(v_scaler)
+        self.associative = ASSOCIATIVE_MEMORIES[config.associative].from_config(
+            v_scaler, (tau_scaler.dim, theta_scaler.dim), config)
         self._taus: list[np.ndarray] = []               # N x (E,)
         self._thetas: list[np.ndarray] = []             # N x (F,)
 

@@ -33,8 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from psl_memory.aelm import modality_slices
-from psl_memory.associative_memory import AssociativeMemory
+from psl_memory.associative_memory import AssociativeMemory, modality_slices
 from psl_memory.elm import RangeScaler
 
 # Tags that separate the random streams of one seed: initial weights, CD training.
@@ -73,6 +72,12 @@ class RBM(AssociativeMemory):
     Raises:
         ValueError: invalid argument.
     """
+
+    @classmethod
+    def from_config(cls, scaler: RangeScaler, modality_sizes: tuple[int, int],
+                    config) -> 'RBM':
+        """The memory a `SkillConfig` asks for: the skill's seed."""
+        return cls(scaler, seed=config.seed, modality_sizes=modality_sizes)
 
     def __init__(self, scaler: RangeScaler, n_hidden: int = 64, seed: int = 0,
                  cd_steps: int = 1, epochs_per_add: int = 400, rate: float = 0.05,

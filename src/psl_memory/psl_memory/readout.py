@@ -13,7 +13,8 @@ Every readout learns the weights ``W`` (N_H, F) that map hidden states ``h`` (N_
   such a file are accepted where a scalar is expected).
 
 The implementations (batch ridge, recursive least squares, incremental ridge, Bayesian linear
-regression) live in their own modules; `make_readout` builds one by name. Imports no ROS.
+regression) live in their own modules, each with ``from_config`` (the readout a `SkillConfig`
+asks for); `psl_memory.registry.READOUTS` names them. Imports no ROS.
 """
 from __future__ import annotations
 
@@ -48,6 +49,11 @@ class Readout(abc.ABC):
     """
 
     name: ClassVar[str]
+
+    @classmethod
+    @abc.abstractmethod
+    def from_config(cls, n_hidden: int, n_out: int, config) -> 'Readout':
+        """The readout with the hyper-parameters of a `psl_memory.skill_config.SkillConfig`."""
 
     def __init__(self, n_hidden: int, n_out: int):
         self.n_hidden = _check_size('n_hidden', n_hidden)
@@ -220,30 +226,3 @@ def _check_size(name: str, value: int) -> int:
             or value < 1:
         raise ValueError(f'{name} must be an integer >= 1, got {value!r}')
     return int(value)
-
-
-# ---------------------------------------------------------------------- factory
-def readout_classes() -> dict[str, type[Readout]]:
-    """Readout name -> class for every implementation."""
-    from psl_memory.bayesian_linear_regression import BayesianLinearRegression
-    from psl_memory.incremental_ridge import IncrementalRidge
-    from psl_memory.recursive_least_squares import RecursiveLeastSquares
-    from psl_memory.ridge_regression import RidgeReadout
-    classes = (RidgeReadout, RecursiveLeastSquares, IncrementalRidge, BayesianLinearRegression)
-    return {cls.name: cls for cls in classes}
-
-
-def make_readout(name: str, n_hidden: int, n_out: int, **options: Any) -> Readout:
-    """Build the readout called `name` ('ridge', 'rls', 'incremental_ridge', 'bayes').
-
-    `options` are the keyword arguments of that readout's constructor (e.g. ``regularization``,
-    ``forgetting``, ``alpha``); an option it does not take raises TypeError.
-
-    Raises:
-        ValueError: unknown name, or an invalid option value.
-        TypeError: an option the readout does not take.
-    """
-    classes = readout_classes()
-    if name not in classes:
-        raise ValueError(f'unknown readout {name!r}; known: {", ".join(sorted(classes))}')
-    return classes[name](n_hidden, n_out, **options)

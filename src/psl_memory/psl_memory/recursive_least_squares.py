@@ -34,6 +34,12 @@ class RecursiveLeastSquares(Readout):
 
     name = 'rls'
 
+    @classmethod
+    def from_config(cls, n_hidden: int, n_out: int, config) -> 'RecursiveLeastSquares':
+        """The readout a `SkillConfig` asks for."""
+        return cls(n_hidden, n_out, forgetting=config.forgetting,
+                   regularization=config.regularization)
+
     def __init__(self, n_hidden: int, n_out: int, forgetting: float = 1.0,
                  regularization: float = 1e-6):
         super().__init__(n_hidden, n_out)

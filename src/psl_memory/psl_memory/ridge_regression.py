@@ -42,6 +42,11 @@ class RidgeReadout(Readout):
 
     name = 'ridge'
 
+    @classmethod
+    def from_config(cls, n_hidden: int, n_out: int, config) -> 'RidgeReadout':
+        """The readout a `SkillConfig` asks for."""
+        return cls(n_hidden, n_out, regularization=config.regularization)
+
     def __init__(self, n_hidden: int, n_out: int, regularization: float = 1e-6):
         super().__init__(n_hidden, n_out)
         self.regularization = check_positive('regularization', regularization)

@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from psl_memory.elm import RangeScaler
-from psl_memory.parameterized_skill import ParameterizedSkill, SkillConfig, scaler_around
+from psl_memory.parameterized_skill import ParameterizedSkill, scaler_around
+from psl_memory.skill_config import SkillConfig
 
 FORMAT = 'psl-skill-memory'
 VERSION = 1

@@ -25,7 +25,7 @@ from std_srvs.srv import Trigger
 
 from psl_msgs.srv import (AddSample, CompletePattern, CreateSkill, LoadMemory, QuerySkill,
                           SaveMemory)
-from psl_memory.parameterized_skill import SkillConfig
+from psl_memory.skill_config import SkillConfig
 from psl_memory.skill_memory import MemoryFileError, SkillMemory
 from psl_ros.node_main import run_node
 

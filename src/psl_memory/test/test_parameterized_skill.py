@@ -27,8 +27,9 @@ import pytest
 
 import psl_memory
 from psl_memory.elm import RangeScaler
-from psl_memory.parameterized_skill import (ASSOCIATIVE, READOUTS, ParameterizedSkill,
-                                            SkillConfig, scaler_around)
+from psl_memory.parameterized_skill import ParameterizedSkill, scaler_around
+from psl_memory.registry import ASSOCIATIVE, READOUTS
+from psl_memory.skill_config import SkillConfig
 from psl_memory.skill_memory import FORMAT, VERSION, MemoryFileError, SkillMemory
 
 # -- tolerances (measured values with the data above, seeds fixed) ----------------------------
@@ -658,3 +659,40 @@ def test_every_accepted_sample_survives_save_and_read(tmp_path):
     memory.save(tmp_path / 'memory.npz')
     loaded = SkillMemory.read(tmp_path / 'memory.npz')
     assert answers(loaded) == answers(memory)
+
+
+# -- the registries and create --------------------------------------------------------------------
+def test_every_registered_part_is_built_from_the_config():
+    from psl_memory.registry import ASSOCIATIVE_MEMORIES
+    config = SkillConfig(regularization=0.25, forgetting=0.9, noise_precision=3.0, seed=7,
+                         n_hidden=120)
+    for name, cls in READOUTS.items():
+        readout = cls.from_config(config.n_hidden, 5, config)
+        assert isinstance(readout, cls) and readout.name == name
+        assert (readout.n_hidden, readout.n_out) == (120, 5)
+    bayes = READOUTS['bayes'].from_config(10, 2, config)
+    assert (bayes.alpha, bayes.beta) == (0.25, 3.0)          # prior precision = regularization
+    scaler = RangeScaler(-np.ones(4), np.ones(4))
+    for name, cls in ASSOCIATIVE_MEMORIES.items():
+        memory = cls.from_config(scaler, (1, 3), config)
+        assert isinstance(memory, cls) and memory.num_patterns == 0
+    assert ASSOCIATIVE_MEMORIES['aelm'].from_config(scaler, (1, 3), config).features.n_hidden == 120
+    small = SkillConfig(n_hidden=20)
+    assert ASSOCIATIVE_MEMORIES['aelm'].from_config(scaler, (1, 3), small).features.n_hidden \
+        == 100
+
+
+def test_create_keeps_a_skill_of_the_same_sizes_and_refuses_others():
+    memory = SkillMemory(SkillConfig())
+    skill = memory.create('reach', [0.0, 0.0], [1.0, 1.0], np.ones(6))
+    skill.add([0.5, 0.5], np.ones(6))
+    with pytest.raises(ValueError, match='exists already'):
+        memory.create('reach', [0.0, 0.0], [1.0, 1.0], np.ones(6))
+    assert memory.create('reach', [0.0, 0.0], [1.0, 1.0], np.ones(6), exist_ok=True) is skill
+    assert memory.get('reach').num_samples == 1
+    with pytest.raises(ValueError, match='exists with 2 task and 6 policy parameters'):
+        memory.create('reach', [0.0], [1.0], np.ones(6), exist_ok=True)
+    for bad in (('', [0.0], [1.0], [0.0]), ('x', [], [], [0.0]), ('x', [0.0], [1.0], [])):
+        with pytest.raises(ValueError):
+            memory.create(*bad)
+    assert list(memory.skills) == ['reach']

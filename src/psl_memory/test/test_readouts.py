@@ -11,7 +11,8 @@ import pytest
 from psl_memory.bayesian_linear_regression import BayesianLinearRegression
 from psl_memory.elm import ELMFeatures, RangeScaler
 from psl_memory.incremental_ridge import IncrementalRidge
-from psl_memory.readout import Readout, make_readout
+from psl_memory.readout import Readout
+from psl_memory.registry import make_readout
 from psl_memory.recursive_least_squares import RecursiveLeastSquares
 from psl_memory.ridge_regression import RidgeReadout
 
@@ -52,7 +53,8 @@ def data(features):
 def readout(name: str, **options) -> Readout:
     """Readout `name` whose solution is ridge with REGULARIZATION (bayes: alpha / beta = g)."""
     if name == 'bayes':
-        return make_readout(name, N_HIDDEN, N_OUT, alpha=REGULARIZATION, beta=1.0, **options)
+        return make_readout(name, N_HIDDEN, N_OUT, prior_precision=REGULARIZATION,
+                            noise_precision=1.0, **options)
     return make_readout(name, N_HIDDEN, N_OUT, regularization=REGULARIZATION, **options)
 
 
@@ -137,7 +139,7 @@ def test_rls_with_forgetting_equals_exponentially_weighted_ridge(data):
 def test_bayes_mean_is_ridge_with_alpha_over_beta(data):
     hs, ys, queries = data
     alpha, beta = 0.05, 20.0
-    bayes = BayesianLinearRegression(N_HIDDEN, N_OUT, alpha=alpha, beta=beta)
+    bayes = BayesianLinearRegression(N_HIDDEN, N_OUT, prior_precision=alpha, noise_precision=beta)
     bayes.update(hs, ys)
     ridge = RidgeReadout(N_HIDDEN, N_OUT, regularization=alpha / beta)
     ridge.update(hs, ys)
@@ -148,7 +150,7 @@ def test_bayes_mean_is_ridge_with_alpha_over_beta(data):
 def test_bayes_predictive_variance_matches_explicit_posterior(data):
     hs, ys, queries = data
     alpha, beta = 0.05, 20.0
-    bayes = BayesianLinearRegression(N_HIDDEN, N_OUT, alpha=alpha, beta=beta)
+    bayes = BayesianLinearRegression(N_HIDDEN, N_OUT, prior_precision=alpha, noise_precision=beta)
     for part in random_chunks(N_SAMPLES, np.random.default_rng(3)):
         bayes.update(hs[part], ys[part])
     s_n = np.linalg.inv(alpha * np.eye(N_HIDDEN) + beta * hs.T @ hs)     # (N_H, N_H) eq. 2.12
@@ -168,7 +170,7 @@ def test_bayes_variance_is_smallest_near_training_inputs():
     """1-D task parameter in [-2, 2], trained on tau in [-0.5, 0.5]."""
     feats = ELMFeatures(RangeScaler([-2.0], [2.0]), N_HIDDEN, seed=5)
     tau = np.linspace(-0.5, 0.5, 30)[:, None]                            # (30, 1)
-    bayes = BayesianLinearRegression(N_HIDDEN, 1, alpha=1e-2, beta=100.0)
+    bayes = BayesianLinearRegression(N_HIDDEN, 1, prior_precision=1e-2, noise_precision=100.0)
     bayes.update(feats.transform(tau), np.sin(3.0 * tau))
     on_data = bayes.predict_variance(feats.transform(tau))[:, 0]        # (30,)
     outward = np.linspace(0.5, 2.0, 16)
@@ -187,7 +189,7 @@ def test_evidence_maximisation_recovers_noise_precision(features, feed):
     clean = np.column_stack([np.sin(2.0 * tau[:, 0]), tau[:, 1]**2, tau[:, 0] * tau[:, 1]])
     ys = clean + NOISE_STD * rng.normal(size=clean.shape)                # (n, 3)
     hs = features.transform(tau)
-    bayes = BayesianLinearRegression(N_HIDDEN, 3, alpha=1e-6, beta=1.0, estimate=True)
+    bayes = BayesianLinearRegression(N_HIDDEN, 3, prior_precision=1e-6, noise_precision=1.0, estimate=True)
     parts = ([slice(i, i + 1) for i in range(n)] if feed == 'one_by_one'
              else random_chunks(n, np.random.default_rng(4)))
     for part in parts:
@@ -222,7 +224,7 @@ def test_evidence_estimate_is_a_fixed_point_of_the_reestimation(features):
 
 
 def test_evidence_maximisation_keeps_priors_for_a_single_sample(features):
-    bayes = BayesianLinearRegression(N_HIDDEN, 3, alpha=0.5, beta=2.0, estimate=True)
+    bayes = BayesianLinearRegression(N_HIDDEN, 3, prior_precision=0.5, noise_precision=2.0, estimate=True)
     bayes.update(features.transform(np.array([0.1, 0.2])), np.array([1.0, -1.0, 0.5]))
     assert (bayes.alpha, bayes.beta) == (0.5, 2.0)
 
@@ -360,6 +362,7 @@ def test_factory_names_and_classes():
     ('incremental_ridge', {'alpha': 1.0}),
     ('rls', {'estimate': True}),
     ('bayes', {'regularization': 1e-3}),
+    ('bayes', {'alpha': 1e-3}),          # the precisions have their names, not the symbols
 ])
 def test_factory_rejects_unknown_options(name, options):
     with pytest.raises(TypeError):
@@ -373,8 +376,8 @@ def test_factory_rejects_unknown_options(name, options):
     ('rls', {'forgetting': 0.0}),
     ('rls', {'forgetting': 1.01}),
     ('rls', {'regularization': np.inf}),
-    ('bayes', {'alpha': 0.0}),
-    ('bayes', {'beta': -2.0}),
+    ('bayes', {'prior_precision': 0.0}),
+    ('bayes', {'noise_precision': -2.0}),
     ('bayes', {'estimate': 'yes'}),
     ('bayes', {'max_iterations': 0}),
 ])

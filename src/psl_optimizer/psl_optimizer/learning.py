@@ -30,7 +30,8 @@ import numpy as np
 
 from psl_controller.pd_law import law_for
 from psl_controller.policy import policy_for
-from psl_memory.parameterized_skill import SkillConfig, scaler_around
+from psl_memory.parameterized_skill import scaler_around
+from psl_memory.skill_config import SkillConfig
 from psl_memory.skill_memory import SkillMemory
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.ilc import ILCSettings, ilc_search
