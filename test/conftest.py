@@ -14,7 +14,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from psl_cli.graph import Graph, pid_alive  # noqa: E402
+from psl_ros.graph import Graph, pid_alive  # noqa: E402
 from psl_ros.client import RosClient, evaluation_dict  # noqa: E402
 
 # graph mode against batch mode: the same law on the same states, only the order of the

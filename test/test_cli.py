@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from psl_cli.graph import NODES, pid_alive
+from psl_ros.graph import NODES, pid_alive
 
 PSL = [sys.executable, '-m', 'psl_cli.main']
 
@@ -60,6 +60,12 @@ def test_up_serves_rollouts_and_ends_its_processes_on_sigterm(tmp_path):
         assert out.returncode == 0, out.stderr
         evaluation = json.loads(out.stdout)
         assert evaluation['fulfilled'] and evaluation['components']['goal_error'] < 0.005
+        # psl up created the task's skill in the memory (which knows no tasks)
+        query = subprocess.run(PSL + ['query', '--skill', 'reach_over_obstacle', '--tau', '0.6',
+                                      '0.2', '--json'], capture_output=True, text=True,
+                               timeout=60)
+        assert query.returncode == 0, query.stderr
+        assert len(json.loads(query.stdout)['theta']) == 24
         bad = subprocess.run(PSL + ['rollout', '--task', 'nope'], capture_output=True,
                              text=True, timeout=60)
         assert bad.returncode == 2 and 'unknown task' in bad.stderr

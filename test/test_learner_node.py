@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from psl_cli.graph import NODES, Graph, pid_alive
+from psl_ros.graph import NODES, Graph, pid_alive
 from psl_ros.client import RosClient
 from psl_controller.policy import policy_for
 from psl_memory.skill_memory import SkillMemory
@@ -41,7 +41,7 @@ def settings(strategy: str, num_tasks: int, budget: int, seed: int) -> LearnSett
 
 
 def in_process(s: LearnSettings, out) -> dict:
-    return Learner(load_task(TASK), s, out).run()
+    return Learner(load_task(TASK), s, out).run().to_dict()
 
 
 def without_time(records):

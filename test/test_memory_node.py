@@ -8,7 +8,7 @@ import threading
 import numpy as np
 import pytest
 
-from psl_cli.graph import Graph, pid_alive
+from psl_ros.graph import Graph, pid_alive
 from psl_ros.client import RosClient
 
 MEMORY_NODE = (('skill_memory', 'psl_memory', 'skill_memory'),)

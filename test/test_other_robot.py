@@ -133,7 +133,7 @@ def test_the_graph_refuses_a_task_of_another_robot(client, task):
 
 
 def test_a_short_learning_session_improves_over_the_demonstration(task, batch, tmp_path):
-    metrics = Learner(task, LEARN, tmp_path, batch).run()
+    metrics = Learner(task, LEARN, tmp_path, batch).run().to_dict()
     assert metrics['complete']
     assert all(record['fulfilled'] for record in metrics['tasks'])
     summary = metrics['summary']

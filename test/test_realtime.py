@@ -5,7 +5,7 @@ import time
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 
-from psl_cli.graph import Graph, pid_alive
+from psl_ros.graph import Graph, pid_alive
 from psl_ros.client import RosClient
 from psl_controller.policy import policy_for
 from psl_sim.task import load_task

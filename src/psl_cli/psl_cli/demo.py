@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from psl_cli.graph import Graph
+from psl_ros.graph import Graph
 from psl_controller.policy import policy_for
 from psl_ros import names
 from psl_ros.bag_recorder import read_bag_summary, record

@@ -11,25 +11,32 @@ from pathlib import Path
 
 import numpy as np
 
+from psl_optimizer.policy_search import STRATEGIES
+from psl_optimizer.rollouts import MODES
+from psl_optimizer.task_selection import TASK_SELECTIONS
+from psl_ros.graph import SIM_MODES
 
-def _load_theta(path: str | None, task) -> np.ndarray:
-    from psl_controller.policy import policy_for
 
-    if path is None:
-        return policy_for(task).default_theta
+def load_vector(path: str | Path) -> np.ndarray:
+    """A flat vector (theta) from a .npy, a .json list or a whitespace-separated text file.
+
+    Raises:
+        OSError: the file cannot be read; ValueError: it holds no numbers.
+    """
     file = Path(path)
     if file.suffix == '.npy':
-        return np.load(file).ravel()
+        return np.load(file, allow_pickle=False).ravel().astype(float)
     if file.suffix == '.json':
         return np.asarray(json.loads(file.read_text()), dtype=float).ravel()
     return np.loadtxt(file, ndmin=1).ravel()
 
 
 def cmd_up(args) -> int:
-    from psl_cli.graph import Graph
+    from psl_ros.graph import Graph
 
     graph = Graph(task=args.task, mode=args.mode, namespace=args.namespace,
                   workers=args.workers)
+    names = {name for name, *_ in graph.nodes_spec}
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -40,7 +47,9 @@ def cmd_up(args) -> int:
         print(f'logs in {graph.log_dir}; Ctrl-C ends the graph', flush=True)
         try:
             graph.wait_ready(timeout=60, stop=stop)
-        except RuntimeError as exc:
+            if 'skill_memory' in names and not stop.is_set():
+                print(create_task_skill(args.task, graph.namespace), flush=True)
+        except (RuntimeError, TimeoutError) as exc:
             print(exc, file=sys.stderr)
             return 1
         if not stop.is_set():
@@ -56,6 +65,25 @@ def cmd_up(args) -> int:
         print('graph ended', flush=True)
 
 
+def create_task_skill(task_name: str, namespace: str = '', timeout: float = 30.0) -> str:
+    """Create the task's skill in the graph's skill memory (tau ranges and default policy from
+    the task; kept as it is if it exists): the memory knows no tasks. Returns its answer;
+    RuntimeError if it refuses, TimeoutError if it does not answer."""
+    from psl_controller.policy import policy_for
+    from psl_ros.client import RosClient
+    from psl_sim.task import load_task
+
+    task = load_task(task_name)
+    with RosClient(namespace) as client:
+        response = client.memory('create_skill', timeout=timeout, skill=task.name,
+                                 tau_low=task.tau_low.tolist(), tau_high=task.tau_high.tolist(),
+                                 theta_reference=policy_for(task).default_theta.tolist())
+    if not response.success:
+        raise RuntimeError(f'the skill memory did not create the skill of task {task.name!r}: '
+                           f'{response.message}')
+    return response.message
+
+
 def format_evaluation(ev: dict) -> str:
     lines = [f"reward {ev['reward']:.4f}  fulfilled {ev['fulfilled']}  "
              f"steps {ev['num_steps']}  tracking error {ev['tracking_error']:.4f} rad"]
@@ -64,13 +92,15 @@ def format_evaluation(ev: dict) -> str:
 
 
 def cmd_rollout(args) -> int:
+    from psl_controller.policy import policy_for
     from psl_ros.client import RosClient, evaluation_dict
     from psl_sim.task import TaskError, load_task, task_id
 
     try:
         task = load_task(args.task)
         tau = task.tau_default if args.tau is None else task.validate_tau(args.tau)
-        theta = _load_theta(args.theta_file, task)
+        theta = (policy_for(task).default_theta if args.theta_file is None
+                 else load_vector(args.theta_file))
     except (TaskError, OSError, ValueError) as exc:
         print(f'psl rollout: {exc}', file=sys.stderr)
         return 2
@@ -101,8 +131,16 @@ def cmd_memory(args) -> int:
     if action == 'query':
         service, fields = 'query', {'skill': args.skill, 'tau': _floats(args.tau)}
     elif action == 'add':
+        if (args.theta is None) == (args.theta_file is None):
+            print('psl memory add: give --theta or --theta-file', file=sys.stderr)
+            return 2
+        try:
+            theta = args.theta if args.theta is not None else load_vector(args.theta_file)
+        except (OSError, ValueError) as exc:
+            print(f'psl memory add: {exc}', file=sys.stderr)
+            return 2
         service, fields = 'add_sample', {'skill': args.skill, 'tau': _floats(args.tau),
-                                         'theta': _floats(_load_values(args))}
+                                         'theta': _floats(theta)}
     elif action == 'complete':
         pattern = _floats(args.pattern)
         known = [c == '1' for c in args.known]
@@ -139,29 +177,11 @@ def cmd_memory(args) -> int:
     return 0
 
 
-def _load_values(args) -> list[float]:
-    if args.theta is not None:
-        return args.theta
-    if args.theta_file is not None:
-        file = Path(args.theta_file)
-        if file.suffix == '.npy':
-            return np.load(file).ravel().tolist()
-        if file.suffix == '.json':
-            return np.asarray(json.loads(file.read_text()), dtype=float).ravel().tolist()
-        return np.loadtxt(file, ndmin=1).ravel().tolist()
-    raise ValueError('give --theta or --theta-file')
-
-
 def cmd_learn(args) -> int:
     """psl learn: one learning session, resumable from its output folder. Batch mode runs
     in this process; graph mode sends the session to the running graph's learner node."""
-    from psl_optimizer.policy_search import STRATEGIES
     from psl_sim.task import TaskError, load_task
 
-    if args.strategy not in STRATEGIES:
-        print(f'psl learn: unknown strategy {args.strategy!r}; known: {", ".join(STRATEGIES)}',
-              file=sys.stderr)
-        return 2
     try:
         task = load_task(args.task)
     except TaskError as exc:
@@ -179,6 +199,7 @@ def cmd_learn(args) -> int:
 
 def _progress_line(args, index: int, rollouts: int, best: float, fulfilled: bool,
                    final: bool) -> None:
+    """One line per task, redrawn while it is searched."""
     done = index + 1 if final else index
     bar = '#' * int(30 * done / args.tasks)
     state = 'fulfilled' if fulfilled else ('NOT fulfilled' if final else 'searching')
@@ -187,17 +208,17 @@ def _progress_line(args, index: int, rollouts: int, best: float, fulfilled: bool
           flush=True)
 
 
-def _print_summary(args, metrics: dict, out: Path) -> None:
+def _print_summary(args, metrics, out: Path) -> None:
     print()
-    if 'summary' in metrics:
-        s = metrics['summary']
-        print(f"{s['total_rollouts']} rollouts over {args.tasks} tasks; held-out zero-shot "
-              f"success {100 * s['zero_shot_success_rate']:.0f} % (mean reward "
-              f"{s['zero_shot_mean_reward']:.3f}); metrics in {out / 'metrics.json'}")
-        if 'tracking_rmse_learned_mean' in s:       # a task with feed-forward
-            print(f"held-out tracking RMSE: PD only {s['tracking_rmse_pd_only_mean']:.4f}, "
-                  f"learned {s['tracking_rmse_learned_mean']:.4f}, oracle "
-                  f"{s['tracking_rmse_oracle_mean']:.4f} rad")
+    s = metrics.summary
+    if s is not None:
+        print(f"{s.total_rollouts} rollouts over {args.tasks} tasks; held-out zero-shot "
+              f"success {100 * s.zero_shot_success_rate:.0f} % (mean reward "
+              f"{s.zero_shot_mean_reward:.3f}); metrics in {out / 'metrics.json'}")
+        if s.tracking_rmse_mean is not None:       # a task with feed-forward
+            m = s.tracking_rmse_mean
+            print(f"held-out tracking RMSE: PD only {m['pd_only']:.4f}, learned "
+                  f"{m['learned']:.4f}, oracle {m['oracle']:.4f} rad")
 
 
 def _learn_in_process(args, task, out: Path, stop: threading.Event) -> int:
@@ -208,17 +229,17 @@ def _learn_in_process(args, task, out: Path, stop: threading.Event) -> int:
                              num_test=args.test_tasks, task_selection=args.task_selection,
                              search=SearchSettings(max_rollouts=args.budget))
 
-    def progress(record: dict) -> None:
-        _progress_line(args, record['index'], record['rollouts'], record['best_reward'],
-                       record['fulfilled'], final=True)
+    def progress(record) -> None:
+        _progress_line(args, record.index, record.rollouts, record.best_reward,
+                       record.fulfilled, final=True)
 
     try:
         metrics = Learner(task, settings, out).run(progress=progress, should_stop=stop.is_set)
     except ValueError as exc:
         print(f'\npsl learn: {exc}', file=sys.stderr)
         return 2
-    if not metrics['complete']:
-        print(f"\npsl learn: stopped after {len(metrics['tasks'])} of {args.tasks} tasks; the "
+    if not metrics.complete:
+        print(f"\npsl learn: stopped after {len(metrics.tasks)} of {args.tasks} tasks; the "
               f'same command resumes from {out}', file=sys.stderr)
         return 130
     _print_summary(args, metrics, out)
@@ -226,6 +247,7 @@ def _learn_in_process(args, task, out: Path, stop: threading.Event) -> int:
 
 
 def _learn_in_graph(args, task, out: Path, stop: threading.Event) -> int:
+    from psl_optimizer.metrics import read_metrics
     from psl_ros.client import RosClient
     from psl_sim.task import task_id
 
@@ -254,7 +276,7 @@ def _learn_in_graph(args, task, out: Path, stop: threading.Event) -> int:
     if not result.success:
         print(f'\npsl learn: {result.message}', file=sys.stderr)
         return 1
-    _print_summary(args, json.loads(Path(result.metrics_path).read_text()), out)
+    _print_summary(args, read_metrics(Path(result.metrics_path).parent), out)
     return 0
 
 
@@ -262,14 +284,15 @@ def cmd_plot(args) -> int:
     """psl plot DIR...: rollouts per task, reward over tau, predictive variance over tau; for a
     task with feed-forward also commanded vs executed joints and the torques (PD only,
     learned, oracle) on a held-out instance."""
-    from psl_cli.plot import plot_runs
+    from psl_bench.plot_dynamics import plot_dynamics
+    from psl_bench.plot_learning import plot_runs
+    from psl_optimizer.metrics import read_metrics
 
     out = Path(args.out) if args.out else Path(args.dirs[0]) / 'learning.png'
     try:
         print(plot_runs(args.dirs, out))
-        if 'tracking_rmse_learned_mean' in json.loads(
-                (Path(args.dirs[0]) / 'metrics.json').read_text()).get('summary', {}):
-            from psl_cli.plot_dynamics import plot_dynamics   # a task with feed-forward
+        summary = read_metrics(args.dirs[0]).summary
+        if summary is not None and summary.tracking_rmse is not None:   # with feed-forward
             print(plot_dynamics(args.dirs[0], out.with_name(out.stem + '_dynamics.png')))
     except (ValueError, OSError) as exc:
         print(f'psl plot: {exc}', file=sys.stderr)
@@ -297,9 +320,9 @@ def cmd_demo(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from psl_cli import bench
+    from psl_cli import bench_commands
 
-    return bench.main(args)
+    return bench_commands.run(args)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -308,7 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     up = sub.add_parser('up', help='start the node graph; Ctrl-C ends it')
     up.add_argument('--task', default='reach_over_obstacle')
-    up.add_argument('--mode', choices=('lockstep', 'realtime'), default='lockstep')
+    up.add_argument('--mode', choices=SIM_MODES, default=SIM_MODES[0])
     up.add_argument('--namespace', default='')
     up.add_argument('--workers', type=int, default=0,
                     help='N rollout workers (sim, controller, executor, evaluator) under '
@@ -357,17 +380,16 @@ def build_parser() -> argparse.ArgumentParser:
     learn = sub.add_parser('learn', help='learn a skill over random task instances (resumes '
                            'from the checkpoint in --out)')
     learn.add_argument('--task', default='reach_over_obstacle')
-    learn.add_argument('--strategy', default='bootstrap',
-                       help='scratch | bootstrap | bootstrap_cost | hybrid')
+    learn.add_argument('--strategy', choices=STRATEGIES, default='bootstrap')
     learn.add_argument('--tasks', type=int, default=30)
     learn.add_argument('--budget', type=int, default=200, help='rollouts per task at most')
     learn.add_argument('--seed', type=int, default=0)
     learn.add_argument('--test-tasks', type=int, default=20)
     learn.add_argument('--out', help='output folder (default runs/TASK-STRATEGY-seedK)')
-    learn.add_argument('--mode', choices=('batch', 'graph'), default='batch',
+    learn.add_argument('--mode', choices=MODES, default=MODES[0],
                        help='batch: rollouts in this process with mujoco.rollout (fast); graph: '
                        "the running graph's learner node, rollouts through execute_rollout")
-    learn.add_argument('--task-selection', choices=('random', 'variance'), default='random',
+    learn.add_argument('--task-selection', choices=TASK_SELECTIONS, default=TASK_SELECTIONS[0],
                        help='next instance: random, or the most uncertain of 20 candidates '
                        "(the skill's predictive variance)")
     learn.add_argument('--namespace', default='', help='graph mode: namespace of the graph')
@@ -396,8 +418,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=cmd_demo)
 
     bench_parser = sub.add_parser('bench', help='benchmarks (see docs/benchmarks.md)')
-    from psl_cli import bench
-    bench.add_arguments(bench_parser)
+    from psl_cli import bench_commands
+    bench_commands.add_arguments(bench_parser)
     bench_parser.set_defaults(func=cmd_bench)
     return parser
 

@@ -120,6 +120,14 @@ class ParameterizedSkill:
             tol=self.config.completion_tolerance,
             max_iter=self.config.completion_max_iterations)
 
+    def refitted(self, config: SkillConfig) -> 'ParameterizedSkill':
+        """A skill with the same ranges and another configuration (e.g. another readout), fed
+        this skill's samples in their order."""
+        other = ParameterizedSkill(self.name, self.tau_scaler, self.theta_scaler, config)
+        for tau, theta in zip(self.taus, self.thetas):
+            other.add(tau, theta)
+        return other
+
     # -- persistence --------------------------------------------------------------------------
     def get_state(self) -> dict[str, np.ndarray]:
         """Everything that makes this skill, as named numpy arrays (see memory_file)."""

@@ -163,12 +163,12 @@ class LearnerNode(Node):
                 result.message = self._stopped(f'stopped by an error ({exc})', learner)
                 self.get_logger().error(result.message)
                 return result
-            summary = metrics.get('summary', {})
+            summary = metrics.summary
             goal_handle.succeed()
             result.success = True
-            result.message = (f"{summary.get('total_rollouts', 0)} rollouts over "
-                              f"{settings.num_tasks} tasks; held-out zero-shot success "
-                              f"{100 * summary.get('zero_shot_success_rate', 0.0):.0f} %")
+            result.message = (f"{summary.total_rollouts} rollouts over {settings.num_tasks} "
+                              f"tasks; held-out zero-shot success "
+                              f"{100 * summary.zero_shot_success_rate:.0f} %")
             return result
         finally:
             self._busy.release()
@@ -236,7 +236,7 @@ class WatchedRollouts(Rollouts):
                                                            for r in results)
         self.goal_handle.publish_feedback(LearnSkill.Feedback(
             task_index=current['index'],
-            rollouts=sum(d['rollouts'] for d in done) + current['rollouts'],
+            rollouts=sum(d.rollouts for d in done) + current['rollouts'],
             best_reward=current['best'], fulfilled=current['fulfilled']))
         return results
 

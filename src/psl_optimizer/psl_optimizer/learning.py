@@ -36,44 +36,14 @@ from psl_memory.skill_memory import SkillMemory
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.ilc import ILCSettings, ilc_search
 from psl_optimizer.inverse_dynamics import oracle_theta
+from psl_optimizer.metrics import Metrics, Summary, TaskRecord
 from psl_optimizer.policy_search import SearchResult, SearchSettings, search
 from psl_optimizer.rollouts import Rollouts
+from psl_optimizer.task_selection import (TASK_SELECTIONS, held_out_tasks, most_uncertain,
+                                          task_sequence)
 from psl_sim.task import TaskDefinition
 
-TEST_SEED_OFFSET = 1_000_003     # held-out instances: a stream no training sequence uses
 FEEDFORWARD_SCALE = 0.5          # theta_D's CMA-ES unit: this share of the joint's torque limit
-
-
-def task_sequence(task: TaskDefinition, count: int, seed: int) -> np.ndarray:
-    """`count` training instances (count, E), uniform over the task's ranges."""
-    rng = np.random.default_rng(seed)
-    return np.array([task.sample_tau(rng) for _ in range(count)]).reshape(count, -1)
-
-
-def held_out_tasks(task: TaskDefinition, count: int, seed: int) -> np.ndarray:
-    return task_sequence(task, count, seed + TEST_SEED_OFFSET)
-
-
-TASK_SELECTIONS = ('random', 'variance')
-CANDIDATE_SEED_OFFSET = 2_000_003   # candidates of variance-driven selection: their own stream
-
-
-def most_uncertain(task: TaskDefinition, variance: Callable[[np.ndarray], np.ndarray | None],
-                   count: int, seed: int, index: int) -> np.ndarray:
-    """Active task selection: of `count` candidates drawn from the task distribution (a stream
-    seeded by seed and index, so a resumed session draws the same ones), the one whose
-    predictive variance (eq. 2.14), averaged over theta's dimensions, is largest (a skill
-    scales every theta dimension alike, `scaler_around`, so theta units rank as normalised
-    ones). Raises ValueError when the skill's readout gives no variance."""
-    candidates = task_sequence(task, count, (seed + CANDIDATE_SEED_OFFSET) * 100_003 + index)
-    scores = []
-    for tau in candidates:
-        var = variance(tau)
-        if var is None:
-            raise ValueError("task selection 'variance' needs a readout with predictive "
-                             "variance (readout: bayes)")
-        scores.append(float(np.mean(var)))
-    return candidates[int(np.argmax(scores))]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,7 +139,7 @@ class Learner:
         self.default_theta = self.policy.default_theta
         self.rollouts = rollouts or BatchRollouts(task)
         self.skill = skill or InProcessSkill(task, settings.skill, self.default_theta)
-        self.done: list[dict] = []      # finished tasks' records (from the checkpoint, then run)
+        self.done: list[TaskRecord] = []    # finished tasks (from the checkpoint, then run)
 
     # -- checkpoints --------------------------------------------------------------------------
     @property
@@ -186,7 +156,7 @@ class Learner:
         return {'task': self.task.name, 'strategy': s.strategy, 'seed': s.seed,
                 'task_selection': s.task_selection}
 
-    def _load_checkpoint(self) -> list[dict]:
+    def _load_checkpoint(self) -> list[TaskRecord]:
         if not self.checkpoint_path.is_file():
             self.skill.restore(None)
             return []
@@ -197,18 +167,18 @@ class Learner:
             raise ValueError(f'{self.out} holds a checkpoint of another session '
                              f'({ {k: state.get(k) for k in mine} }); use another folder')
         self.skill.restore(self.memory_path)
-        return state['tasks']
+        return [TaskRecord.from_dict(record) for record in state['tasks']]
 
-    def _save_checkpoint(self, done: list[dict]) -> None:
+    def _save_checkpoint(self, done: list[TaskRecord]) -> None:
         self.skill.save(self.memory_path)             # atomic
-        state = {**self._identity(), 'tasks': done}
+        state = {**self._identity(), 'tasks': [record.to_dict() for record in done]}
         tmp = self.checkpoint_path.with_suffix('.tmp')
         tmp.write_text(json.dumps(state))
         os.replace(tmp, self.checkpoint_path)
 
     # -- the loop -----------------------------------------------------------------------------
-    def run(self, progress: Callable[[dict], None] | None = None,
-            should_stop: Callable[[], bool] | None = None) -> dict:
+    def run(self, progress: Callable[[TaskRecord], None] | None = None,
+            should_stop: Callable[[], bool] | None = None) -> Metrics:
         """Train on the task sequence (resuming from a checkpoint), then test zero-shot.
         Returns the metrics (also written to out/metrics.json)."""
         self.out.mkdir(parents=True, exist_ok=True)
@@ -225,19 +195,19 @@ class Learner:
             result = self._search(tau, index, centre, scale)
             if result.fulfilled or not s.add_only_fulfilled:
                 self.skill.add(tau, result.theta)
-            done.append({'index': index, 'tau': tau.tolist(), 'rollouts': result.rollouts,
-                         'fulfilled': result.fulfilled, 'best_reward': result.reward,
-                         'start_reward': result.rewards[0],
-                         'seconds': time.perf_counter() - start})
+            done.append(TaskRecord(index=index, tau=tau.tolist(), rollouts=result.rollouts,
+                                   fulfilled=result.fulfilled, best_reward=result.reward,
+                                   start_reward=result.rewards[0],
+                                   seconds=time.perf_counter() - start))
             self._save_checkpoint(done)
             if progress is not None:
                 progress(done[-1])
-        metrics = {'task': self.task.name, 'strategy': s.strategy, 'seed': s.seed,
-                   'settings': dataclasses.asdict(s), 'tasks': done,
-                   'complete': len(done) == s.num_tasks}
-        if metrics['complete']:
-            metrics['summary'] = self.summary(done)
-        (self.out / 'metrics.json').write_text(json.dumps(metrics, indent=1))
+        complete = len(done) == s.num_tasks
+        metrics = Metrics(task=self.task.name, strategy=s.strategy, seed=s.seed,
+                          settings=json.loads(json.dumps(dataclasses.asdict(s))),
+                          tasks=list(done), complete=complete,
+                          summary=self.summary(done) if complete else None)
+        metrics.write(self.out)
         return metrics
 
     def _search(self, tau: np.ndarray, index: int, centre: np.ndarray,
@@ -267,23 +237,21 @@ class Learner:
                             rollouts=ilc.rollouts + rest.rollouts, start_theta=ilc.start_theta,
                             rewards=ilc.rewards + rest.rewards)
 
-    def summary(self, done: list[dict]) -> dict:
+    def summary(self, done: list[TaskRecord]) -> Summary:
         test = held_out_tasks(self.task, self.settings.num_test, self.settings.seed)
         thetas = np.array([self.skill.query(t) for t in test])
         rewards, fulfilled = self.rollouts.evaluate(thetas, test)
-        rollouts = [d['rollouts'] for d in done]
-        summary = {
-            'total_rollouts': int(sum(rollouts)),
-            'rollouts_per_task': rollouts,
-            'fulfilled_tasks': int(sum(d['fulfilled'] for d in done)),
-            'test_taus': test.tolist(),
-            'test_rewards': [float(r) for r in rewards],
-            'zero_shot_success_rate': float(np.mean(fulfilled)),
-            'zero_shot_mean_reward': float(np.mean(rewards)),
-        }
-        if self.policy.has_feedforward:
-            summary.update(tracking_comparison(self.rollouts, test, thetas))
-        return summary
+        rollouts = [d.rollouts for d in done]
+        tracking = (tracking_comparison(self.rollouts, test, thetas)
+                    if self.policy.has_feedforward else None)
+        return Summary(total_rollouts=int(sum(rollouts)), rollouts_per_task=rollouts,
+                       fulfilled_tasks=int(sum(d.fulfilled for d in done)),
+                       test_taus=test.tolist(), test_rewards=[float(r) for r in rewards],
+                       zero_shot_success_rate=float(np.mean(fulfilled)),
+                       zero_shot_mean_reward=float(np.mean(rewards)),
+                       tracking_rmse=tracking,
+                       tracking_rmse_mean=None if tracking is None else {
+                           name: float(np.mean(values)) for name, values in tracking.items()})
 
 
 def feedforward_variants(task: TaskDefinition, taus: np.ndarray, thetas: np.ndarray
@@ -308,13 +276,13 @@ def feedforward_variants(task: TaskDefinition, taus: np.ndarray, thetas: np.ndar
     }
 
 
-def tracking_comparison(rollouts: Rollouts, taus: np.ndarray, thetas: np.ndarray) -> dict:
+def tracking_comparison(rollouts: Rollouts, taus: np.ndarray,
+                        thetas: np.ndarray) -> dict[str, list[float]]:
     """RMS tracking error [rad] on each task instance taus (B, E) of its policy thetas (B, F)
     beside the same commanded path with PD only and with the oracle's feed-forward
-    (`feedforward_variants`); per instance and the means."""
+    (`feedforward_variants`), per variant."""
     out = {}
     for name, variant in feedforward_variants(rollouts.task, taus, thetas).items():
         rmse = [r.evaluation.components['tracking_error'] for r in rollouts.run(variant, taus)]
-        out[f'tracking_rmse_{name}'] = [float(v) for v in rmse]
-        out[f'tracking_rmse_{name}_mean'] = float(np.mean(rmse))
+        out[name] = [float(v) for v in rmse]
     return out

@@ -21,7 +21,6 @@ from __future__ import annotations
 import dataclasses
 from typing import Callable
 
-import cma
 import numpy as np
 
 STRATEGIES = ('scratch', 'bootstrap', 'bootstrap_cost', 'hybrid')
@@ -88,6 +87,8 @@ class _Budget:
 
 
 def _cma(x0: np.ndarray, sigma0: float, popsize: int, seed: int, bounds=None):
+    import cma        # here, not at the top: the command line reads STRATEGIES without it
+
     options = {'popsize': popsize, 'seed': int(seed) + 1, 'verbose': -9,
                'CMA_diagonal': x0.size > 20}
     if bounds is not None:

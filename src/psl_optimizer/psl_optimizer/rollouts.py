@@ -14,12 +14,15 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psl_controller.policy import Reference, TaskPolicy, policy_for
-from psl_optimizer.reward import RewardResult
 from psl_sim.task import TaskDefinition
+
+if TYPE_CHECKING:     # the command line reads MODES without loading the physics
+    from psl_controller.policy import Reference, TaskPolicy
+    from psl_optimizer.reward import RewardResult
 
 MODES = ('batch', 'graph')
 
@@ -49,6 +52,8 @@ class Rollouts(abc.ABC):
     """Rollouts of one task's policies on its task instances."""
 
     def __init__(self, task: TaskDefinition):
+        from psl_controller.policy import policy_for
+
         self.task = task
         self.policy: TaskPolicy = policy_for(task)
 

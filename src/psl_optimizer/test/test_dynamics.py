@@ -97,7 +97,7 @@ def test_skill_interpolates_the_feedforward_between_trained_masses(task, batch, 
     settings = LearnSettings(strategy='bootstrap', num_tasks=len(TRAIN_MASSES), seed=0,
                              num_test=2, search=SearchSettings(max_rollouts=60))
     learner = Learner(task, settings, tmp_path, batch)
-    metrics = learner.run()
+    metrics = learner.run().to_dict()
     assert all(d['fulfilled'] for d in metrics['tasks'])
     summary = metrics['summary']
     for key in ('pd_only', 'learned', 'oracle'):
@@ -107,7 +107,7 @@ def test_skill_interpolates_the_feedforward_between_trained_masses(task, batch, 
     between = np.array(BETWEEN)[:, None]
     thetas = np.array([learner.skill.query(tau) for tau in between])
     comparison = tracking_comparison(batch, between, thetas)
-    learned, pd_only, oracle = (np.array(comparison[f'tracking_rmse_{k}'])
+    learned, pd_only, oracle = (np.array(comparison[k])
                                 for k in ('learned', 'pd_only', 'oracle'))
     assert np.all(learned < 0.2 * pd_only)
     assert np.all(learned < 1.5 * oracle)

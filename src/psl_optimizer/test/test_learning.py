@@ -34,7 +34,7 @@ def evaluator(task):
 @pytest.fixture(scope='module')
 def finished(task, evaluator, tmp_path_factory):
     out = tmp_path_factory.mktemp('learn_full')
-    return out, Learner(task, SETTINGS, out, evaluator).run()
+    return out, Learner(task, SETTINGS, out, evaluator).run().to_dict()
 
 
 def memory_arrays(path):
@@ -78,9 +78,10 @@ def test_stopped_session_resumes_to_the_same_result(task, evaluator, finished, t
         calls.append(1)
         return len(calls) > 2
 
-    partial = Learner(task, SETTINGS, tmp_path, evaluator).run(should_stop=stop_after_two)
+    partial = Learner(task, SETTINGS, tmp_path, evaluator).run(
+        should_stop=stop_after_two).to_dict()
     assert not partial['complete'] and len(partial['tasks']) == 2
-    resumed = Learner(task, SETTINGS, tmp_path, evaluator).run()
+    resumed = Learner(task, SETTINGS, tmp_path, evaluator).run().to_dict()
     assert without_time(resumed['tasks']) == without_time(full['tasks'])
     assert resumed['summary'] == full['summary']
     a, b = memory_arrays(tmp_path / 'memory.npz'), memory_arrays(full_out / 'memory.npz')
@@ -151,12 +152,12 @@ def test_variance_selection_picks_the_candidate_the_skill_knows_least(task, tmp_
 
 def test_a_variance_selected_session_resumes_to_the_same_tasks(task, evaluator, tmp_path):
     s = dataclasses.replace(SETTINGS, num_tasks=4, task_selection='variance')
-    full = Learner(task, s, tmp_path / 'full', evaluator).run()
+    full = Learner(task, s, tmp_path / 'full', evaluator).run().to_dict()
     first = Learner(task, dataclasses.replace(s, num_tasks=4), tmp_path / 'part', evaluator)
     calls = iter([False, False, True])
     first.run(should_stop=lambda: next(calls, True))
-    resumed = Learner(task, s, tmp_path / 'part', evaluator).run()
+    resumed = Learner(task, s, tmp_path / 'part', evaluator).run().to_dict()
     assert without_time(resumed['tasks']) == without_time(full['tasks'])
     random = [t['tau'] for t in Learner(task, dataclasses.replace(s, task_selection='random'),
-                                        tmp_path / 'random', evaluator).run()['tasks']]
+                                        tmp_path / 'random', evaluator).run().to_dict()['tasks']]
     assert random != [t['tau'] for t in full['tasks']]

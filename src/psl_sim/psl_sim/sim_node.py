@@ -37,6 +37,7 @@ from psl_msgs.msg import TaskInstance
 from psl_msgs.srv import ResetTask
 from psl_sim.arm_model import ArmModel
 from psl_ros import names
+from psl_ros.graph import SIM_MODES
 from psl_ros.hot_path import HotPath
 from psl_ros.node_main import run_node
 from psl_ros.qos import LATCHED, RELIABLE
@@ -53,12 +54,12 @@ class SimNode(Node):
             description='task loaded at start (name or YAML path); a reset may name another',
             read_only=True))
         self.declare_parameter('mode', 'lockstep', ParameterDescriptor(
-            description='lockstep | realtime', read_only=True))
+            description=' | '.join(SIM_MODES), read_only=True))
         self.declare_parameter('episode_duration', 0.0, ParameterDescriptor(
             description='episode length [s]; 0 = the task duration plus its settle time'))
         self.mode = self.get_parameter('mode').value
-        if self.mode not in ('lockstep', 'realtime'):
-            raise ValueError(f"mode must be 'lockstep' or 'realtime', got {self.mode!r}")
+        if self.mode not in SIM_MODES:
+            raise ValueError(f'mode must be one of {SIM_MODES}, got {self.mode!r}')
         self._lock = threading.Lock()
         self._arms: dict[Path, ArmModel] = {}      # by task YAML
         self.arm = self._arm(self.get_parameter('task').value)

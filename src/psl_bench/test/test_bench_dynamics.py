@@ -1,7 +1,7 @@
 """``psl bench dynamics`` on a small budget: the report's fields, the table, refusals."""
 import pytest
 
-from psl_cli import bench_dynamics
+from psl_bench import dynamics as bench_dynamics
 
 
 def test_small_run_reports_tracking_errors_and_targets(tmp_path):

@@ -1,4 +1,4 @@
-"""Associative-memory benchmark behind ``psl bench memories``: AELM, ARBF, RBM and Hopfield on
+"""``psl bench memories``: the associative memories AELM, ARBF, RBM and Hopfield on
 the same learning data, completing ``v = [tau, theta]`` in both directions.
 
 Data, per seed: the samples ``(tau_i, theta_i)`` that a bootstrap learning session of the task
@@ -30,42 +30,31 @@ ROS.
 """
 from __future__ import annotations
 
-import json
 import os
 import platform
 import statistics
-import sys
 import time
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
-MEMORIES = ('aelm', 'arbf', 'rbm', 'hopfield')
+from psl_bench.stats import over_seeds
+from psl_memory.registry import ASSOCIATIVE_MEMORIES
+from psl_memory.skill_config import SkillConfig
+from psl_optimizer.metrics import METRICS_FILE, read_metrics
+
+MEMORIES = tuple(ASSOCIATIVE_MEMORIES)      # aelm, arbf, rbm, hopfield
 REFERENCES = ('mean', 'readout')
 MARGIN = 0.1                     # of RangeScaler.fit, the ranges every memory gets
 STARTS = ('centre', 'mean')      # where the free entries of a completion start
 
 
 def make_memory(kind: str, scaler, sizes: tuple[int, int], seed: int):
-    """The memory as `ParameterizedSkill` builds it, on the given ranges.
-
-    Raises:
-        ValueError: unknown kind.
-    """
-    from psl_memory.aelm import AELM
-    from psl_memory.arbf import ARBF
-    from psl_memory.hopfield import Hopfield
-    from psl_memory.rbm import RBM
-    if kind == 'aelm':
-        return AELM(scaler, n_hidden=100, seed=seed, modality_sizes=sizes)
-    if kind == 'arbf':
-        return ARBF(scaler, modality_sizes=sizes)
-    if kind == 'rbm':
-        return RBM(scaler, seed=seed, modality_sizes=sizes)
-    if kind == 'hopfield':
-        return Hopfield(scaler)
-    raise ValueError(f'unknown memory {kind!r}; known: {", ".join(MEMORIES)}')
+    """The memory `kind` as a skill of the default configuration with this seed builds it
+    (`psl_memory.registry`), on the given ranges."""
+    return ASSOCIATIVE_MEMORIES[kind].from_config(scaler, sizes,
+                                                  SkillConfig(associative=kind, seed=seed))
 
 
 def session_samples(task_name: str, seed: int, out: Path, num_tasks: int,
@@ -78,13 +67,12 @@ def session_samples(task_name: str, seed: int, out: Path, num_tasks: int,
     Raises:
         ValueError: the folder holds an unfinished or non-bootstrap session.
     """
-    from psl_cli.bench_learn import run_folder
+    from psl_bench.learn import run_folder
     from psl_memory.skill_memory import SkillMemory
 
     folder = run_folder(out, task_name, 'bootstrap', seed, None)
-    metrics_path = folder / 'metrics.json'
     generated = False
-    if not metrics_path.is_file():
+    if not (folder / METRICS_FILE).is_file():
         from psl_optimizer.learning import Learner, LearnSettings
         from psl_sim.task import load_task
         if progress is not None:
@@ -92,15 +80,15 @@ def session_samples(task_name: str, seed: int, out: Path, num_tasks: int,
         Learner(load_task(task_name), LearnSettings(strategy='bootstrap', num_tasks=num_tasks,
                                                     seed=seed), folder).run()
         generated = True
-    metrics = json.loads(metrics_path.read_text())
-    if not metrics.get('complete') or metrics.get('strategy') != 'bootstrap':
+    metrics = read_metrics(folder)
+    if not metrics.complete or metrics.strategy != 'bootstrap':
         raise ValueError(f'{folder}: not a complete bootstrap session; remove it or give '
                          f'another --out')
     skill = SkillMemory.read(folder / 'memory.npz').get(task_name)
     if skill.num_samples < 3:
         raise ValueError(f'{folder}: {skill.num_samples} samples, need at least 3')
     return {'folder': str(folder), 'taus': skill.taus, 'thetas': skill.thetas, 'skill': skill,
-            'settings': metrics.get('settings'), 'generated': generated}
+            'settings': metrics.settings, 'generated': generated}
 
 
 def _nrmse(errors: list[np.ndarray], sd: np.ndarray) -> float:
@@ -215,7 +203,7 @@ def run(task_name: str = 'reach_over_obstacle', seeds: Sequence[int] = (0, 1, 2,
     summary = {}
     for name in memories + REFERENCES:
         rows = [per_seed[str(s)]['results'][name] for s in seeds]
-        summary[name] = {key: _stats([r[key] for r in rows]) for key in rows[0]
+        summary[name] = {key: over_seeds([r[key] for r in rows]) for key in rows[0]
                          if rows[0][key] is not None}
     settings = {'task': task_name, 'seeds': list(seeds), 'out': str(out), 'stride': stride,
                 'memories': list(memories), 'start': start, 'margin': MARGIN,
@@ -226,12 +214,6 @@ def run(task_name: str = 'reach_over_obstacle', seeds: Sequence[int] = (0, 1, 2,
                                      if k in os.environ}}
     return {'settings': settings, 'seeds': per_seed, 'summary': summary}
 
-
-def _stats(values: Sequence[float]) -> dict:
-    values = np.asarray(values, dtype=float)
-    return {'mean': float(values.mean()),
-            'sd': float(values.std(ddof=1)) if values.size > 1 else 0.0,
-            'min': float(values.min()), 'max': float(values.max())}
 
 
 LABELS = {'aelm': 'AELM (eq. 2.20-2.21)', 'arbf': 'ARBF (eq. 2.22)',
@@ -277,41 +259,3 @@ def format_table(report: dict) -> str:
             cells.append(f"{r['theta_nrmse']:.2f} / {tau}")
         lines.append(f'| {name} | ' + ' | '.join(cells) + ' |')
     return '\n'.join(lines) + '\n'
-
-
-def add_arguments(sub) -> None:
-    """The ``memories`` subcommand of ``psl bench``."""
-    memories = sub.add_parser('memories', help='associative memories (AELM, ARBF, RBM, '
-                              'Hopfield): completion error both ways on learned sessions')
-    memories.add_argument('--task', default='reach_over_obstacle')
-    memories.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
-    memories.add_argument('--out', default='runs/bench-learn',
-                          help='session folders (as psl bench learn --out leaves them); '
-                          'missing bootstrap sessions are learned here first')
-    memories.add_argument('--tasks', type=int, default=30,
-                          help='training tasks of a session learned here')
-    memories.add_argument('--stride', type=int, default=3,
-                          help='hold out every stride-th sample in turn (1: leave-one-out)')
-    memories.add_argument('--memories', nargs='+', default=list(MEMORIES),
-                          help=', '.join(MEMORIES))
-    memories.add_argument('--start', choices=STARTS, default='centre',
-                          help='free entries start at the centre of the ranges or at the mean '
-                          'of the training samples')
-    memories.add_argument('--json', action='store_true')
-
-
-def main(args) -> int:
-    """``psl bench memories`` (arguments from `add_arguments`)."""
-    try:
-        report = run(task_name=args.task, seeds=args.seeds, out=args.out,
-                     num_tasks=args.tasks, stride=args.stride, memories=args.memories,
-                     start=args.start,
-                     progress=lambda line: print(line, file=sys.stderr, flush=True))
-    except ValueError as exc:
-        print(f'psl bench memories: {exc}', file=sys.stderr)
-        return 2
-    if args.json:
-        print(json.dumps(report, indent=2))
-    else:
-        print(format_table(report), end='')
-    return 0

@@ -3,7 +3,7 @@ an independent computation of the references."""
 import numpy as np
 import pytest
 
-from psl_cli import bench_memories
+from psl_bench import memories as bench_memories
 from psl_memory.elm import RangeScaler
 from psl_memory.parameterized_skill import ParameterizedSkill, scaler_around
 from psl_memory.skill_config import SkillConfig

@@ -1,12 +1,11 @@
 """psl bench learn: the report's numbers are the runs' metrics files, read back; the strategies
 of a seed saw the same task instances; run folders are reused, never mixed."""
-import argparse
 import json
 
 import numpy as np
 import pytest
 
-from psl_cli import bench, bench_learn
+from psl_bench import learn as bench_learn
 from psl_optimizer.learning import held_out_tasks, task_sequence
 from psl_sim.task import load_task
 
@@ -81,19 +80,6 @@ def test_strategies_of_a_seed_saw_the_same_instances(bench_run):
     assert task_sequence(task, 3, SEEDS[0]).tolist() != task_sequence(task, 3, SEEDS[1]).tolist()
 
 
-def test_cli_reuses_finished_runs_and_refuses_other_settings(bench_run, capsys):
-    out, report = bench_run
-    parser = argparse.ArgumentParser()
-    bench.add_arguments(parser)
-    argv = ['learn', '--strategies', *STRATEGIES, '--seeds', *map(str, SEEDS), '--tasks', '3',
-            '--budget', '25', '--test-tasks', '3', '--after', '1', '--out', str(out), '--json']
-    assert bench.main(parser.parse_args(argv)) == 0
-    again = json.loads(capsys.readouterr().out)
-    assert all(run['reused'] for runs in again['runs'].values() for run in runs.values())
-    assert again['strategies'] == report['strategies']
-    argv[argv.index('--budget') + 1] = '26'       # another session into the same folders
-    assert bench.main(parser.parse_args(argv)) == 2
-    assert 'another or an unfinished' in capsys.readouterr().err
 
 
 @pytest.mark.parametrize('override', [dict(after=3), dict(strategies=('magic',)),

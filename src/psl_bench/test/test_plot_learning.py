@@ -9,7 +9,7 @@ import pytest
 import yaml
 from matplotlib.image import imread
 
-from psl_cli.plot import (DPI, FIGSIZE, bayesian_stand_in, load_run, plot_runs,
+from psl_bench.plot_learning import (DPI, FIGSIZE, bayesian_stand_in, load_run, plot_runs,
                           variance_grid)
 from psl_memory.skill_config import SkillConfig
 from psl_memory.skill_memory import SkillMemory
@@ -114,7 +114,7 @@ def test_incomplete_run_and_run_without_memory_still_plot(task, evaluator, runs,
     partial = tmp_path / 'partial'
     Learner(task, settings('hybrid', 2), partial, evaluator).run(should_stop=stop_after_three)
     run = load_run(partial)
-    assert 'summary' not in run['metrics'] and len(run['metrics']['tasks']) == 3
+    assert run['metrics'].summary is None and len(run['metrics'].tasks) == 3
     bare = tmp_path / 'bare'
     shutil.copytree(runs['scratch', 0], bare)
     (bare / 'memory.npz').unlink()

@@ -1,4 +1,4 @@
-"""Dynamics benchmark behind ``psl bench dynamics``: the learned feed-forward on held-out loads.
+"""``psl bench dynamics``: the learned feed-forward on held-out loads.
 
 For each optimiser and seed one `Learner` session (batch mode, in-process skill) trains the
 skill tau -> [theta_K, theta_D] on the task's training sequence (payload masses drawn by the
@@ -16,14 +16,14 @@ the oracle.
 """
 from __future__ import annotations
 
-import json
-import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
+
+from psl_optimizer.metrics import FEEDFORWARD_VARIANTS, Metrics
 
 OPTIMISERS = ('ilc', 'cma')
 TARGETS = {'reduction_vs_pd': 0.8, 'ratio_to_oracle': 1.5}
@@ -34,8 +34,9 @@ def run_folder(out: Path, task: str, optimiser: str, seed: int) -> Path:
 
 
 def session(task_name: str, optimiser: str, seed: int, num_tasks: int, budget: int,
-            num_test: int, folder: Path) -> dict:
-    """One learning session; returns its metrics (metrics.json of `folder`)."""
+            num_test: int, folder: Path) -> tuple[Metrics, float]:
+    """One learning session; returns its metrics (metrics.json of `folder`) and its wall time
+    [s]."""
     from psl_optimizer.ilc import ILCSettings
     from psl_optimizer.learning import Learner, LearnSettings
     from psl_optimizer.policy_search import SearchSettings
@@ -52,8 +53,7 @@ def session(task_name: str, optimiser: str, seed: int, num_tasks: int, budget: i
                              ilc=ilc, add_only_fulfilled=optimiser == 'ilc')
     start = time.perf_counter()
     metrics = Learner(task, settings, folder).run()
-    metrics['train_seconds'] = time.perf_counter() - start
-    return metrics
+    return metrics, time.perf_counter() - start
 
 
 def run(task_name: str = 'payload_transport', optimisers: Sequence[str] = OPTIMISERS,
@@ -81,23 +81,20 @@ def run(task_name: str = 'payload_transport', optimisers: Sequence[str] = OPTIMI
         per_seed = []
         for seed in seeds:
             folder = run_folder(root, task_name, optimiser, seed)
-            m = session(task_name, optimiser, seed, num_tasks, budget, num_test, folder)
-            s = m['summary']
+            metrics, seconds = session(task_name, optimiser, seed, num_tasks, budget, num_test,
+                                       folder)
+            s = metrics.summary
             per_seed.append({
                 'seed': seed,
-                'total_rollouts': s['total_rollouts'],
-                'fulfilled_tasks': s['fulfilled_tasks'],
-                'zero_shot_success': s['zero_shot_success_rate'],
-                'pd_only': s['tracking_rmse_pd_only_mean'],
-                'learned': s['tracking_rmse_learned_mean'],
-                'oracle': s['tracking_rmse_oracle_mean'],
-                'train_seconds': m['train_seconds'],
+                'total_rollouts': s.total_rollouts,
+                'fulfilled_tasks': s.fulfilled_tasks,
+                'zero_shot_success': s.zero_shot_success_rate,
+                **{variant: s.tracking_rmse_mean[variant] for variant in FEEDFORWARD_VARIANTS},
+                'train_seconds': seconds,
             })
             if held_out is None:
-                held_out = {'optimiser': optimiser, 'seed': seed,
-                            'taus': s['test_taus'],
-                            **{k: s[f'tracking_rmse_{k}'] for k in ('pd_only', 'learned',
-                                                                    'oracle')}}
+                held_out = {'optimiser': optimiser, 'seed': seed, 'taus': s.test_taus,
+                            **s.tracking_rmse}
             if progress is not None:
                 r = per_seed[-1]
                 progress(f'{optimiser} seed {seed}: {r["total_rollouts"]} rollouts, tracking '
@@ -147,35 +144,3 @@ def format_table(report: dict) -> str:
             f"; learned ≤ {t['ratio_to_oracle']:g}× oracle: {m['ratio_to_oracle']:.2f}× "
             f"{verdict['ratio_to_oracle']}")
     return '\n'.join(lines) + '\n'
-
-
-def main(args) -> int:
-    """``psl bench dynamics`` (arguments from `add_arguments`)."""
-    try:
-        report = run(task_name=args.task, optimisers=args.optimisers, seeds=args.seeds,
-                     num_tasks=args.tasks, budget=args.budget, num_test=args.test_tasks,
-                     out=args.out, progress=lambda line: print(line, file=sys.stderr,
-                                                               flush=True))
-    except ValueError as exc:
-        print(f'psl bench dynamics: {exc}', file=sys.stderr)
-        return 2
-    if args.json:
-        print(json.dumps(report, indent=2))
-    else:
-        print(format_table(report), end='')
-    return 0
-
-
-def add_arguments(sub) -> None:
-    """The ``dynamics`` subcommand of ``psl bench`` (imports nothing heavy)."""
-    dyn = sub.add_parser('dynamics', help='learned feed-forward on held-out payloads: tracking '
-                         'error of PD only, learned and the inverse-dynamics oracle')
-    dyn.add_argument('--task', default='payload_transport')
-    dyn.add_argument('--optimisers', nargs='+', default=list(OPTIMISERS),
-                     help='ilc (ILC of theta_D, then CMA-ES) and/or cma (CMA-ES only)')
-    dyn.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2])
-    dyn.add_argument('--tasks', type=int, default=8, help='training tasks per session')
-    dyn.add_argument('--budget', type=int, default=300, help='rollouts per task at most')
-    dyn.add_argument('--test-tasks', type=int, default=10, help='held-out tasks per seed')
-    dyn.add_argument('--out', help='keep every run folder (metrics.json) here, for psl plot')
-    dyn.add_argument('--json', action='store_true')

@@ -12,14 +12,11 @@ Two tables from `Learner` sessions in batch mode (bootstrap strategy):
    zero-shot success first reaches the target (80 %), and the final success.
 
 Every session of a seed sees the same held-out instances; the random sessions of a seed the
-same training sequence. Imports ROS nothing.
+same training sequence. Imports no ROS.
 """
 from __future__ import annotations
 
 import dataclasses
-import json
-import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -27,14 +24,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from psl_bench.stats import mean_sd
+
 TARGET = 0.8
 
-
-def _mean_sd(values: Sequence[float]) -> str:
-    values = [float(v) for v in values]
-    if len(values) < 2:
-        return f'{values[0]:.2f}' if values else '-'
-    return f'{statistics.mean(values):.2f} ± {statistics.stdev(values):.2f}'
 
 
 def encoding_variant(task, kind: str, n_components: int):
@@ -69,13 +62,13 @@ def run_encodings(task_name: str, seeds: Sequence[int], num_tasks: int, budget: 
                 metrics = Learner(task, settings, out, batch).run()
             test = held_out_tasks(task, num_test, seed)
             demo = batch.run(np.tile(theta0, (len(test), 1)), test)
-            rollouts = [t['rollouts'] for t in metrics['tasks']]
+            rollouts = [t.rollouts for t in metrics.tasks]
             row = {'seed': seed, 'theta_size': int(theta0.size),
                    'total_rollouts': int(sum(rollouts)),
                    'late_rollouts_per_task': float(np.mean(rollouts[after:])),
-                   'fulfilled_tasks': metrics['summary']['fulfilled_tasks'],
-                   'zero_shot_success': metrics['summary']['zero_shot_success_rate'],
-                   'zero_shot_reward': metrics['summary']['zero_shot_mean_reward'],
+                   'fulfilled_tasks': metrics.summary.fulfilled_tasks,
+                   'zero_shot_success': metrics.summary.zero_shot_success_rate,
+                   'zero_shot_reward': metrics.summary.zero_shot_mean_reward,
                    'demonstration_success': float(np.mean([r.evaluation.fulfilled
                                                            for r in demo])),
                    'seconds': time.perf_counter() - start}
@@ -105,10 +98,10 @@ def run_selection(task_name: str, seeds: Sequence[int], num_tasks: int, budget: 
             with tempfile.TemporaryDirectory() as out:
                 learner = Learner(task, settings, out, batch)
 
-                def measure(record: dict) -> None:
+                def measure(record) -> None:
                     thetas = np.array([learner.skill.query(t) for t in test])
                     fulfilled = [r.evaluation.fulfilled for r in batch.run(thetas, test)]
-                    used = sum(d['rollouts'] for d in learner.done)
+                    used = sum(d.rollouts for d in learner.done)
                     curve.append((used, float(np.mean(fulfilled))))
                 learner.run(progress=measure)
             reached = next((i for i, (_, ok) in enumerate(curve) if ok >= TARGET), None)
@@ -120,6 +113,25 @@ def run_selection(task_name: str, seeds: Sequence[int], num_tasks: int, budget: 
             progress(f"{selection} seed {seed}: {TARGET:.0%} zero-shot after "
                      f"{row['tasks_to_target']} tasks / {row['rollouts_to_target']} rollouts")
     return rows
+
+
+def run(task_name: str = 'reach_over_obstacle', seeds: Sequence[int] = (0, 1, 2, 3, 4),
+        num_tasks: int = 30, budget: int = 300, num_test: int = 20, after: int = 20,
+        n_components: int = 6, progress: Callable[[str], None] = lambda line: None) -> dict:
+    """Both tables' sessions (see the module docstring); the report of `format_tables`.
+
+    Raises:
+        ValueError: after >= num_tasks, or settings the learner refuses.
+    """
+    if not 0 <= after < num_tasks:
+        raise ValueError(f'--after must be below --tasks (got {after} and {num_tasks})')
+    return {'settings': {'task': task_name, 'seeds': list(seeds), 'tasks': num_tasks,
+                         'budget': budget, 'test_tasks': num_test, 'after': after,
+                         'n_components': n_components},
+            'encodings': run_encodings(task_name, seeds, num_tasks, budget, num_test, after,
+                                       n_components, progress),
+            'selection': run_selection(task_name, seeds, num_tasks, budget, num_test,
+                                       progress)}
 
 
 def format_tables(report: dict) -> str:
@@ -134,12 +146,12 @@ def format_tables(report: dict) -> str:
         label = kind if kind == 'dmp' else f"gmr ({s['n_components']} components)"
         lines.append(
             f"| {label} | {rows[0]['theta_size']} | "
-            f"{_mean_sd([100 * r['demonstration_success'] for r in rows])} % | "
-            f"{_mean_sd([r['total_rollouts'] for r in rows])} | "
-            f"{_mean_sd([r['late_rollouts_per_task'] for r in rows])} | "
-            f"{_mean_sd([r['fulfilled_tasks'] for r in rows])} | "
-            f"{_mean_sd([100 * r['zero_shot_success'] for r in rows])} % | "
-            f"{_mean_sd([r['zero_shot_reward'] for r in rows])} |")
+            f"{mean_sd([100 * r['demonstration_success'] for r in rows])} % | "
+            f"{mean_sd([r['total_rollouts'] for r in rows])} | "
+            f"{mean_sd([r['late_rollouts_per_task'] for r in rows])} | "
+            f"{mean_sd([r['fulfilled_tasks'] for r in rows])} | "
+            f"{mean_sd([100 * r['zero_shot_success'] for r in rows])} % | "
+            f"{mean_sd([r['zero_shot_reward'] for r in rows])} |")
     lines += ['', f'| task selection | training tasks to {TARGET:.0%} zero-shot | training '
               f'rollouts to {TARGET:.0%} | final zero-shot success | total rollouts |',
               '|---|---|---|---|---|']
@@ -148,10 +160,10 @@ def format_tables(report: dict) -> str:
         missed = len(rows) - len(reached)
         note = f' ({missed} of {len(rows)} seeds never reached it)' if missed else ''
         lines.append(
-            f"| {selection} | {_mean_sd([r['tasks_to_target'] for r in reached])}{note} | "
-            f"{_mean_sd([r['rollouts_to_target'] for r in reached])} | "
-            f"{_mean_sd([100 * r['final_success'] for r in rows])} % | "
-            f"{_mean_sd([r['total_rollouts'] for r in rows])} |")
+            f"| {selection} | {mean_sd([r['tasks_to_target'] for r in reached])}{note} | "
+            f"{mean_sd([r['rollouts_to_target'] for r in reached])} | "
+            f"{mean_sd([100 * r['final_success'] for r in rows])} % | "
+            f"{mean_sd([r['total_rollouts'] for r in rows])} |")
         lines.append(f"|   per seed | {', '.join(str(r['tasks_to_target']) for r in rows)} | "
                      f"{', '.join(str(r['rollouts_to_target']) for r in rows)} | | |")
     return '\n'.join(lines) + '\n'
@@ -186,46 +198,3 @@ def plot_selection(report: dict, out_path: str | Path) -> Path:
                  f'{TARGET:.0%})')
     fig.savefig(out_path)
     return Path(out_path)
-
-
-def main(args) -> int:
-    """``psl bench encodings`` (arguments from `add_arguments`)."""
-    if args.after >= args.tasks:
-        print('psl bench encodings: --after must be below --tasks', file=sys.stderr)
-        return 2
-    log = (lambda line: print(line, file=sys.stderr, flush=True))
-    try:
-        report = {
-            'settings': {'task': args.task, 'seeds': args.seeds, 'tasks': args.tasks,
-                         'budget': args.budget, 'test_tasks': args.test_tasks,
-                         'after': args.after, 'n_components': args.n_components},
-            'encodings': run_encodings(args.task, args.seeds, args.tasks, args.budget,
-                                       args.test_tasks, args.after, args.n_components, log),
-            'selection': run_selection(args.task, args.seeds, args.tasks, args.budget,
-                                       args.test_tasks, log)}
-    except ValueError as exc:
-        print(f'psl bench encodings: {exc}', file=sys.stderr)
-        return 2
-    if args.out:
-        Path(args.out).write_text(json.dumps(report, indent=1))
-    if args.figure:
-        print(f'figure: {plot_selection(report, args.figure)}', file=sys.stderr)
-    print(json.dumps(report, indent=2) if args.json else format_tables(report), end='')
-    return 0
-
-
-def add_arguments(sub) -> None:
-    """The ``encodings`` subcommand of ``psl bench``."""
-    p = sub.add_parser('encodings', help='DMP vs GMR encoding, random vs variance-driven task '
-                       'selection')
-    p.add_argument('--task', default='reach_over_obstacle')
-    p.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
-    p.add_argument('--tasks', type=int, default=30, help='training tasks per session')
-    p.add_argument('--budget', type=int, default=300, help='rollouts per task at most')
-    p.add_argument('--test-tasks', type=int, default=20, help='held-out tasks per seed')
-    p.add_argument('--after', type=int, default=20,
-                   help='rollouts per task are averaged over the tasks after this many')
-    p.add_argument('--n-components', type=int, default=6, help='GMR components')
-    p.add_argument('--out', help='also write the report (with the learning curves) as JSON')
-    p.add_argument('--figure', help='also draw the task-selection curves into this PNG')
-    p.add_argument('--json', action='store_true')

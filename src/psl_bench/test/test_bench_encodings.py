@@ -1,11 +1,10 @@
 """psl bench encodings: the GMR variant changes only the encoding; the selection curve is the
 sessions' own zero-shot success, checked against an independent session."""
-import argparse
 import tempfile
 
 import pytest
 
-from psl_cli import bench, bench_encodings
+from psl_bench import encodings as bench_encodings
 from psl_controller.policy import policy_for
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
@@ -35,7 +34,7 @@ def test_the_selection_curve_is_the_sessions_zero_shot_success(selection):
         settings = LearnSettings(strategy='bootstrap', num_tasks=4, seed=2, num_test=6,
                                  task_selection=name, search=SearchSettings(max_rollouts=40))
         with tempfile.TemporaryDirectory() as out:
-            metrics = Learner(load_task(TASK), settings, out).run()
+            metrics = Learner(load_task(TASK), settings, out).run().to_dict()
         assert row['total_rollouts'] == metrics['summary']['total_rollouts'] == used[-1]
         assert row['final_success'] == metrics['summary']['zero_shot_success_rate']
         reached = [i for i, (_, ok) in enumerate(row['curve']) if ok >= bench_encodings.TARGET]
@@ -46,7 +45,7 @@ def test_the_selection_curve_is_the_sessions_zero_shot_success(selection):
             assert row['tasks_to_target'] is None
 
 
-def test_the_table_and_the_command(selection, capsys):
+def test_the_table_and_a_bad_setting(selection):
     report = {'settings': {'task': TASK, 'seeds': [2], 'tasks': 4, 'budget': 40,
                            'test_tasks': 6, 'after': 2, 'n_components': 6},
               'encodings': {'dmp': [{'theta_size': 24, 'demonstration_success': 0.5,
@@ -56,7 +55,5 @@ def test_the_table_and_the_command(selection, capsys):
               'selection': selection}
     table = bench_encodings.format_tables(report)
     assert '| dmp | 24 | 50.00 % | 10.00 |' in table and '| random |' in table
-    parser = argparse.ArgumentParser()
-    bench.add_arguments(parser)
-    args = parser.parse_args(['encodings', '--tasks', '3', '--after', '3'])
-    assert bench.main(args) == 2 and '--after' in capsys.readouterr().err
+    with pytest.raises(ValueError, match='--after'):
+        bench_encodings.run(TASK, seeds=[2], num_tasks=3, after=3)

@@ -1,9 +1,13 @@
 """Start the psl node graph as separate processes and end exactly those processes.
 
-Every node is its own executable (``install/<package>/lib/<package>/<executable>``, what
-``ros2 run`` would start); `Graph` starts them with ROS arguments (namespace, parameters),
-keeps their PIDs, writes each one's output to a log file, and ends them by PID: SIGINT, then
-SIGTERM, then SIGKILL. If one dies, `Graph.dead` and `Graph.describe_death` say which one and its last output.
+What a launch file does on a full ROS 2 install (there is no ``ros2 launch`` among the wheels):
+the plan of the psl nodes (package and executable names, namespaces, parameters), their
+processes and their readiness. It names the nodes but imports none of them, so the command
+line, the benchmarks and the tests start graphs alike. Every node is its own executable
+(``install/<package>/lib/<package>/<executable>``, what ``ros2 run`` would start); `Graph`
+starts them with ROS arguments (namespace, parameters), keeps their PIDs, writes each one's
+output to a log file, and ends them by PID: SIGINT, then SIGTERM, then SIGKILL. If one dies,
+`Graph.dead` and `Graph.describe_death` say which one and its last output.
 """
 from __future__ import annotations
 
@@ -14,6 +18,7 @@ import subprocess
 import time
 from pathlib import Path
 
+SIM_MODES = ('lockstep', 'realtime')     # how the simulator advances (psl_sim/sim_node.py)
 NODES = (  # (name, package, executable)
     ('sim', 'psl_sim', 'sim'),
     ('pd_controller', 'psl_controller', 'pd_controller'),
@@ -90,8 +95,8 @@ class Graph:
                  namespace: str = '', log_dir: str | Path | None = None,
                  nodes: tuple = NODES, extra_params: dict[str, dict] | None = None,
                  workers: int = 0):
-        if mode not in ('lockstep', 'realtime'):
-            raise ValueError(f"mode must be 'lockstep' or 'realtime', got {mode!r}")
+        if mode not in SIM_MODES:
+            raise ValueError(f'mode must be one of {SIM_MODES}, got {mode!r}')
         if workers < 0:
             raise ValueError(f'workers must be >= 0, got {workers}')
         self.workers = workers
@@ -167,9 +172,8 @@ class Graph:
 
     def wait_ready(self, timeout: float = 30.0, stop=None) -> None:
         """Block until every worker's loop is connected (action server, reset service, every
-        topic's endpoints) or `stop` (a threading.Event) is set; then, if the graph runs a
-        skill memory, create the task's skill in it (kept if it exists). Raise RuntimeError
-        naming a dead node, or what is missing, otherwise."""
+        topic's endpoints) or `stop` (a threading.Event) is set; raise RuntimeError naming a
+        dead node, or what is missing, otherwise."""
         from psl_ros.client import RosClient
 
         deadline = time.monotonic() + timeout
@@ -191,30 +195,6 @@ class Graph:
                         f'the graph was not ready within {timeout:.0f} s: missing '
                         f'{client.missing_endpoints()} in {namespace or "/"} (logs in '
                         f'{self.log_dir})')
-        if 'skill_memory' in names and not (stop is not None and stop.is_set()):
-            self.create_skill(max(1.0, deadline - time.monotonic()))
-
-    def create_skill(self, timeout: float = 30.0) -> str:
-        """Create the graph's task's skill in its skill memory (tau ranges and default policy
-        from the task; kept as it is if it exists); returns the memory's answer. Raises
-        RuntimeError if the memory refuses or does not answer."""
-        from psl_controller.policy import policy_for
-        from psl_ros.client import RosClient
-        from psl_sim.task import load_task
-
-        task = load_task(self.task)
-        with RosClient(self.namespace) as client:
-            try:
-                response = client.memory(
-                    'create_skill', timeout=timeout, skill=task.name,
-                    tau_low=task.tau_low.tolist(), tau_high=task.tau_high.tolist(),
-                    theta_reference=policy_for(task).default_theta.tolist())
-            except TimeoutError as exc:
-                raise RuntimeError(f'{exc} (logs in {self.log_dir})') from exc
-        if not response.success:
-            raise RuntimeError(f'the skill memory did not create the skill of task '
-                               f'{task.name!r}: {response.message}')
-        return response.message
 
     def stop(self, timeout: float = 5.0) -> None:
         """End every process this graph started, by PID."""

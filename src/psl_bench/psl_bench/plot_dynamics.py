@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from psl_cli.plot import load_run
+from psl_bench.plot_learning import load_run
 
 VARIANTS = (('pd_only', 'PD only', 'tab:red'), ('learned', 'learned', 'tab:blue'),
             ('oracle', 'oracle', 'tab:green'))
@@ -63,14 +63,14 @@ def plot_dynamics(directory: str | Path, out_path: str | Path, test_index: int =
 
     run = load_run(directory)
     metrics = run['metrics']
-    summary = metrics.get('summary')
+    summary = metrics.summary
     if not summary or run['memory_path'] is None:
         raise ValueError(f"{run['dir']}: needs a finished session (metrics.json summary) and "
                          'its memory.npz')
-    taus = summary['test_taus']
+    taus = summary.test_taus
     if not 0 <= test_index < len(taus):
         raise ValueError(f'test_index {test_index} outside the {len(taus)} held-out tasks')
-    task = load_task(metrics['task'])
+    task = load_task(metrics.task)
     tau = np.asarray(taus[test_index], dtype=float)
     theta = SkillMemory.read(run['memory_path']).get(task.name).query(tau)[0]
     rollouts = dynamics_rollouts(task, tau, theta)
@@ -107,7 +107,7 @@ def plot_dynamics(directory: str | Path, out_path: str | Path, test_index: int =
         ax_u.legend(fontsize=8)
     tau_text = ', '.join(f'{name} = {value:.3g}' for name, value in zip(task.tau_names, tau))
     fig.suptitle(f"{task.name}: held-out instance {test_index} ({tau_text}), "
-                 f"{metrics['strategy']} seed {metrics['seed']}", fontsize=11)
+                 f"{metrics.strategy} seed {metrics.seed}", fontsize=11)
     out_path = Path(out_path)
     fig.savefig(out_path, format='png', dpi=DPI)
     return out_path

@@ -1,9 +1,9 @@
-"""Skill memory benchmark behind ``psl bench memory``: update and query time against N.
+"""``psl bench memory``: update and query time of the skill memory against N, and its service.
 
 For every readout of the parameterized skill (eq. 2.5-2.14), and for the whole
 `ParameterizedSkill.add` of the default configuration, the time of one further per-sample
-update and of one query when N samples are stored already. Plain Python (imports psl_memory, no
-ROS); the service round trip is measured elsewhere.
+update and of one query when N samples are stored already. The timings are plain Python (psl_memory
+only); the service needs a graph.
 
 Method, per readout and N:
 - data: tau uniform in [-1, 1]^E, theta a fixed smooth function of tau plus small noise (so the
@@ -17,16 +17,22 @@ Method, per readout and N:
 The batch ridge readout refits from all N samples at every update (O(N N_H^2)); sizes above
 `ridge_max_samples` are skipped and recorded as such.
 
+`run` adds the query service's round trip to a skill_memory process (`measure_query_service`)
+beside a bare DDS round trip of the same run (`psl_bench.round_trip`).
+
 The skill row fills the readout and the associative memory of a default-configured skill through
 their chunk interfaces (the skill itself takes one sample at a time, which would take minutes
 at N = 10,000), then times the public `ParameterizedSkill.add` and `query`.
 """
 from __future__ import annotations
 
+import json
 import os
 import platform
 import statistics
+import tempfile
 import time
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -192,3 +198,62 @@ def _measure_skill(sizes, data: _Data, n_hidden: int, seed: int, repeats: int,
         points.append(_point(n, update, query))
     label = SKILL_LABEL.format(readout=config.readout, associative=config.associative)
     return {'label': label, 'kind': 'skill', 'points': points}
+
+
+def measure_query_service(n_samples: int, n_calls: int) -> list[float]:
+    """Round-trip times [s] of QuerySkill calls to a skill_memory process holding a skill
+    with n_samples samples (restored from a memory file at start)."""
+    from psl_memory.skill_memory import SkillMemory
+    from psl_ros.client import RosClient
+    from psl_ros.graph import Graph
+
+    rng = np.random.default_rng(0)
+    memory = SkillMemory()
+    memory.create('bench', [0.0, 0.0], [1.0, 1.0], np.zeros(24))
+    taus = rng.uniform(0.0, 1.0, (n_samples, 2))
+    for tau in taus:
+        memory.add('bench', tau, np.r_[np.sin(3 * tau), np.cos(2 * tau), np.zeros(20)])
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / 'bench_memory.npz'
+        memory.save(path)
+        graph = Graph(nodes=(('skill_memory', 'psl_memory', 'skill_memory'),),
+                      extra_params={'skill_memory': {'autosave_path': str(path)}})
+        with graph, RosClient() as client:
+            info = json.loads(client.memory('info', timeout=60).message)
+            if info['bench']['num_samples'] != n_samples:
+                raise RuntimeError(f'the memory node holds {info}')
+            times = []
+            for i in range(n_calls + 50):
+                start = time.perf_counter()
+                response = client.memory('query', skill='bench', tau=taus[i % n_samples].tolist())
+                elapsed = time.perf_counter() - start
+                if not response.success:
+                    raise RuntimeError(response.message)
+                if i >= 50:
+                    times.append(elapsed)
+    return times
+
+
+def run(sizes=SIZES, n_hidden: int = 100, service_samples: int = 1000,
+        round_trips: int = 1000) -> dict:
+    """The readout timings and the query service beside a bare round trip."""
+    from psl_bench.round_trip import measure_round_trip
+
+    report = {'readouts': measure_readouts(sizes=tuple(sizes), n_hidden=n_hidden)}
+    service = measure_query_service(service_samples, round_trips)
+    bare = measure_round_trip(round_trips)
+    report['service'] = {
+        'samples': service_samples,
+        'query_ms': {'p50': 1e3 * statistics.median(service),
+                     'p99': 1e3 * float(np.percentile(service, 99))},
+        'bare_round_trip_ms': {'p50': 1e3 * statistics.median(bare),
+                               'p99': 1e3 * float(np.percentile(bare, 99))}}
+    return report
+
+
+def format_report(report: dict) -> str:
+    q, b = report['service']['query_ms'], report['service']['bare_round_trip_ms']
+    return (format_table(report['readouts'])
+            + f"query service round trip with {report['service']['samples']} samples: p50 "
+              f"{q['p50']:.3f} ms, p99 {q['p99']:.3f} ms (bare DDS round trip in the same run: "
+              f"p50 {b['p50']:.3f} ms, p99 {b['p99']:.3f} ms)\n")

@@ -3,7 +3,7 @@ oracle on a held-out instance of a payload_transport run."""
 import numpy as np
 import pytest
 
-from psl_cli.plot_dynamics import dynamics_rollouts, plot_dynamics
+from psl_bench.plot_dynamics import dynamics_rollouts, plot_dynamics
 from psl_controller.policy import policy_for
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings

@@ -1,4 +1,4 @@
-"""Learning benchmark behind ``psl bench learn``: policy-search strategies over task instances.
+"""``psl bench learn``: policy-search strategies over task instances.
 
 Method, per seed:
 - one training sequence (`task_sequence`) and one held-out set (`held_out_tasks`), both drawn
@@ -23,12 +23,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import sys
 import tempfile
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
+
+from psl_bench.stats import over_seeds
+from psl_optimizer.metrics import METRICS_FILE, read_metrics
 
 TARGETS = {'speedup': 5.0, 'zero_shot_success': 0.8}   # bootstrap vs scratch; every strategy
 METRICS = ('total_rollouts', 'late_rollouts', 'speedup', 'zero_shot_success',
@@ -46,36 +48,27 @@ def read_run(folder: Path, after: int) -> dict:
     Raises:
         ValueError: the run is incomplete or has no more than `after` tasks.
     """
-    metrics = json.loads((Path(folder) / 'metrics.json').read_text())
-    if not metrics.get('complete'):
+    metrics = read_metrics(folder)
+    if not metrics.complete:
         raise ValueError(f'{folder}: the learning session is not complete')
-    tasks = metrics['tasks']
-    if len(tasks) <= after:
-        raise ValueError(f'{folder}: {len(tasks)} tasks, need more than after={after}')
-    rollouts = [int(t['rollouts']) for t in tasks]
-    summary = metrics['summary']
+    if len(metrics.tasks) <= after:
+        raise ValueError(f'{folder}: {len(metrics.tasks)} tasks, need more than after={after}')
+    rollouts = [t.rollouts for t in metrics.tasks]
+    summary = metrics.summary
     return {
         'folder': str(folder),
-        'seed': metrics['seed'],
-        'strategy': metrics['strategy'],
-        'taus': [t['tau'] for t in tasks],
-        'test_taus': summary['test_taus'],
+        'seed': metrics.seed,
+        'strategy': metrics.strategy,
+        'taus': [t.tau for t in metrics.tasks],
+        'test_taus': summary.test_taus,
         'rollouts_per_task': rollouts,
-        'fulfilled_tasks': sum(bool(t['fulfilled']) for t in tasks),
+        'fulfilled_tasks': sum(t.fulfilled for t in metrics.tasks),
         'total_rollouts': sum(rollouts),
         'late_rollouts': float(np.mean(rollouts[after:])),
-        'zero_shot_success': float(summary['zero_shot_success_rate']),
-        'zero_shot_reward': float(summary['zero_shot_mean_reward']),
-        'train_seconds': float(sum(t['seconds'] for t in tasks)),
+        'zero_shot_success': summary.zero_shot_success_rate,
+        'zero_shot_reward': summary.zero_shot_mean_reward,
+        'train_seconds': float(sum(t.seconds for t in metrics.tasks)),
     }
-
-
-def _stats(values: Sequence[float]) -> dict:
-    values = np.asarray(values, dtype=float)
-    return {'mean': float(values.mean()),
-            'sd': float(values.std(ddof=1)) if values.size > 1 else 0.0,
-            'min': float(values.min()), 'max': float(values.max()),
-            'values': values.tolist()}
 
 
 def _settings_json(settings) -> dict:
@@ -127,7 +120,7 @@ def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None
     base = LearnSettings()
     skill = base.skill if readout is None else dataclasses.replace(base.skill, readout=readout)
     task = load_task(task_name)
-    evaluator = BatchRollouts(task)
+    rollouts = BatchRollouts(task)
     temporary = tempfile.TemporaryDirectory(prefix='psl-bench-learn-') if out is None else None
     root = Path(temporary.name if temporary else out)
     runs: dict[int, dict[str, dict]] = {}
@@ -141,7 +134,7 @@ def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None
                 folder = run_folder(root, task.name, strategy, seed, readout)
                 reused = _reusable(folder, settings)
                 if not reused:
-                    Learner(task, settings, folder, rollouts=evaluator).run()
+                    Learner(task, settings, folder, rollouts=rollouts).run()
                 record = read_run(folder, after)
                 record['reused'] = reused
                 runs[seed][strategy] = record
@@ -167,12 +160,12 @@ def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None
 def _reusable(folder: Path, settings) -> bool:
     """True if folder holds a complete session with exactly these settings; False if it holds
     nothing yet. Anything else is refused (a partial or different session would mix in)."""
-    metrics_path, checkpoint = folder / 'metrics.json', folder / 'checkpoint.json'
+    metrics_path, checkpoint = folder / METRICS_FILE, folder / 'checkpoint.json'
     if not metrics_path.is_file() and not checkpoint.is_file():
         return False
     if metrics_path.is_file():
-        metrics = json.loads(metrics_path.read_text())
-        if metrics.get('complete') and metrics.get('settings') == _settings_json(settings):
+        metrics = read_metrics(folder)
+        if metrics.complete and metrics.settings == _settings_json(settings):
             return True
     raise ValueError(f'{folder} holds another or an unfinished learning session; remove it or '
                      f'give another --out')
@@ -190,11 +183,12 @@ def _aggregate(runs: dict[int, dict[str, dict]], strategies: Sequence[str]) -> d
     result = {}
     for strategy in strategies:
         records = [runs[seed][strategy] for seed in runs]
-        row = {key: _stats([r[key] for r in records]) for key in METRICS if key != 'speedup'}
+        row = {key: over_seeds([r[key] for r in records]) for key in METRICS
+               if key != 'speedup'}
         if 'scratch' in strategies:
-            row['speedup'] = _stats([runs[seed]['scratch']['late_rollouts'] /
+            row['speedup'] = over_seeds([runs[seed]['scratch']['late_rollouts'] /
                                      runs[seed][strategy]['late_rollouts'] for seed in runs])
-        row['fulfilled_tasks'] = _stats([r['fulfilled_tasks'] for r in records])
+        row['fulfilled_tasks'] = over_seeds([r['fulfilled_tasks'] for r in records])
         result[strategy] = row
     return result
 
@@ -246,40 +240,3 @@ def format_table(report: dict) -> str:
                      f"({100 * rows[k]['zero_shot_success']['min']:.0f} %) "
                      f"{'met' if ok else 'MISSED'}" for k, ok in z['met'].items()))
     return '\n'.join(lines) + '\n'
-
-
-def main(args) -> int:
-    """``psl bench learn`` (arguments from `add_arguments`)."""
-    try:
-        report = run(task_name=args.task, strategies=args.strategies, seeds=args.seeds,
-                     num_tasks=args.tasks, budget=args.budget, num_test=args.test_tasks,
-                     after=args.after, out=args.out, readout=args.readout,
-                     progress=lambda line: print(line, file=sys.stderr, flush=True))
-    except ValueError as exc:
-        print(f'psl bench learn: {exc}', file=sys.stderr)
-        return 2
-    if args.json:
-        print(json.dumps(report, indent=2))
-    else:
-        print(format_table(report), end='')
-    return 0
-
-
-def add_arguments(sub) -> None:
-    """The ``learn`` subcommand of ``psl bench`` (names are checked by `run`, so building the
-    parser imports nothing heavy)."""
-    learn = sub.add_parser('learn', help='policy-search strategies over task instances: '
-                           'rollouts per task, zero-shot success on held-out tasks')
-    learn.add_argument('--task', default='reach_over_obstacle')
-    learn.add_argument('--strategies', nargs='+',
-                       help='scratch, bootstrap, bootstrap_cost, hybrid (default: all)')
-    learn.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
-    learn.add_argument('--tasks', type=int, default=30, help='training tasks per session')
-    learn.add_argument('--budget', type=int, default=300, help='rollouts per task at most')
-    learn.add_argument('--test-tasks', type=int, default=20, help='held-out tasks per seed')
-    learn.add_argument('--after', type=int, default=20,
-                       help='rollouts per task are averaged over the tasks after this many')
-    learn.add_argument('--readout', help="the skill's readout: ridge, rls, incremental_ridge, "
-                       "bayes (default: the learner's)")
-    learn.add_argument('--out', help='keep every run folder (metrics.json) here, for psl plot')
-    learn.add_argument('--json', action='store_true')

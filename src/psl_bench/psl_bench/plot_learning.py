@@ -20,7 +20,6 @@ global style change. Imports no ROS.
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -33,13 +32,11 @@ from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormat
 
 from psl_memory.parameterized_skill import ParameterizedSkill
 from psl_memory.skill_memory import MemoryFileError, SkillMemory
+from psl_optimizer.metrics import METRICS_FILE, Metrics, read_metrics
 
 FIGSIZE = (18.0, 5.5)        # inches
 DPI = 100                    # the PNG is FIGSIZE * DPI pixels: 1800 x 550
 GRID_POINTS = 60             # per tau dimension in the variance panel
-RUN_KEYS = ('task', 'strategy', 'seed', 'tasks')
-TASK_KEYS = ('index', 'tau', 'rollouts', 'fulfilled', 'best_reward')
-SUMMARY_KEYS = ('test_taus', 'test_rewards')
 LOG_RANGE = 10.0             # a positive quantity spanning more than this factor gets a log axis
 PLAIN = FuncFormatter(lambda value, _: f'{value:g}')     # tick labels 0.01, 20, 300
 
@@ -52,8 +49,8 @@ def load_run(directory: str | Path) -> dict[str, Any]:
         directory: an output folder of ``psl learn`` (holds metrics.json, maybe memory.npz).
 
     Returns:
-        {'dir': Path, 'metrics': the metrics.json dict, 'memory_path': Path or None when the
-        folder has no memory.npz}.
+        {'dir': Path, 'metrics': its `Metrics`, 'memory_path': Path or None when the folder
+        has no memory.npz}.
 
     Raises:
         ValueError: the folder does not exist, or its metrics.json is missing, not JSON, or
@@ -62,45 +59,21 @@ def load_run(directory: str | Path) -> dict[str, Any]:
     folder = Path(directory)
     if not folder.is_dir():
         raise ValueError(f'{folder}: no such folder')
-    path = folder / 'metrics.json'
-    if not path.is_file():
-        raise ValueError(f'{path}: no such file (not an output folder of psl learn, or the '
-                         'session never finished a first pass)')
-    try:
-        metrics = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f'{path}: not readable as JSON ({exc})') from exc
-    _check_metrics(metrics, path)
+    metrics = read_metrics(folder)              # MetricsError (a ValueError) names the file
+    _check_drawable(metrics, folder / METRICS_FILE)
     memory = folder / 'memory.npz'
     return {'dir': folder, 'metrics': metrics,
             'memory_path': memory if memory.is_file() else None}
 
 
-def _check_metrics(metrics: Any, path: Path) -> None:
-    """ValueError naming `path` unless `metrics` has the fields and shapes the plot reads."""
-    if not isinstance(metrics, dict):
-        raise ValueError(f'{path}: corrupt metrics (not a JSON object)')
-    missing = [k for k in RUN_KEYS if k not in metrics]
-    if missing:
-        raise ValueError(f'{path}: corrupt metrics (no {", ".join(missing)})')
-    tasks = metrics['tasks']
-    if not isinstance(tasks, list) or not all(isinstance(t, dict) for t in tasks):
-        raise ValueError(f'{path}: corrupt metrics (tasks is not a list of objects)')
-    for record in tasks:
-        missing = [k for k in TASK_KEYS if k not in record]
-        if missing:
-            raise ValueError(f'{path}: corrupt metrics (a task record has no '
-                             f'{", ".join(missing)})')
-    taus = [_float_array(t['tau'], path, 'tau') for t in tasks]
-    _float_array([t['rollouts'] for t in tasks], path, 'rollouts')
-    _float_array([t['best_reward'] for t in tasks], path, 'best_reward')
-    summary = metrics.get('summary')
+def _check_drawable(metrics: Metrics, path: Path) -> None:
+    """ValueError naming `path` unless the numbers the plot draws are finite and of one size."""
+    taus = [_float_array(t.tau, path, 'tau') for t in metrics.tasks]
+    _float_array([t.best_reward for t in metrics.tasks], path, 'best_reward')
+    summary = metrics.summary
     if summary is not None:
-        if not isinstance(summary, dict) or any(k not in summary for k in SUMMARY_KEYS):
-            raise ValueError(f'{path}: corrupt metrics (summary without '
-                             f'{" and ".join(SUMMARY_KEYS)})')
-        test_taus = _float_array(summary['test_taus'], path, 'test_taus')
-        rewards = _float_array(summary['test_rewards'], path, 'test_rewards')
+        test_taus = _float_array(summary.test_taus, path, 'test_taus')
+        rewards = _float_array(summary.test_rewards, path, 'test_rewards')
         if test_taus.ndim != 2 or rewards.shape != (test_taus.shape[0],):
             raise ValueError(f'{path}: corrupt metrics (test_taus {test_taus.shape} and '
                              f'test_rewards {rewards.shape} do not match)')
@@ -110,10 +83,7 @@ def _check_metrics(metrics: Any, path: Path) -> None:
 
 
 def _float_array(value: Any, path: Path, name: str) -> np.ndarray:
-    try:
-        array = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f'{path}: corrupt metrics ({name} is not numeric)') from None
+    array = np.asarray(value, dtype=float)
     if not np.all(np.isfinite(array)):
         raise ValueError(f'{path}: corrupt metrics ({name} is not finite)')
     return array
@@ -122,7 +92,7 @@ def _float_array(value: Any, path: Path, name: str) -> np.ndarray:
 def run_label(run: dict[str, Any]) -> str:
     """'strategy seed K' of a run from `load_run`."""
     m = run['metrics']
-    return f"{m['strategy']} seed {m['seed']}"
+    return f"{m.strategy} seed {m.seed}"
 
 
 # -- variance over tau ------------------------------------------------------------------------
@@ -147,19 +117,11 @@ class VarianceGrid:
 
 
 def bayesian_stand_in(skill: ParameterizedSkill) -> ParameterizedSkill:
-    """A skill like `skill` (same ranges, hidden layer and options) but with the Bayesian readout
-    ('bayes', eq. 2.12-2.14), fed the same samples in the same order.
-
-    The precisions come from the skill's configuration: prior precision alpha = its
-    ``regularization``, noise precision beta = its ``noise_precision``, re-estimated by evidence
-    maximisation if ``estimate_precisions``. With fixed precisions and beta = 1 the mean is
-    that of ridge regression with the same factor (eq. 2.8), so only the variance is new.
-    """
-    config = dataclasses.replace(skill.config, readout='bayes')
-    stand_in = ParameterizedSkill(skill.name, skill.tau_scaler, skill.theta_scaler, config)
-    for tau, theta in zip(skill.taus, skill.thetas):
-        stand_in.add(tau, theta)
-    return stand_in
+    """The skill with the Bayesian readout ('bayes', eq. 2.12-2.14) in place of its own, fed
+    the same samples (`ParameterizedSkill.refitted`); the precisions come from the skill's
+    configuration, so with fixed precisions and beta = 1 its mean is the skill's ridge mean
+    (eq. 2.8) and only the variance is new."""
+    return skill.refitted(dataclasses.replace(skill.config, readout='bayes'))
 
 
 def variance_grid(skill: ParameterizedSkill, n: int = GRID_POINTS) -> VarianceGrid:
@@ -217,13 +179,13 @@ def plot_runs(dirs: Sequence[str | Path], out_path: str | Path,
     runs = [load_run(d) for d in dirs]
     out_path = Path(out_path)
     first = runs[0]
-    names, threshold = _task_info(first['metrics']['task'])
+    names, threshold = _task_info(first['metrics'].task)
     fig = Figure(figsize=FIGSIZE, dpi=DPI, layout='constrained')
     ax_rollouts, ax_reward, ax_variance = fig.subplots(1, 3)
     _draw_rollouts(ax_rollouts, runs)
     _draw_rewards(fig, ax_reward, first, names, threshold)
     _draw_variance(fig, ax_variance, first, names, grid_points)
-    fig.suptitle(f"Learning runs: {', '.join(sorted({r['metrics']['task'] for r in runs}))}"
+    fig.suptitle(f"Learning runs: {', '.join(sorted({r['metrics'].task for r in runs}))}"
                  f"  (b, c: {run_label(first)}, {first['dir']})", fontsize=11)
     fig.savefig(out_path, format='png', dpi=DPI)
     return out_path
@@ -253,45 +215,44 @@ def _message(ax: Axes, title: str, text: str) -> None:
     ax.set_yticks([])
 
 
-def _progress(metrics: dict[str, Any]) -> str:
+def _progress(metrics: Metrics) -> str:
     """'' for a complete run, else ' (incomplete: k/N tasks)'."""
-    if metrics.get('complete', 'summary' in metrics):
+    if metrics.complete:
         return ''
-    total = metrics.get('settings', {}).get('num_tasks', '?')
-    return f" (incomplete: {len(metrics['tasks'])}/{total} tasks)"
+    return f" (incomplete: {len(metrics.tasks)}/{metrics.num_tasks} tasks)"
 
 
 def _draw_rollouts(ax: Axes, runs: list[dict[str, Any]]) -> None:
     """Panel (a): rollouts per task, grouped by strategy (and task, if the runs differ)."""
-    several_tasks = len({r['metrics']['task'] for r in runs}) > 1
+    several_tasks = len({r['metrics'].task for r in runs}) > 1
     groups: dict[str, list[dict[str, Any]]] = {}
     for run in runs:
         m = run['metrics']
-        key = f"{m['task']}: {m['strategy']}" if several_tasks else m['strategy']
+        key = f"{m.task}: {m.strategy}" if several_tasks else m.strategy
         groups.setdefault(key, []).append(run)
     positive = True
     for i, (key, members) in enumerate(groups.items()):
         colour = f'C{i % 10}'
-        length = max((r['index'] for m in members for r in m['metrics']['tasks']), default=-1) + 1
+        length = max((r.index for m in members for r in m['metrics'].tasks), default=-1) + 1
         if length == 0:
             ax.plot([], [], color=colour, label=f'{key}: no task finished')
             continue
         rollouts = np.full((len(members), length), np.nan)      # (runs, tasks)
         for k, run in enumerate(members):
-            for record in run['metrics']['tasks']:
-                rollouts[k, record['index']] = record['rollouts']
+            for record in run['metrics'].tasks:
+                rollouts[k, record.index] = record.rollouts
         positive = positive and bool(np.nanmin(rollouts) > 0)
         index = np.arange(length)
         totals = np.nansum(rollouts, axis=1)
         if len(members) == 1:
             run = members[0]
-            label = (f"{key} seed {run['metrics']['seed']}: {totals[0]:.0f} rollouts"
+            label = (f"{key} seed {run['metrics'].seed}: {totals[0]:.0f} rollouts"
                      f"{_zero_shot(run['metrics'])}{_progress(run['metrics'])}")
             ax.plot(index, rollouts[0], 'o-', color=colour, ms=4, label=label)
             continue
-        seeds = ', '.join(str(r['metrics']['seed']) for r in members)
-        rates = [r['metrics']['summary']['zero_shot_success_rate'] for r in members
-                 if 'zero_shot_success_rate' in r['metrics'].get('summary', {})]
+        seeds = ', '.join(str(r['metrics'].seed) for r in members)
+        rates = [r['metrics'].summary.zero_shot_success_rate for r in members
+                 if r['metrics'].summary is not None]
         zero_shot = f', zero-shot {100 * np.mean(rates):.0f} %' if rates else ''
         ax.plot(index, np.nanmean(rollouts, axis=0), 'o-', color=colour, ms=4,
                 label=f'{key}, mean of seeds {seeds}: {np.mean(totals):.0f} rollouts{zero_shot}')
@@ -310,11 +271,10 @@ def _draw_rollouts(ax: Axes, runs: list[dict[str, Any]]) -> None:
     ax.legend(fontsize=8, loc='upper center', bbox_to_anchor=(0.5, -0.1), frameon=False)
 
 
-def _zero_shot(metrics: dict[str, Any]) -> str:
-    summary = metrics.get('summary')
-    if not summary or 'zero_shot_success_rate' not in summary:
+def _zero_shot(metrics: Metrics) -> str:
+    if metrics.summary is None:
         return ''
-    return f", zero-shot {100 * summary['zero_shot_success_rate']:.0f} %"
+    return f", zero-shot {100 * metrics.summary.zero_shot_success_rate:.0f} %"
 
 
 def _reward_norm(rewards: np.ndarray) -> colors.Normalize:
@@ -332,15 +292,15 @@ def _draw_rewards(fig: Figure, ax: Axes, run: dict[str, Any], names: list[str] |
     """Panel (b): best training rewards and held-out zero-shot rewards over tau."""
     m = run['metrics']
     title = f'(b) reward over tau: {run_label(run)}{_progress(m)}'
-    tasks, summary = m['tasks'], m.get('summary')
-    taus = np.array([t['tau'] for t in tasks], dtype=float)               # (N, E)
-    best = np.array([t['best_reward'] for t in tasks], dtype=float)       # (N,)
-    done = np.array([bool(t['fulfilled']) for t in tasks], dtype=bool)    # (N,)
-    test_taus = np.array(summary['test_taus'], dtype=float) if summary else np.zeros((0, 0))
-    test_rewards = np.array(summary['test_rewards'], dtype=float) if summary else np.zeros(0)
-    if summary and 'zero_shot_success_rate' in summary:
-        title += (f"\nheld-out zero-shot success {100 * summary['zero_shot_success_rate']:.0f} %"
-                  f", mean reward {summary['zero_shot_mean_reward']:.3g}")
+    tasks, summary = m.tasks, m.summary
+    taus = np.array([t.tau for t in tasks], dtype=float)                  # (N, E)
+    best = np.array([t.best_reward for t in tasks], dtype=float)          # (N,)
+    done = np.array([t.fulfilled for t in tasks], dtype=bool)             # (N,)
+    test_taus = np.array(summary.test_taus, dtype=float) if summary else np.zeros((0, 0))
+    test_rewards = np.array(summary.test_rewards, dtype=float) if summary else np.zeros(0)
+    if summary:
+        title += (f"\nheld-out zero-shot success {100 * summary.zero_shot_success_rate:.0f} %"
+                  f", mean reward {summary.zero_shot_mean_reward:.3g}")
     else:
         title += '\nno held-out test yet'
     if not tasks and not summary:
@@ -403,7 +363,7 @@ def _draw_variance(fig: Figure, ax: Axes, run: dict[str, Any], names: list[str] 
         _message(ax, title, f"no memory.npz in {run['dir']}")
         return
     try:
-        skill = SkillMemory.read(run['memory_path']).get(m['task'])
+        skill = SkillMemory.read(run['memory_path']).get(m.task)
     except (MemoryFileError, KeyError) as exc:
         _message(ax, title, f'cannot plot the skill: {exc}')
         return
@@ -421,7 +381,7 @@ def _draw_variance(fig: Figure, ax: Axes, run: dict[str, Any], names: list[str] 
     dim = skill.tau_dim
     values = grid.values
     log = bool(values.max() > LOG_RANGE * values.min())
-    failed = np.array([t['tau'] for t in m['tasks'] if not t['fulfilled']],
+    failed = np.array([t.tau for t in m.tasks if not t.fulfilled],
                       dtype=float).reshape(-1, dim)
     samples = skill.taus                                                  # (N, E)
     if dim == 1:

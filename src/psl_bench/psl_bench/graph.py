@@ -1,0 +1,134 @@
+"""``psl bench graph``: the robot loop through the real node graph.
+
+Lockstep control steps per second (the simulator's own end-of-episode figures on
+/diagnostics) beside the bare publish/answer round trip between two processes measured in the
+same run (`psl_bench.round_trip`), and the deadline misses of the realtime mode over one long
+episode (simulator and controller only).
+"""
+from __future__ import annotations
+
+import os
+import statistics
+import threading
+import time
+
+import numpy as np
+
+from psl_bench.round_trip import measure_round_trip
+from psl_ros import names
+
+
+class EpisodeStats:
+    """Collects the simulators' end-of-episode status from /diagnostics."""
+
+    def __init__(self, node):
+        from diagnostic_msgs.msg import DiagnosticArray
+        self.done: list[dict] = []
+        self.event = threading.Event()
+        node.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self._on, 100)
+
+    def _on(self, msg) -> None:
+        for status in msg.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if 'steps_done' in values and values['steps_done'] == values['steps']:
+                self.done.append(values)
+                self.event.set()
+
+
+def measure(task_name: str = 'reach_over_obstacle', rollouts: int = 10,
+            round_trips: int = 2000, realtime_seconds: float = 60.0) -> dict:
+    """Round trip, lockstep and (realtime_seconds > 0) realtime figures of one run.
+
+    Raises:
+        RuntimeError: a graph did not come up or a rollout failed.
+    """
+    from psl_controller.policy import policy_for
+    from psl_ros.client import RosClient
+    from psl_ros.graph import Graph
+    from psl_sim.task import load_task, task_id
+
+    task = load_task(task_name)
+    theta = policy_for(task).default_theta
+    rng = np.random.default_rng(0)
+    report: dict = {'task': task.name, 'machine_cores': os.cpu_count()}
+
+    rtt = measure_round_trip(round_trips)
+    report['round_trip_ms'] = {'p50': 1e3 * statistics.median(rtt),
+                               'p99': 1e3 * float(np.percentile(rtt, 99)), 'n': len(rtt)}
+
+    with Graph(task=task_id(task), mode='lockstep') as graph:
+        graph.wait_ready()
+        with RosClient() as client:
+            stats = EpisodeStats(client.node)
+            time.sleep(0.5)
+            rollout_wall = []
+            for _ in range(rollouts):
+                start = time.perf_counter()
+                result = client.rollout(task_id(task), task.sample_tau(rng), theta)
+                rollout_wall.append(time.perf_counter() - start)
+                if not result.success:
+                    raise RuntimeError(result.message)
+            time.sleep(0.5)
+    rates = [float(s['steps_per_second']) for s in stats.done]
+    steps = task.num_steps
+    report['lockstep'] = {
+        'episodes': len(rates), 'steps_per_episode': steps,
+        'steps_per_second_median': statistics.median(rates),
+        'steps_per_second_min': min(rates),
+        'rollout_wall_s_median': statistics.median(rollout_wall),
+        'rollout_overhead_s_median': (statistics.median(rollout_wall)
+                                      - steps / statistics.median(rates)),
+    }
+    step_ms = 1e3 / report['lockstep']['steps_per_second_median']
+    report['lockstep']['step_ms'] = step_ms
+    report['lockstep']['step_over_round_trip'] = step_ms / report['round_trip_ms']['p50']
+    if realtime_seconds > 0:
+        report['realtime'] = _realtime(task, realtime_seconds)
+    return report
+
+
+def _realtime(task, seconds: float) -> dict:
+    """One realtime episode of `seconds` (simulator and controller only): deadline misses."""
+    from psl_ros.client import RosClient
+    from psl_ros.graph import Graph
+    from psl_sim.task import task_id
+
+    graph = Graph(task=task_id(task), mode='realtime',
+                  nodes=(('sim', 'psl_sim', 'sim'),
+                         ('pd_controller', 'psl_controller', 'pd_controller')),
+                  extra_params={'sim': {'episode_duration': seconds}})
+    with graph, RosClient() as client:
+        stats = EpisodeStats(client.node)
+        if not client.reset_client.wait_for_service(timeout_sec=30):
+            raise RuntimeError('realtime simulator did not come up')
+        deadline = time.monotonic() + 20
+        while client.node.count_subscribers(names.JOINT_STATES) < 1:
+            if time.monotonic() > deadline:
+                raise RuntimeError('controller did not come up')
+            time.sleep(0.1)
+        time.sleep(1.0)
+        response = client.reset(task_id(task), task.tau_default)
+        if not response.success:
+            raise RuntimeError(response.message)
+        if not stats.event.wait(timeout=seconds * 1.5 + 30):
+            raise RuntimeError('the realtime episode did not end')
+    done = stats.done[-1]
+    misses, total = int(done['deadline_misses']), int(done['steps'])
+    return {'rate_hz': task.control_rate, 'seconds': seconds, 'steps': total,
+            'deadline_misses': misses, 'miss_fraction': misses / total,
+            'wall_time_s': float(done['wall_time_s'])}
+
+
+def format_report(report: dict) -> str:
+    rt, ls = report['round_trip_ms'], report['lockstep']
+    lines = [f"bare round trip (2 processes): p50 {rt['p50']:.3f} ms  p99 {rt['p99']:.3f} ms",
+             f"lockstep: {ls['steps_per_second_median']:.0f} steps/s median "
+             f"(min {ls['steps_per_second_min']:.0f}) = {ls['step_ms']:.3f} ms/step = "
+             f"{ls['step_over_round_trip']:.2f} round trips; rollout wall "
+             f"{ls['rollout_wall_s_median']:.2f} s for {ls['steps_per_episode']} steps"]
+    if 'realtime' in report:
+        r = report['realtime']
+        lines.append(f"realtime {r['rate_hz']:.0f} Hz over {r['seconds']:.0f} s: "
+                     f"{r['deadline_misses']} misses of {r['steps']} steps "
+                     f"({100 * r['miss_fraction']:.2f} %)")
+    return '\n'.join(lines) + '\n'

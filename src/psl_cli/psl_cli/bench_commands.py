@@ -1,0 +1,165 @@
+"""``psl bench ...``: the command line of the benchmarks in `psl_bench` (docs/benchmarks.md).
+
+Each subcommand parses its options, calls its benchmark (which returns a report: plain data)
+and prints the report's table, or the report as JSON with ``--json``. A bad setting ends with
+exit code 2 and the reason. Numbers are printed, never stored (``--out`` keeps run folders).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from psl_bench.dynamics import OPTIMISERS
+from psl_bench.memories import MEMORIES, STARTS
+from psl_memory.registry import READOUTS
+from psl_optimizer.policy_search import STRATEGIES
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest='bench', required=True)
+
+    def bench(name: str, help: str, task: str = 'reach_over_obstacle'):
+        p = sub.add_parser(name, help=help)
+        p.add_argument('--task', default=task)
+        p.add_argument('--json', action='store_true', help='the whole report as JSON')
+        return p
+
+    p = bench('graph', 'lockstep steps/s, DDS round trip, realtime misses')
+    p.add_argument('--rollouts', type=int, default=10)
+    p.add_argument('--round-trips', type=int, default=2000)
+    p.add_argument('--realtime-seconds', type=float, default=60.0,
+                   help='length of the realtime episode (0 skips it)')
+    p = bench('rollout', 'batch-mode steps/s beside raw mujoco.rollout')
+    p.add_argument('--population', type=int, default=32)
+    p.add_argument('--repeats', type=int, default=7)
+    p = sub.add_parser('memory', help='readout update/query time against N; service round '
+                       'trip of query beside a bare DDS round trip')
+    p.add_argument('--sizes', type=int, nargs='+', default=[10, 100, 1000, 10000])
+    p.add_argument('--n-hidden', type=int, default=100)
+    p.add_argument('--service-samples', type=int, default=1000)
+    p.add_argument('--round-trips', type=int, default=1000)
+    p.add_argument('--json', action='store_true', help='the whole report as JSON')
+    p = bench('learn', 'policy-search strategies over task instances: rollouts per task, '
+              'zero-shot success on held-out tasks')
+    p.add_argument('--strategies', nargs='+', choices=STRATEGIES, default=list(STRATEGIES))
+    p.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
+    p.add_argument('--tasks', type=int, default=30, help='training tasks per session')
+    p.add_argument('--budget', type=int, default=300, help='rollouts per task at most')
+    p.add_argument('--test-tasks', type=int, default=20, help='held-out tasks per seed')
+    p.add_argument('--after', type=int, default=20,
+                   help='rollouts per task are averaged over the tasks after this many')
+    p.add_argument('--readout', choices=READOUTS,
+                   help="the skill's readout (default: the learner's)")
+    p.add_argument('--out', help='keep every run folder (metrics.json) here, for psl plot')
+    p = bench('dynamics', 'learned feed-forward on held-out payloads: tracking error of PD '
+              'only, learned and the inverse-dynamics oracle', task='payload_transport')
+    p.add_argument('--optimisers', nargs='+', choices=OPTIMISERS, default=list(OPTIMISERS),
+                   help='ilc (ILC of theta_D, then CMA-ES) and/or cma (CMA-ES only)')
+    p.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2])
+    p.add_argument('--tasks', type=int, default=8, help='training tasks per session')
+    p.add_argument('--budget', type=int, default=300, help='rollouts per task at most')
+    p.add_argument('--test-tasks', type=int, default=10, help='held-out tasks per seed')
+    p.add_argument('--out', help='keep every run folder (metrics.json) here, for psl plot')
+    p = bench('memories', 'associative memories: completion error both ways on learned '
+              'sessions')
+    p.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
+    p.add_argument('--out', default='runs/bench-learn',
+                   help='session folders (as psl bench learn --out leaves them); missing '
+                   'bootstrap sessions are learned here first')
+    p.add_argument('--tasks', type=int, default=30,
+                   help='training tasks of a session learned here')
+    p.add_argument('--stride', type=int, default=3,
+                   help='hold out every stride-th sample in turn (1: leave-one-out)')
+    p.add_argument('--memories', nargs='+', choices=MEMORIES, default=list(MEMORIES))
+    p.add_argument('--start', choices=STARTS, default=STARTS[0],
+                   help='free entries start at the centre of the ranges or at the mean of the '
+                   'training samples')
+    p = bench('encodings', 'DMP vs GMR encoding, random vs variance-driven task selection')
+    p.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
+    p.add_argument('--tasks', type=int, default=30, help='training tasks per session')
+    p.add_argument('--budget', type=int, default=300, help='rollouts per task at most')
+    p.add_argument('--test-tasks', type=int, default=20, help='held-out tasks per seed')
+    p.add_argument('--after', type=int, default=20,
+                   help='rollouts per task are averaged over the tasks after this many')
+    p.add_argument('--n-components', type=int, default=6, help='GMR components')
+    p.add_argument('--out', help='also write the report (with the learning curves) as JSON')
+    p.add_argument('--figure', help='also draw the task-selection curves into this PNG')
+
+
+def _progress(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def _graph(args) -> tuple[dict, str]:
+    from psl_bench import graph
+    report = graph.measure(args.task, args.rollouts, args.round_trips, args.realtime_seconds)
+    return report, graph.format_report(report)
+
+
+def _rollout(args) -> tuple[dict, str]:
+    from psl_bench import rollout
+    report = rollout.measure(args.task, args.population, args.repeats)
+    return report, rollout.format_report(report)
+
+
+def _memory(args) -> tuple[dict, str]:
+    from psl_bench import memory
+    report = memory.run(args.sizes, args.n_hidden, args.service_samples, args.round_trips)
+    return report, memory.format_report(report)
+
+
+def _learn(args) -> tuple[dict, str]:
+    from psl_bench import learn
+    report = learn.run(task_name=args.task, strategies=args.strategies, seeds=args.seeds,
+                       num_tasks=args.tasks, budget=args.budget, num_test=args.test_tasks,
+                       after=args.after, out=args.out, readout=args.readout,
+                       progress=_progress)
+    return report, learn.format_table(report)
+
+
+def _dynamics(args) -> tuple[dict, str]:
+    from psl_bench import dynamics
+    report = dynamics.run(task_name=args.task, optimisers=args.optimisers, seeds=args.seeds,
+                          num_tasks=args.tasks, budget=args.budget, num_test=args.test_tasks,
+                          out=args.out, progress=_progress)
+    return report, dynamics.format_table(report)
+
+
+def _memories(args) -> tuple[dict, str]:
+    from psl_bench import memories
+    report = memories.run(task_name=args.task, seeds=args.seeds, out=args.out,
+                          num_tasks=args.tasks, stride=args.stride, memories=args.memories,
+                          start=args.start, progress=_progress)
+    return report, memories.format_table(report)
+
+
+def _encodings(args) -> tuple[dict, str]:
+    from psl_bench import encodings
+    report = encodings.run(args.task, args.seeds, args.tasks, args.budget, args.test_tasks,
+                           args.after, args.n_components, progress=_progress)
+    if args.out:
+        Path(args.out).write_text(json.dumps(report, indent=1))
+    if args.figure:
+        _progress(f'figure: {encodings.plot_selection(report, args.figure)}')
+    return report, encodings.format_tables(report)
+
+
+BENCHES = {'graph': _graph, 'rollout': _rollout, 'memory': _memory, 'learn': _learn,
+           'dynamics': _dynamics, 'memories': _memories, 'encodings': _encodings}
+
+
+def run(args) -> int:
+    """Run the benchmark `args.bench`; print its table (or JSON). Exit code 2 for a bad
+    setting, 1 when the graph could not run it."""
+    try:
+        report, table = BENCHES[args.bench](args)
+    except ValueError as exc:
+        print(f'psl bench {args.bench}: {exc}', file=sys.stderr)
+        return 2
+    except (RuntimeError, TimeoutError) as exc:
+        print(f'psl bench {args.bench}: {exc}', file=sys.stderr)
+        return 1
+    print(json.dumps(report, indent=2) if args.json else table, end='\n' if args.json else '')
+    return 0

@@ -1,0 +1,36 @@
+"""psl bench: the command line of the benchmarks runs them, prints their report, reuses
+finished run folders and ends with exit code 2 and the reason for a bad setting."""
+import json
+
+from psl_cli.main import main
+
+STRATEGIES = ('scratch', 'bootstrap')
+SEEDS = (0, 1)
+
+
+def test_learn_reuses_finished_runs_and_refuses_other_settings(tmp_path, capsys):
+    argv = ['bench', 'learn', '--strategies', *STRATEGIES, '--seeds', *map(str, SEEDS),
+            '--tasks', '3', '--budget', '25', '--test-tasks', '3', '--after', '1',
+            '--out', str(tmp_path), '--json']
+    assert main(argv) == 0
+    first = json.loads(capsys.readouterr().out)
+    assert not any(run['reused'] for runs in first['runs'].values() for run in runs.values())
+    assert main(argv) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert all(run['reused'] for runs in again['runs'].values() for run in runs.values())
+    assert again['strategies'] == first['strategies']
+    argv[argv.index('--budget') + 1] = '26'       # another session into the same folders
+    assert main(argv) == 2
+    assert 'another or an unfinished' in capsys.readouterr().err
+
+
+def test_a_bad_setting_ends_with_the_reason(capsys):
+    assert main(['bench', 'encodings', '--tasks', '3', '--after', '3']) == 2
+    err = capsys.readouterr().err
+    assert 'psl bench encodings:' in err and '--after' in err
+
+
+def test_the_rollout_bench_prints_its_ratio(capsys):
+    assert main(['bench', 'rollout', '--population', '4', '--repeats', '1']) == 0
+    out = capsys.readouterr().out
+    assert 'raw mujoco.rollout' in out and 'ratio' in out

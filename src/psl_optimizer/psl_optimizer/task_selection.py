@@ -1,0 +1,48 @@
+"""Which task instances a session trains and tests on.
+
+Training instances come from a seed (`task_sequence`, uniform over the task's ranges); the
+held-out test instances from a separate stream of the same seed (`held_out_tasks`), never
+trained on. With active task selection (``variance``) the next training instance is instead
+the candidate where the skill is least certain (`most_uncertain`). Imports no ROS.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from psl_sim.task import TaskDefinition
+
+TEST_SEED_OFFSET = 1_000_003     # held-out instances: a stream no training sequence uses
+
+
+def task_sequence(task: TaskDefinition, count: int, seed: int) -> np.ndarray:
+    """`count` training instances (count, E), uniform over the task's ranges."""
+    rng = np.random.default_rng(seed)
+    return np.array([task.sample_tau(rng) for _ in range(count)]).reshape(count, -1)
+
+
+def held_out_tasks(task: TaskDefinition, count: int, seed: int) -> np.ndarray:
+    return task_sequence(task, count, seed + TEST_SEED_OFFSET)
+
+
+TASK_SELECTIONS = ('random', 'variance')
+CANDIDATE_SEED_OFFSET = 2_000_003   # candidates of variance-driven selection: their own stream
+
+
+def most_uncertain(task: TaskDefinition, variance: Callable[[np.ndarray], np.ndarray | None],
+                   count: int, seed: int, index: int) -> np.ndarray:
+    """Active task selection: of `count` candidates drawn from the task distribution (a stream
+    seeded by seed and index, so a resumed session draws the same ones), the one whose
+    predictive variance (eq. 2.14), averaged over theta's dimensions, is largest (a skill
+    scales every theta dimension alike, `scaler_around`, so theta units rank as normalised
+    ones). Raises ValueError when the skill's readout gives no variance."""
+    candidates = task_sequence(task, count, (seed + CANDIDATE_SEED_OFFSET) * 100_003 + index)
+    scores = []
+    for tau in candidates:
+        var = variance(tau)
+        if var is None:
+            raise ValueError("task selection 'variance' needs a readout with predictive "
+                             "variance (readout: bayes)")
+        scores.append(float(np.mean(var)))
+    return candidates[int(np.argmax(scores))]
