@@ -30,7 +30,7 @@ def inverse_dynamics_torque(task: TaskDefinition, tau: np.ndarray,
     """
     arm = ArmModel(task)
     model, data = arm.model, mujoco.MjData(arm.model)
-    arm.apply_tau(tau, data, model)          # a private model: the payload mass goes in here
+    arm.apply_tau(task.validate_tau(tau), data, model)   # a private model: the payload mass
     dt = task.control_period
     qdd = np.diff(reference.qd, axis=0) / dt                            # (T-1, n)
     qdd = np.vstack([qdd, qdd[-1:]]) if len(qdd) else np.zeros_like(reference.qd)

@@ -115,13 +115,17 @@ class ArmModel:
         return not all(self._kinematic)
 
     def apply_tau(self, tau: np.ndarray, data: mujoco.MjData | None = None,
-                  model: mujoco.MjModel | None = None) -> None:
+                  model: mujoco.MjModel | None = None) -> np.ndarray:
         """Place the task instance in the model (obstacle position, payload mass, ...); by
-        default in this arm's own model and data, else in the given ones (same bodies)."""
-        self.tau = self.task.validate_tau(tau)
-        for apply, value in zip(self._bindings, self.tau):
+        default in this arm's own model and data (then it is the arm's `tau`), else in the
+        given ones (same bodies). tau must be valid already (`TaskDefinition.validate_tau`;
+        `reset` validates); returns it."""
+        for apply, value in zip(self._bindings, tau):
             apply(self.model if model is None else model, self.data if data is None else data,
                   value)
+        if data is None and model is None:
+            self.tau = tau
+        return tau
 
     def move_bodies(self, tau: np.ndarray, data: mujoco.MjData) -> None:
         """Apply only the task parameters that move things (mocap positions) to data; the
@@ -132,12 +136,15 @@ class ArmModel:
                 apply(self.model, data, value)
 
     # -- simulation ---------------------------------------------------------------------
-    def reset(self, tau: np.ndarray) -> None:
-        """Start posture at rest, task parameters applied, time zero."""
+    def reset(self, tau: np.ndarray) -> np.ndarray:
+        """Start posture at rest, task parameters applied, time zero. Returns tau as
+        validated; TaskError before anything changes for a tau the task refuses."""
+        tau = self.task.validate_tau(tau)
         mujoco.mj_resetData(self.model, self.data)
         self.apply_tau(tau)
         self.data.qpos[self.qpos_adr] = self.task.start_posture
         mujoco.mj_forward(self.model, self.data)
+        return tau
 
     def clip_torque(self, torque: np.ndarray) -> np.ndarray:
         return np.clip(torque, self.torque_low, self.torque_high)

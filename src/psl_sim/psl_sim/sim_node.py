@@ -110,19 +110,18 @@ class SimNode(Node):
 
     # -- services -----------------------------------------------------------------------
     def on_reset(self, request: ResetTask.Request, response: ResetTask.Response):
-        try:
-            arm = self._arm(request.task)
-            tau = arm.task.validate_tau(np.asarray(request.tau))
-        except TaskError as exc:
-            response.success, response.message = False, str(exc)
-            self.get_logger().warning(f'reset refused: {exc}')
-            return response
         duration = self.get_parameter('episode_duration').value
-        num_steps = (int(round(duration * arm.task.control_rate)) if duration > 0
-                     else arm.task.num_steps)
         with self._lock:
+            try:
+                arm = self._arm(request.task)
+                tau = arm.reset(request.tau)       # refuses a bad tau before changing anything
+            except TaskError as exc:
+                response.success, response.message = False, str(exc)
+                self.get_logger().warning(f'reset refused: {exc}')
+                return response
+            num_steps = (int(round(duration * arm.task.control_rate)) if duration > 0
+                         else arm.task.num_steps)
             self.arm = arm
-            arm.reset(tau)
             self.applied = np.zeros(len(arm.joint_names))
             self.pending = None
             self.steps_left = num_steps
