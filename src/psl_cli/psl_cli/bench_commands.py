@@ -26,6 +26,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         p.add_argument('--json', action='store_true', help='the whole report as JSON')
         return p
 
+    def sessions(p, seeds: int, tasks: int, test_tasks: int, after: bool = True) -> None:
+        """The options of benchmarks made of learning sessions."""
+        p.add_argument('--seeds', type=int, nargs='+', default=list(range(seeds)))
+        p.add_argument('--tasks', type=int, default=tasks, help='training tasks per session')
+        p.add_argument('--budget', type=int, default=300, help='rollouts per task at most')
+        p.add_argument('--test-tasks', type=int, default=test_tasks,
+                       help='held-out tasks per seed')
+        if after:
+            p.add_argument('--after', type=int, default=20,
+                           help='rollouts per task are averaged over the tasks after this many')
+
     p = bench('graph', 'lockstep steps/s, DDS round trip, realtime misses')
     p.add_argument('--rollouts', type=int, default=10)
     p.add_argument('--round-trips', type=int, default=2000)
@@ -44,12 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p = bench('learn', 'policy-search strategies over task instances: rollouts per task, '
               'zero-shot success on held-out tasks')
     p.add_argument('--strategies', nargs='+', choices=STRATEGIES, default=list(STRATEGIES))
-    p.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
-    p.add_argument('--tasks', type=int, default=30, help='training tasks per session')
-    p.add_argument('--budget', type=int, default=300, help='rollouts per task at most')
-    p.add_argument('--test-tasks', type=int, default=20, help='held-out tasks per seed')
-    p.add_argument('--after', type=int, default=20,
-                   help='rollouts per task are averaged over the tasks after this many')
+    sessions(p, seeds=5, tasks=30, test_tasks=20)
     p.add_argument('--readout', choices=READOUTS,
                    help="the skill's readout (default: the learner's)")
     p.add_argument('--out', help='keep every run folder (metrics.json) here, for psl plot')
@@ -57,10 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
               'only, learned and the inverse-dynamics oracle', task='payload_transport')
     p.add_argument('--optimisers', nargs='+', choices=OPTIMISERS, default=list(OPTIMISERS),
                    help='ilc (ILC of theta_D, then CMA-ES) and/or cma (CMA-ES only)')
-    p.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2])
-    p.add_argument('--tasks', type=int, default=8, help='training tasks per session')
-    p.add_argument('--budget', type=int, default=300, help='rollouts per task at most')
-    p.add_argument('--test-tasks', type=int, default=10, help='held-out tasks per seed')
+    sessions(p, seeds=3, tasks=8, test_tasks=10, after=False)
     p.add_argument('--out', help='keep every run folder (metrics.json) here, for psl plot')
     p = bench('memories', 'associative memories: completion error both ways on learned '
               'sessions')
@@ -77,12 +80,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help='free entries start at the centre of the ranges or at the mean of the '
                    'training samples')
     p = bench('encodings', 'DMP vs GMR encoding, random vs variance-driven task selection')
-    p.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
-    p.add_argument('--tasks', type=int, default=30, help='training tasks per session')
-    p.add_argument('--budget', type=int, default=300, help='rollouts per task at most')
-    p.add_argument('--test-tasks', type=int, default=20, help='held-out tasks per seed')
-    p.add_argument('--after', type=int, default=20,
-                   help='rollouts per task are averaged over the tasks after this many')
+    sessions(p, seeds=5, tasks=30, test_tasks=20)
     p.add_argument('--n-components', type=int, default=6, help='GMR components')
     p.add_argument('--out', help='also write the report (with the learning curves) as JSON')
     p.add_argument('--figure', help='also draw the task-selection curves into this PNG')

@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import solve
 
-from psl_memory.associative_memory import AssociativeMemory, modality_slices
+from psl_memory.associative_memory import AssociativeMemory, modality_slices, state_arrays
 from psl_memory.elm import ELMFeatures, RangeScaler
 
 # Tag that separates the synthetic-noise streams from the ELM weight stream of the same seed.
@@ -152,15 +152,7 @@ class AELM(AssociativeMemory):
         """
         self._check_state_matches(state, self._constructor_state())
         n_h, d, n_m = self.features.n_hidden, self.dim, len(self.modalities)
-        arrays = {}
-        for key, shape in (('patterns', (None, d)), ('hth', (n_m, n_h, n_h)),
-                           ('htv', (n_h, d)), ('w_out', (n_h, d))):
-            if key not in state:
-                raise ValueError(f'state lacks {key!r}')
-            value = np.array(state[key], dtype=float)
-            if value.ndim != len(shape) or any(s is not None and s != t
-                                               for s, t in zip(shape, value.shape)):
-                raise ValueError(f'state[{key!r}] has shape {value.shape}, expected {shape}')
-            arrays[key] = value
+        arrays = state_arrays(state, {'patterns': (None, d), 'hth': (n_m, n_h, n_h),
+                                      'htv': (n_h, d), 'w_out': (n_h, d)})
         self._patterns, self._hth = arrays['patterns'], arrays['hth']
         self._htv, self._w_out = arrays['htv'], arrays['w_out']

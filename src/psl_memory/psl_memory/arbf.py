@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import solve
 
-from psl_memory.associative_memory import AssociativeMemory, modality_slices
+from psl_memory.associative_memory import AssociativeMemory, modality_slices, state_arrays
 from psl_memory.elm import RangeScaler
 
 
@@ -125,12 +125,9 @@ class ARBF(AssociativeMemory):
                 or arrays of the wrong shape.
         """
         self._check_state_matches(state, self._constructor_state())
-        for key in ('patterns', 'w_out'):
-            if key not in state:
-                raise ValueError(f'state lacks {key!r}')
-        patterns = np.array(state['patterns'], dtype=float)
-        w_out = np.array(state['w_out'], dtype=float)
-        if patterns.ndim != 2 or patterns.shape[1] != self.dim or w_out.shape != patterns.shape:
+        arrays = state_arrays(state, {'patterns': (None, self.dim), 'w_out': (None, self.dim)})
+        patterns, w_out = arrays['patterns'], arrays['w_out']
+        if w_out.shape != patterns.shape:
             raise ValueError(f'state patterns {patterns.shape} and w_out {w_out.shape} must both '
                              f'have shape (N, {self.dim})')
         self._patterns, self._w_out = patterns, w_out

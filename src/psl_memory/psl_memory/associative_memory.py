@@ -38,6 +38,27 @@ def modality_slices(modality_sizes: tuple[int, ...] | None, dim: int) -> list[sl
     return [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
+def state_arrays(state: dict, shapes: dict[str, tuple]) -> dict[str, np.ndarray]:
+    """Finite float copies of ``state[key]`` for each key of `shapes`, each of its shape (an
+    entry None: any length), for `AssociativeMemory.set_state`.
+
+    Raises:
+        ValueError: a key is missing, or an array has another shape or non-finite values.
+    """
+    arrays = {}
+    for key, shape in shapes.items():
+        if key not in state:
+            raise ValueError(f'state lacks {key!r}')
+        value = np.array(state[key], dtype=float)
+        if value.ndim != len(shape) or any(s is not None and s != t
+                                           for s, t in zip(shape, value.shape)):
+            raise ValueError(f'state[{key!r}] has shape {value.shape}, expected {shape}')
+        if not np.all(np.isfinite(value)):
+            raise ValueError(f'state[{key!r}] is not finite')
+        arrays[key] = value
+    return arrays
+
+
 @dataclass(frozen=True, eq=False)
 class CompletionResult:
     """Outcome of :meth:`AssociativeMemory.complete`.

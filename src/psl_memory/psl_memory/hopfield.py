@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from psl_memory.associative_memory import AssociativeMemory, CompletionResult
+from psl_memory.associative_memory import AssociativeMemory, CompletionResult, state_arrays
 from psl_memory.elm import RangeScaler
 
 
@@ -168,15 +168,9 @@ class Hopfield(AssociativeMemory):
                 Hebbian sum that is not that of the stored patterns.
         """
         self._check_state_matches(state, {'bits': self.bits})
-        for key in ('patterns', 'hebb'):
-            if key not in state:
-                raise ValueError(f'state lacks {key!r}')
-        patterns = np.array(state['patterns'], dtype=float)
-        hebb = np.array(state['hebb'], dtype=float)
         n = self.num_neurons
-        if patterns.ndim != 2 or patterns.shape[1] != self.dim or hebb.shape != (n, n):
-            raise ValueError(f'state patterns {patterns.shape} and hebb {hebb.shape} must have '
-                             f'shapes (P, {self.dim}) and ({n}, {n})')
+        arrays = state_arrays(state, {'patterns': (None, self.dim), 'hebb': (n, n)})
+        patterns, hebb = arrays['patterns'], arrays['hebb']
         s = encode(self.scaler.to_unit(patterns), self.bits) if len(patterns) else None
         expected = s.T @ s if s is not None else np.zeros((n, n))
         if not np.array_equal(hebb, expected):

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from psl_memory.associative_memory import AssociativeMemory, modality_slices
+from psl_memory.associative_memory import AssociativeMemory, modality_slices, state_arrays
 from psl_memory.elm import RangeScaler
 
 # Tags that separate the random streams of one seed: initial weights, CD training.
@@ -238,18 +238,8 @@ class RBM(AssociativeMemory):
         """
         self._check_state_matches(state, self._constructor_state())
         d, n_h = self.dim, self.n_hidden
-        arrays = {}
-        for key, shape in (('patterns', (None, d)), ('mean', (d,)), ('std', (d,)),
-                           ('w', (d, n_h)), ('b_v', (d,)), ('b_h', (n_h,))):
-            if key not in state:
-                raise ValueError(f'state lacks {key!r}')
-            value = np.array(state[key], dtype=float)
-            if value.ndim != len(shape) or any(s is not None and s != t
-                                               for s, t in zip(shape, value.shape)):
-                raise ValueError(f'state[{key!r}] has shape {value.shape}, expected {shape}')
-            if not np.all(np.isfinite(value)):
-                raise ValueError(f'state[{key!r}] is not finite')
-            arrays[key] = value
+        arrays = state_arrays(state, {'patterns': (None, d), 'mean': (d,), 'std': (d,),
+                                      'w': (d, n_h), 'b_v': (d,), 'b_h': (n_h,)})
         if 'updates' not in state:
             raise ValueError("state lacks 'updates'")
         updates = float(np.asarray(state['updates']))

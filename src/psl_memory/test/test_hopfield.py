@@ -144,7 +144,7 @@ def test_state_from_other_code_or_broken_is_rejected(smooth):
     state = smooth.get_state()
     with pytest.raises(ValueError, match='Hebbian sum'):
         Hopfield(assoc.SCALER, bits=BITS).set_state({**state, 'hebb': state['hebb'] + 1.0})
-    with pytest.raises(ValueError, match='shapes'):
+    with pytest.raises(ValueError, match='shape'):
         Hopfield(assoc.SCALER, bits=BITS).set_state({**state, 'hebb': np.eye(3)})
     with pytest.raises(ValueError, match='lacks'):
         Hopfield(assoc.SCALER, bits=BITS).set_state({k: v for k, v in state.items()

@@ -45,6 +45,17 @@ def step_by_step(task, theta, tau, law=None):
                                                np.asarray(tau)[None])[0]
 
 
+def assert_equals_step_by_step(task, theta, tau, result, law=None):
+    """The batch result against `step_by_step`: trajectory, torques, reward, components."""
+    q, torque, evaluation = step_by_step(task, theta, tau, law)
+    assert np.abs(result.q - q).max() < Q_TOLERANCE
+    assert np.abs(result.torque - torque).max() < 1e-9
+    assert result.evaluation.reward == pytest.approx(evaluation.reward, abs=REWARD_TOLERANCE)
+    for name, value in evaluation.components.items():
+        assert result.evaluation.components[name] == pytest.approx(value, rel=1e-9, abs=1e-12)
+    return q, torque, evaluation
+
+
 def test_batch_equals_step_by_step_simulation(task, batch):
     rng = np.random.default_rng(3)
     default = policy_for(task).default_theta
@@ -54,13 +65,7 @@ def test_batch_equals_step_by_step_simulation(task, batch):
     results = batch.run(thetas, taus)
     saturated = 0
     for theta, tau, result in zip(thetas, taus, results):
-        q, torque, evaluation = step_by_step(task, theta, tau)
-        assert np.abs(result.q - q).max() < Q_TOLERANCE
-        assert np.abs(result.torque - torque).max() < 1e-9
-        assert result.evaluation.reward == pytest.approx(evaluation.reward, abs=REWARD_TOLERANCE)
-        for name, value in evaluation.components.items():
-            assert result.evaluation.components[name] == pytest.approx(value, rel=1e-9,
-                                                                       abs=1e-12)
+        q, torque, _ = assert_equals_step_by_step(task, theta, tau, result)
         saturated += np.any(np.abs(torque) >= 40.0 - 1e-9)
     assert saturated > 0, 'the perturbed policies should hit the torque limit somewhere'
 
@@ -112,12 +117,9 @@ def test_both_modes_follow_a_changed_law(task):
     tau = task.tau_default
     before = BatchRollouts(task).run(theta[None], tau)[0]
     after = BatchRollouts(task, law=changed).run(theta[None], tau)[0]
-    q, torque, evaluation = step_by_step(task, theta, tau, law=changed)
     assert np.abs(after.q - before.q).max() > 1e-3          # the law matters
-    assert np.abs(after.q - q).max() < Q_TOLERANCE
-    assert np.abs(after.torque - torque).max() < 1e-9
+    _, torque, _ = assert_equals_step_by_step(task, theta, tau, after, law=changed)
     assert np.abs(torque).max() <= 0.5 * np.abs(default.torque_high).max() + 1e-12
-    assert after.evaluation.reward == pytest.approx(evaluation.reward, abs=REWARD_TOLERANCE)
 
 
 # -- a model unlike reach_over_obstacle's ------------------------------------------------------
@@ -155,11 +157,5 @@ def test_mass_parameters_own_sensors_and_no_mocap(tmp_path):
     assert not np.allclose(results[0].q, results[1].q, atol=1e-4)    # the payload matters
     np.testing.assert_array_equal(results[0].q, results[2].q)
     for tau, result in zip(taus, results):
-        q, torque, evaluation = step_by_step(task, theta, tau)
-        assert np.abs(result.q - q).max() < Q_TOLERANCE
-        assert np.abs(result.torque - torque).max() < 1e-9
-        assert result.evaluation.reward == pytest.approx(evaluation.reward, abs=REWARD_TOLERANCE)
-        for name, value in evaluation.components.items():
-            assert result.evaluation.components[name] == pytest.approx(value, rel=1e-9,
-                                                                       abs=1e-12)
+        assert_equals_step_by_step(task, theta, tau, result)
     np.testing.assert_array_equal(batch.model.body_mass, batch.arm.model.body_mass)
