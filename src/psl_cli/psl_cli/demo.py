@@ -86,8 +86,8 @@ def run_demo(task: str, out: Path, positions: int = 5) -> int:
             time.sleep(0.5)
             stop.set()
             recorder.join()
-    names = definition.tau_names
-    header = ''.join(f'{n:>17s}' for n in names) + f'{"reward":>10s}{"fulfilled":>11s}' \
+    tau_names = definition.tau_names
+    header = ''.join(f'{n:>17s}' for n in tau_names) + f'{"reward":>10s}{"fulfilled":>11s}' \
         f'{"goal err [m]":>14s}{"penetration [m]":>17s}{"tracking [rad]":>16s}'
     for title, table in ((f'the demonstration policy on task {definition.name!r}', rows),
                          ('the learned skill, theta = PS(tau) from the skill_memory node '
