@@ -14,6 +14,8 @@ source "$_psl_root/install/setup.bash"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-42}"
 export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
+# Fast DDS participant defaults (lease 4 s): a client notices a server that has gone in seconds
+export FASTRTPS_DEFAULT_PROFILES_FILE="${FASTRTPS_DEFAULT_PROFILES_FILE:-$_psl_root/src/psl_ros/config/fastdds_profile.xml}"
 export PSL_ROOT="$_psl_root"
 # small matrices (hidden layers of ~100): one BLAS thread is faster and leaves the second core
 # to the other nodes (batch ridge at N=100: 8 ms with threads, 0.3 ms without)

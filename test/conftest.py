@@ -22,6 +22,24 @@ from psl_ros.client import RosClient, evaluation_dict  # noqa: E402
 Q_TOLERANCE = 1e-9          # rad, joint angles at every control period
 REWARD_TOLERANCE = 1e-9     # reward, absolute
 COMPONENT_RTOL, COMPONENT_ATOL = 1e-9, 1e-12
+DELIVERY_TIMEOUT = 10.0     # s, for messages already published to reach a test's subscription
+
+
+def poll_until(condition, timeout: float, period: float = 0.01) -> bool:
+    """Call `condition` until it is true (True) or `timeout` s have passed (False); what a
+    test waits on instead of a sleep of a guessed length."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(period)
+    return True
+
+
+@pytest.fixture(scope='session')
+def wait_until():
+    """`poll_until` for the tests of this folder."""
+    return poll_until
 
 
 @pytest.fixture(scope='module')
@@ -72,14 +90,16 @@ def graph_matches_batch(client):
         try:
             client.wait_for_subscribers(['joint_states'])
             result = client.rollout(task_id(task), tau, theta)
-            time.sleep(0.3)
+            assert result.success, result.message
+            stamp = result.evaluation.stamp
+            t0 = stamp.sec * 10**9 + stamp.nanosec
+            episode = [t0 + k * task.control_period_ns for k in range(task.num_steps + 1)]
+            # the evaluator has scored every state; this subscription may still be receiving
+            assert poll_until(lambda: all(t in states for t in episode), DELIVERY_TIMEOUT), \
+                f'{sum(t in states for t in episode)} of {len(episode)} joint_states recorded'
         finally:
             client.node.destroy_subscription(sub)
-        assert result.success, result.message
-        stamp = result.evaluation.stamp
-        t0 = stamp.sec * 10**9 + stamp.nanosec
-        q_graph = np.array([states[t0 + k * task.control_period_ns].position
-                            for k in range(task.num_steps + 1)])
+        q_graph = np.array([states[t].position for t in episode])
         batch = BatchRollouts(task, law=law).run(np.asarray(theta)[None], tau)[0]
         assert q_graph.shape == batch.q.shape == (task.num_steps + 1, task.n_joints)
         assert np.abs(q_graph - batch.q).max() < Q_TOLERANCE

@@ -116,6 +116,35 @@ def test_learn_in_graph_mode_cancels_on_ctrl_c_and_resumes(tmp_path):
         [t['best_reward'] for t in batch['tasks']], abs=1e-9)
 
 
+def test_learn_in_graph_mode_ends_when_the_graph_dies(tmp_path):
+    """SIGKILL a node mid-session: psl up ends the graph, and psl learn notices that the
+    learner has gone within seconds (no wait forever) and says so."""
+    proc, pids, log = start_up(tmp_path)
+    out = tmp_path / 'graph'
+    try:
+        wait_for_line(log, 'graph ready')
+        learn = subprocess.Popen(PSL + ['learn', '--mode', 'graph', '--tasks', '20', '--out',
+                                        str(out)], stdout=subprocess.PIPE,
+                                 stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and not (out / 'checkpoint.json').is_file():
+                time.sleep(0.05)
+            killed = time.monotonic()
+            os.kill(pids['pd_controller'], signal.SIGKILL)
+            _, stderr = learn.communicate(timeout=60)
+            waited = time.monotonic() - killed
+        finally:
+            if learn.poll() is None:
+                learn.kill()
+                learn.wait()
+        assert learn.returncode == 1, stderr
+        assert 'has gone' in stderr and 'learn_skill' in stderr, stderr
+        assert waited < 30, f'psl learn took {waited:.1f} s to notice'
+    finally:
+        end(proc, pids)
+
+
 def test_up_reports_a_dead_node_and_ends_the_others(tmp_path):
     proc, pids, log = start_up(tmp_path)
     try:

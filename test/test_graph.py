@@ -12,6 +12,7 @@ from psl_controller.policy import policy_for
 from psl_sim.task import load_task
 
 TASK = 'reach_over_obstacle'
+DELIVERY_TIMEOUT = 10.0  # s, for messages already published to reach the recorder
 GOAL_TOLERANCE = 0.005   # m, end-effector distance to the goal after the demonstration
 
 
@@ -123,27 +124,62 @@ def test_bad_effort_commands_never_reach_the_physics(client, graph, task, theta,
     assert 'refused effort_command: expected 3 finite torques' in sim_log
 
 
-def test_recorded_bag_reads_back(client, task, theta, tmp_path, reference_result):
+def count_messages(node, topics, counts):
+    """Subscriptions on `node` that count each topic's messages into `counts` (QoS like the
+    recorder's: reliable, the latched task_instance transient-local); returns them."""
+    from psl_msgs.msg import RolloutEvaluation, TaskInstance
+    from rclpy.qos import DurabilityPolicy
+    from sensor_msgs.msg import JointState
+    from trajectory_msgs.msg import JointTrajectory
+
+    types = {'/joint_states': JointState, '/reference': JointState,
+             '/effort_command': Float64MultiArray, '/task_instance': TaskInstance,
+             '/rollout_evaluation': RolloutEvaluation, '/joint_trajectory': JointTrajectory}
+    subscriptions = []
+    for topic in topics:
+        counts[topic] = 0
+        qos = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=(DurabilityPolicy.TRANSIENT_LOCAL if topic == '/task_instance'
+                                     else DurabilityPolicy.VOLATILE))
+
+        def count(_, topic=topic):
+            counts[topic] += 1
+        subscriptions.append(node.create_subscription(types[topic], topic, count, qos,
+                                                      raw=True))
+    return subscriptions
+
+
+def test_recorded_bag_reads_back(client, task, theta, tmp_path, reference_result, wait_until):
     bag = tmp_path / 'rollout_bag'
     topics = ['joint_states', 'reference', 'effort_command', 'task_instance',
               'rollout_evaluation', 'joint_trajectory']
-    stop = threading.Event()
-    counts = {}
-    recorder = threading.Thread(target=lambda: counts.update(
-        record(bag, topics, stop=stop, discovery_timeout=1.0)))
-    recorder.start()
-    try:
-        client.wait_for_subscribers(topics)
-        result = client.rollout(TASK, task.tau_default, theta)
-    finally:
-        time.sleep(0.5)
-        stop.set()
-        recorder.join(timeout=30)
-    assert result.success, result.message
     n = task.num_steps + 1       # states 0..N, each answered by one command and reference
     # task_instance is latched: the recorder also receives the previous episode's announcement
     expected = {'/joint_states': n, '/reference': n, '/effort_command': n,
                 '/task_instance': 2, '/rollout_evaluation': 1, '/joint_trajectory': 1}
+    stop = threading.Event()
+    recordings = []
+    recorder = threading.Thread(target=lambda: recordings.append(
+        record(bag, topics, stop=stop, discovery_timeout=1.0)))
+    # a second listener beside the recorder: what has reached this machine's subscribers
+    delivered = {}
+    probes = count_messages(client.node, expected, delivered)
+    recorder.start()
+    try:
+        client.wait_for_subscribers(topics, extra=2)           # the recorder and the probes
+        result = client.rollout(TASK, task.tau_default, theta)
+        # the rollout is over, its last messages may still be on their way: stop the
+        # recorder once they have reached the probes
+        wait_until(lambda: delivered == expected, DELIVERY_TIMEOUT)
+    finally:
+        stop.set()
+        recorder.join(timeout=30)
+        for probe in probes:
+            client.node.destroy_subscription(probe)
+    assert result.success, result.message
+    assert delivered == expected
+    assert recordings, 'record() raised (see the thread exception above)'
+    counts = recordings[0].counts
     summary = read_bag_summary(bag)
     assert {topic: count for topic, (_, count) in summary.items()} == expected
     assert counts == expected

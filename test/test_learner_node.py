@@ -251,7 +251,7 @@ def test_graph_mode_learns_what_batch_mode_learns(tmp_path):
     assert_same_session(metrics, in_process(s, tmp_path / 'batch'))
 
 
-def test_two_rollout_workers_learn_what_batch_mode_learns(tmp_path):
+def test_two_rollout_workers_learn_what_batch_mode_learns(tmp_path, wait_until):
     """Graph(workers=2): the loop runs twice, under worker0 and worker1; the learner spreads
     each CMA-ES population over both (lockstep rollouts do not depend on the worker)."""
     g = Graph(log_dir=tmp_path / 'logs', workers=2, extra_params={
@@ -269,19 +269,24 @@ def test_two_rollout_workers_learn_what_batch_mode_learns(tmp_path):
                 def count(_):
                     evaluations[worker] += 1
                 return count
-            for worker in evaluations:
-                c.node.create_subscription(RolloutEvaluation, f'/{worker}/rollout_evaluation',
-                                           counter(worker), RELIABLE)
-            time.sleep(1.0)      # give the evaluators time to match this client
+            subscriptions = [c.node.create_subscription(
+                RolloutEvaluation, f'/{worker}/rollout_evaluation', counter(worker), RELIABLE)
+                for worker in evaluations]
+            # every evaluator matched this client before the first rollout: none is missed
+            assert wait_until(lambda: all(sub.get_publisher_count() >= 1
+                                          for sub in subscriptions), 30.0), \
+                [sub.get_publisher_count() for sub in subscriptions]
             s = settings('scratch', num_tasks=2, budget=22, seed=5)
             result = c.learn(timeout=600, **goal(s, tmp_path / 'graph', mode='graph'))
             assert result.success, result.message
             metrics = json.loads(open(result.metrics_path).read())
-            time.sleep(0.5)      # the last evaluations are on their way to this client too
+            # one evaluation per training and per held-out rollout; the last ones may still
+            # be on their way to this client
+            expected = metrics['summary']['total_rollouts'] + NUM_TEST
+            wait_until(lambda: sum(evaluations.values()) >= expected, 10.0)
     finally:
         stop(g)
     assert_same_session(metrics, in_process(s, tmp_path / 'batch'))
-    # both workers rolled out, and no rollout ran twice (this client may miss an evaluation
-    # published before its subscription matched, so the sum is a lower bound on the count)
+    # both workers rolled out, and every rollout ran once
     assert evaluations['worker0'] > 0 and evaluations['worker1'] > 0, evaluations
-    assert sum(evaluations.values()) <= metrics['summary']['total_rollouts'] + NUM_TEST
+    assert sum(evaluations.values()) == expected, evaluations

@@ -9,8 +9,7 @@ import pytest
 import yaml
 from matplotlib.image import imread
 
-from psl_bench.plot_learning import (DPI, FIGSIZE, bayesian_stand_in, load_run, plot_runs,
-                          variance_grid)
+from psl_bench.plot_learning import DPI, FIGSIZE, load_run, plot_runs, variance_grid
 from psl_memory.skill_config import SkillConfig
 from psl_memory.skill_memory import SkillMemory
 from psl_optimizer.batch_rollout import BatchRollouts
@@ -93,13 +92,47 @@ def test_variance_grid_is_positive_and_lowest_near_the_samples(runs):
     assert np.max(near) < np.max(far)
 
 
+def bayesian_variance_by_hand(skill, config, tau) -> float:
+    """Predictive variance of theta (eq. 2.14) in theta's units for a Bayesian readout with the
+    precisions of `config`, from scratch: the ELM hidden state h of tau (sigmoid of the skill's
+    fixed random layer, eq. 2.2), the posterior
+    S_N = (alpha I + beta H^T H)^-1 over the skill's samples (eq. 2.12), 1/beta + h^T S_N h
+    times the square of theta's half-range (the same for every theta dimension)."""
+    def hidden(taus):                                                   # (n, E) -> (n, N_H)
+        low, high = skill.tau_scaler.low, skill.tau_scaler.high
+        unit = 2.0 * (np.atleast_2d(taus) - low) / (high - low) - 1.0
+        a = config.alpha * (unit @ skill.features.w_inp.T + skill.features.bias)
+        return 1.0 / (1.0 + np.exp(-a))
+    alpha, beta = config.regularization, config.noise_precision
+    big_h = hidden(skill.taus)                                          # (N, N_H)
+    s_n = np.linalg.inv(alpha * np.eye(config.n_hidden) + beta * big_h.T @ big_h)
+    h = hidden(tau)[0]                                                  # (N_H,)
+    half = 0.5 * (skill.theta_scaler.high - skill.theta_scaler.low)     # (F,), all equal
+    return float(np.mean((1.0 / beta + h @ s_n @ h) * half**2))
+
+
 def test_a_skill_with_variance_is_queried_as_it_is(runs):
+    """A skill without variance gets a Bayesian readout with its own precisions fitted to its
+    samples; one with variance (here beta = 4, not the default 1) is queried with its own.
+    Both against the predictive variance computed by hand at grid points."""
     skill = skill_of(runs['scratch', 0])
-    stand_in = bayesian_stand_in(skill)
-    assert stand_in.config.readout == 'bayes' and stand_in.num_samples == skill.num_samples
-    fitted, own = variance_grid(skill, GRID), variance_grid(stand_in, GRID)
+    assert skill.config.readout == 'incremental_ridge'
+    assert not skill.config.estimate_precisions               # fixed alpha, beta by hand
+    fitted = variance_grid(skill, GRID)
+    mine = SkillConfig(readout='bayes', noise_precision=4.0)
+    with_variance = skill.refitted(mine)
+    own = variance_grid(with_variance, GRID)
     assert fitted.fitted and not own.fitted
-    np.testing.assert_allclose(own.values, fitted.values)
+    assert own.num_samples == fitted.num_samples == skill.num_samples
+    nearest = np.argmin(np.linalg.norm(skill.taus[0] - np.stack(np.meshgrid(*fitted.axes),
+                                                                axis=-1), axis=-1))
+    for i, j in [(0, 0), (0, GRID - 1), (GRID - 1, 0), (GRID // 2, GRID // 3),
+                 np.unravel_index(nearest, (GRID, GRID))]:
+        tau = np.array([fitted.axes[0][j], fitted.axes[1][i]])       # row: tau_1, column: tau_0
+        assert fitted.values[i, j] == pytest.approx(
+            bayesian_variance_by_hand(skill, skill.config, tau), rel=1e-9)
+        assert own.values[i, j] == pytest.approx(
+            bayesian_variance_by_hand(with_variance, mine, tau), rel=1e-9)
     with pytest.raises(ValueError, match='n >= 2'):
         variance_grid(skill, 1)
 

@@ -52,6 +52,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument('--service-samples', type=int, default=1000)
     p.add_argument('--round-trips', type=int, default=1000)
     p.add_argument('--json', action='store_true', help='the whole report as JSON')
+    p = sub.add_parser('memory-load', help='many clients at once on the skill memory: lost '
+                       'answers and answer times')
+    p.add_argument('--clients', type=int, default=8, help='querying client processes')
+    p.add_argument('--adders', type=int, default=2, help='adding client processes')
+    p.add_argument('--calls', type=int, default=1000, help='queries per client (adds: a fifth)')
+    p.add_argument('--json', action='store_true', help='the whole report as JSON')
+    p = bench('recording', 'lockstep steps/s with and without a bag recorder, messages kept and '
+              'lost per topic')
+    p.add_argument('--rollouts', type=int, default=5, help='rollouts per round and phase')
+    p.add_argument('--rounds', type=int, default=3)
+    p.add_argument('--busy', type=int, default=0, help='cores kept busy meanwhile')
+    p.add_argument('--topics', nargs='+', help='topics to record (default: what psl demo '
+                   'records)')
+    p = bench('workers', 'one graph-mode learning session with 1 and 2 rollout workers')
+    p.add_argument('--workers', type=int, nargs='+', default=[1, 2])
+    p.add_argument('--strategy', choices=STRATEGIES, default='scratch')
+    p.add_argument('--tasks', type=int, default=3)
+    p.add_argument('--budget', type=int, default=22)
+    p.add_argument('--seed', type=int, default=5)
     p = bench('learn', 'policy-search strategies over task instances: rollouts per task, '
               'zero-shot success on held-out tasks')
     p.add_argument('--strategies', nargs='+', choices=STRATEGIES, default=list(STRATEGIES))
@@ -108,6 +127,27 @@ def _memory(args) -> tuple[dict, str]:
     return report, memory.format_report(report)
 
 
+def _memory_load(args) -> tuple[dict, str]:
+    from psl_bench import memory_load
+    report = memory_load.measure(args.clients, args.adders, args.calls)
+    return report, memory_load.format_report(report)
+
+
+def _recording(args) -> tuple[dict, str]:
+    from psl_bench import recording
+    from psl_ros import names
+    report = recording.measure(args.task, args.rollouts, args.busy,
+                               args.topics or names.RECORDED_TOPICS, args.rounds)
+    return report, recording.format_report(report)
+
+
+def _workers(args) -> tuple[dict, str]:
+    from psl_bench import workers
+    report = workers.measure(args.task, args.workers, args.strategy, args.tasks, args.budget,
+                             args.seed, progress=_progress)
+    return report, workers.format_report(report)
+
+
 def _learn(args) -> tuple[dict, str]:
     from psl_bench import learn
     report = learn.run(task_name=args.task, strategies=args.strategies, seeds=args.seeds,
@@ -144,8 +184,10 @@ def _encodings(args) -> tuple[dict, str]:
     return report, encodings.format_tables(report)
 
 
-BENCHES = {'graph': _graph, 'rollout': _rollout, 'memory': _memory, 'learn': _learn,
-           'dynamics': _dynamics, 'memories': _memories, 'encodings': _encodings}
+BENCHES = {'graph': _graph, 'rollout': _rollout, 'memory': _memory,
+           'memory-load': _memory_load, 'recording': _recording, 'workers': _workers,
+           'learn': _learn, 'dynamics': _dynamics, 'memories': _memories,
+           'encodings': _encodings}
 
 
 def run(args) -> int:

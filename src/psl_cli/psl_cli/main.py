@@ -9,26 +9,13 @@ import sys
 import threading
 from pathlib import Path
 
-import numpy as np
-
 from psl_optimizer.policy_search import STRATEGIES
 from psl_optimizer.rollouts import MODES
 from psl_optimizer.task_selection import TASK_SELECTIONS
+from psl_cli.vectors import load_vector
 from psl_ros.graph import SIM_MODES
 
 
-def load_vector(path: str | Path) -> np.ndarray:
-    """A flat vector (theta) from a .npy, a .json list or a whitespace-separated text file.
-
-    Raises:
-        OSError: the file cannot be read; ValueError: it holds no numbers.
-    """
-    file = Path(path)
-    if file.suffix == '.npy':
-        return np.load(file, allow_pickle=False).ravel().astype(float)
-    if file.suffix == '.json':
-        return np.asarray(json.loads(file.read_text()), dtype=float).ravel()
-    return np.loadtxt(file, ndmin=1).ravel()
 
 
 def cmd_up(args) -> int:
@@ -246,9 +233,12 @@ def _learn_in_process(args, task, out: Path, stop: threading.Event) -> int:
     return 0
 
 
+CANCEL_WAIT = 30.0     # s psl learn waits, after Ctrl-C, for the learner to say what it kept
+
+
 def _learn_in_graph(args, task, out: Path, stop: threading.Event) -> int:
     from psl_optimizer.metrics import read_metrics
-    from psl_ros.client import RosClient
+    from psl_ros.client import RosClient, Stopped
     from psl_sim.task import task_id
 
     def feedback(message) -> None:
@@ -262,14 +252,18 @@ def _learn_in_graph(args, task, out: Path, stop: threading.Event) -> int:
                 feedback=feedback, task=task_id(task), strategy=args.strategy,
                 num_tasks=args.tasks, max_rollouts_per_task=args.budget, seed=args.seed,
                 mode='graph', output_dir=str(out), task_selection=args.task_selection)
-            future = handle.get_result_async()
-            while not future.done():
-                if stop.wait(0.1):
-                    print('\npsl learn: cancelling (finished tasks stay in the checkpoint)',
-                          file=sys.stderr)
-                    handle.cancel_goal_async()
-                    stop.clear()
-            result = future.result().result
+            try:
+                result = client.learner.result(handle, stop=stop)
+            except Stopped:
+                print('\npsl learn: cancelling (finished tasks stay in the checkpoint; Ctrl-C '
+                      'again ends at once)', file=sys.stderr)
+                stop.clear()
+                handle.cancel_goal_async()
+                try:       # the learner stops between two rollouts and says what it kept
+                    result = client.learner.result(handle, timeout=CANCEL_WAIT, stop=stop)
+                except Stopped:
+                    print('psl learn: ended without the learner\'s answer', file=sys.stderr)
+                    return 130
         except (TimeoutError, RuntimeError) as exc:
             print(f'\npsl learn: {exc}', file=sys.stderr)
             return 1
@@ -304,12 +298,13 @@ def cmd_record(args) -> int:
     from psl_ros.bag_recorder import record
 
     try:
-        counts = record(args.output, args.topics, duration=args.duration)
+        recording = record(args.output, args.topics, duration=args.duration)
     except (FileExistsError, ValueError) as exc:
         print(f'psl record: {exc}', file=sys.stderr)
         return 2
-    for topic, count in counts.items():
-        print(f'{topic:30s} {count}')
+    for topic, count in recording.counts.items():
+        lost = recording.lost[topic]
+        print(f'{topic:30s} {count}' + (f'  ({lost} lost)' if lost else ''))
     return 0
 
 
@@ -416,6 +411,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument('--out', default='demo')
     demo.add_argument('--positions', type=int, default=5)
     demo.set_defaults(func=cmd_demo)
+
+    render_parser = sub.add_parser('render', help='draw one rollout offscreen into an animated '
+                                   'GIF')
+    from psl_cli import render
+    render.add_arguments(render_parser)
+    render_parser.set_defaults(func=render.run)
 
     bench_parser = sub.add_parser('bench', help='benchmarks (see docs/benchmarks.md)')
     from psl_cli import bench_commands

@@ -27,7 +27,7 @@ from psl_msgs.srv import ResetTask
 from psl_ros import names
 from psl_ros.futures import wait_for
 from psl_ros.node_main import run_node
-from psl_ros.qos import RELIABLE
+from psl_ros.qos import RELIABLE, SERVICES
 from psl_ros.stamps import duration_msg, to_ns
 from psl_sim.arm_model import joint_names_of
 from psl_sim.task import TaskError, load_task
@@ -53,7 +53,8 @@ class DMPExecutor(Node):
         group = ReentrantCallbackGroup()
         self.pub_trajectory = self.create_publisher(JointTrajectory, names.JOINT_TRAJECTORY,
                                                      RELIABLE)
-        self.reset_client = self.create_client(ResetTask, names.RESET, callback_group=group)
+        self.reset_client = self.create_client(ResetTask, names.RESET, callback_group=group,
+                                               qos_profile=SERVICES)
         self.create_subscription(RolloutEvaluation, names.ROLLOUT_EVALUATION, self.on_evaluation,
                                  RELIABLE, callback_group=group)
         self.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self.on_diagnostics, 10,

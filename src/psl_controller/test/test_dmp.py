@@ -1,7 +1,5 @@
 """Tests of the DMP library (eq. 2.23-2.24): canonical system, basis, DMP, fitting."""
 
-import time
-
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
@@ -15,7 +13,6 @@ TOL_ODE = 1e-8  # analytical phase vs adaptive ODE solver
 TOL_REFERENCE = 1e-7  # exact ZOH integration vs fine RK4 reference (relative)
 FIT_RMSE_FRACTION = 1e-3  # fitted reproduction RMSE per joint / joint range
 GOAL_TOL = 1e-5  # |y - g| after settling
-INTEGRATE_BUDGET_S = 5e-3  # per call, n_dims=3, n_basis=10, 1000 steps
 
 WAYPOINT_TIMES = np.array([0.0, 0.4, 1.0, 1.5, 2.0])
 WAYPOINTS = np.array([[0.0, 0.5, -0.2],
@@ -103,6 +100,30 @@ def test_basis_centers_equally_spaced_and_peaked():
     np.testing.assert_allclose(basis.widths, 1.0 / (2.0 * (0.5 * 0.25) ** 2))
     activations = basis.activations(basis.centers)
     np.testing.assert_array_equal(np.argmax(activations, axis=1), np.arange(5))
+
+
+@pytest.mark.parametrize('n_basis, width_factor', [(2, 0.5), (7, 0.5), (25, 0.5), (7, 1.3)])
+def test_basis_activations_are_normalised_gaussians_by_hand(n_basis, width_factor):
+    """psi_k(x) = exp(-V_k (x - C_k)^2) / sum_j exp(-V_j (x - C_j)^2) (eq. 2.24), C_k equally
+    spaced on [0, 1], V_k = 1 / (2 (width_factor h)^2) with h the centre spacing; computed
+    directly (no shift of the exponents: none underflows on [-0.2, 1.2] here)."""
+    basis = NormalizedGaussianBasis(n_basis, width_factor)
+    h = 1.0 / (n_basis - 1)
+    centres = h * np.arange(n_basis)                                    # (K,)
+    v = 1.0 / (2.0 * (width_factor * h) ** 2)
+    np.testing.assert_allclose(basis.centers, centres, rtol=0.0, atol=1e-15)
+    np.testing.assert_allclose(basis.widths, np.full(n_basis, v), rtol=1e-15)
+    x = np.r_[np.linspace(-0.2, 1.2, 141), centres]                    # (T,)
+    psi = np.array([[np.exp(-v * (xt - c) ** 2) for c in centres] for xt in x])   # (T, K)
+    expected = psi / psi.sum(axis=1, keepdims=True)
+    np.testing.assert_allclose(basis.activations(x), expected, rtol=1e-12, atol=1e-15)
+    assert basis.activations(0.3).shape == (1, n_basis)                 # a scalar is T = 1
+
+
+def test_a_single_basis_function_is_one_everywhere():
+    basis = NormalizedGaussianBasis(1)
+    np.testing.assert_array_equal(basis.centers, [0.5])
+    np.testing.assert_array_equal(basis.activations(np.linspace(-1.0, 2.0, 7)), np.ones((7, 1)))
 
 
 def test_basis_rejects_bad_sizes():
@@ -274,18 +295,40 @@ def test_constructor_and_integrate_reject_bad_arguments():
         dmp.integrate(0.01, t_end=-1.0)
 
 
-def test_integrate_grid_and_speed():
+def test_integrate_grid_and_discretisation_once_per_grid(monkeypatch):
+    """The discretisation (matrix exponential, basis on the grid, the O(N) response loop) is
+    computed once per grid: later calls on that grid, also after a theta change, only combine
+    the cached responses with theta, and give what a fresh DMP computes."""
+    import psl_controller.dmp as dmp_module
+
+    discretisations = []
+    real_expm = dmp_module.expm
+    monkeypatch.setattr(dmp_module, 'expm',
+                        lambda m: discretisations.append(m.copy()) or real_expm(m))
+    rng = np.random.default_rng(4)
     dmp = DMP(3, 10, 1.0, np.zeros(3), np.ones(3))
-    dmp.set_theta(np.random.default_rng(4).normal(size=30))
+    basis_calls = []
+    real_activations = dmp.basis.activations
+    monkeypatch.setattr(dmp.basis, 'activations',
+                        lambda x: basis_calls.append(len(x)) or real_activations(x))
+    dmp.set_theta(rng.normal(size=30))
     trajectory = dmp.integrate(0.001)  # fills the cache for this grid
     assert trajectory.t.shape == (1001,)
     assert trajectory.y.shape == trajectory.yd.shape == trajectory.ydd.shape == (1001, 3)
+    assert len(discretisations) == 1 and basis_calls == [1001]
+    thetas = [rng.normal(size=30) for _ in range(5)]
+    for theta in thetas:
+        dmp.set_theta(theta)
+        again = dmp.integrate(0.001)
+        fresh = DMP(3, 10, 1.0, np.zeros(3), np.ones(3))
+        fresh.set_theta(theta)
+        reference = fresh.integrate(0.001)
+        for name in ('t', 'y', 'yd', 'ydd'):
+            np.testing.assert_array_equal(getattr(again, name), getattr(reference, name))
+    assert len(discretisations) == 1 + len(thetas)      # one per fresh DMP, none for `dmp`
+    assert basis_calls == [1001]
     assert dmp.integrate(0.003, t_end=0.1).t.shape == (34,)  # N = round(0.1 / 0.003) = 33
-    repeats = 50
-    start = time.perf_counter()
-    for _ in range(repeats):
-        dmp.integrate(0.001)
-    assert (time.perf_counter() - start) / repeats < INTEGRATE_BUDGET_S
+    assert basis_calls == [1001, 34]                          # a new grid: discretised once
 
 
 def test_demonstration_from_two_waypoints_is_smoothstep():

@@ -28,6 +28,7 @@ from psl_msgs.srv import (AddSample, CompletePattern, CreateSkill, LoadMemory, Q
 from psl_memory.skill_config import SkillConfig
 from psl_memory.skill_memory import MemoryFileError, SkillMemory
 from psl_ros.node_main import run_node
+from psl_ros.service import create_service
 
 
 class SkillMemoryNode(Node):
@@ -67,7 +68,7 @@ class SkillMemoryNode(Node):
                                     ('~/save', SaveMemory, self.on_save),
                                     ('~/load', LoadMemory, self.on_load),
                                     ('~/info', Trigger, self.on_info)):
-            self.create_service(srv, name, callback)
+            create_service(self, srv, name, callback)
         self.get_logger().info(f'skills: {json.dumps(self.memory.info())}')
 
     def _initial_memory(self) -> SkillMemory:

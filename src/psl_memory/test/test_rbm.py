@@ -29,12 +29,14 @@ assoc = _sibling('test_associative')
 skills = _sibling('test_parameterized_skill')
 E, F, D = assoc.E, assoc.F, assoc.D
 
-# Measured with seeds 0 / 1 / 2 (max-abs over the stored patterns, normalised units):
-TOL_FIXED_POINT = 0.5     # |v_hat(v_i) - v_i|: 0.29 / 0.35 / 0.34
-TOL_THETA = 0.8           # theta from tau, stored taus: 0.67 / 0.48 / 0.45
-TOL_TAU = 0.2             # tau from theta, stored thetas: 0.11 / 0.12 / 0.11
-# RMS of the theta completion over RMS of theta around its mean (1 = no better than the mean)
-MAX_THETA_RMS_RATIO = 0.5
+# Recall against the mean predictor: RMS error (normalised units, over the stored patterns and
+# the recalled entries) over the RMS of those entries around their mean; 1 = no better than
+# answering the mean. Measured over RBM seeds 0-19 (worst, median): fixed point v_hat(v_i)
+# 0.15, 0.12; theta from tau 0.30, 0.19; tau from theta 0.17, 0.09. The bounds are about twice
+# the worst seed's.
+MAX_FIXED_POINT_RATIO = 0.3
+MAX_THETA_RATIO = 0.5
+MAX_TAU_RATIO = 0.35
 # CD from the initial weights: reconstruction RMS 1.31 -> 0.25 (standardised units)
 RECONSTRUCTION_GAIN = 3.0
 
@@ -51,24 +53,22 @@ def memory() -> RBM:
     return mem
 
 
-def test_stored_patterns_are_recalled_approximately(memory):
-    assert assoc.unit_error(memory.predict(assoc.V_TRAIN), assoc.V_TRAIN) < TOL_FIXED_POINT
-    theta_err, tau_err, theta_spread = [], [], []
-    for v in assoc.V_TRAIN:
-        for known, errors, tol in ((assoc.TAU_IDX, theta_err, TOL_THETA),
-                                   (assoc.THETA_IDX, tau_err, TOL_TAU)):
-            result = memory.complete(assoc.start_from(v, known), known)
-            assert result.converged, result
-            errors.append(assoc.unit_error(result.pattern, v))
-            assert errors[-1] < tol
-        theta_spread.append(assoc.SCALER.to_unit(v)[E:])
-    # tau -> theta beats the mean theta clearly (RMS over patterns and entries)
-    u = assoc.SCALER.to_unit(np.array([memory.complete(assoc.start_from(v, assoc.TAU_IDX),
-                                                       assoc.TAU_IDX).pattern
-                                       for v in assoc.V_TRAIN]))[:, E:]
-    truth = np.array(theta_spread)
-    ratio = np.sqrt(np.mean((u - truth)**2) / np.mean((truth - truth.mean(axis=0))**2))
-    assert ratio < MAX_THETA_RMS_RATIO, ratio
+def rms_ratio_to_mean(recalled: np.ndarray, truth: np.ndarray) -> float:
+    """RMS of recalled - truth over RMS of truth around its mean (normalised units)."""
+    return float(np.sqrt(np.mean((recalled - truth) ** 2)
+                         / np.mean((truth - truth.mean(axis=0)) ** 2)))
+
+
+def test_stored_patterns_are_recalled_far_better_than_the_mean(memory):
+    unit = assoc.SCALER.to_unit
+    truth = unit(assoc.V_TRAIN)                                     # (N, D)
+    assert rms_ratio_to_mean(unit(memory.predict(assoc.V_TRAIN)), truth) < MAX_FIXED_POINT_RATIO
+    for known, bound in ((assoc.TAU_IDX, MAX_THETA_RATIO), (assoc.THETA_IDX, MAX_TAU_RATIO)):
+        results = [memory.complete(assoc.start_from(v, known), known) for v in assoc.V_TRAIN]
+        assert all(r.converged for r in results), results
+        recalled = unit(np.array([r.pattern for r in results]))    # (N, D)
+        ratio = rms_ratio_to_mean(recalled[:, ~known], truth[:, ~known])
+        assert ratio < bound, (known, ratio)
 
 
 def test_cd_training_lowers_reconstruction_error():

@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import queue
 from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
 
 import numpy as np
 
 from psl_optimizer.reward import RewardResult
-from psl_optimizer.rollouts import RolloutResult, Rollouts
+from psl_optimizer.rollouts import RolloutResult, Rollouts, Stopped
 from psl_ros.client import RolloutClient
 from psl_sim.task import TaskDefinition, task_id
 
@@ -26,14 +27,16 @@ class GraphRollouts(Rollouts):
         task: the task (sent by name, or by its YAML's path when the name does not find it).
         workers: one `RolloutClient` per rollout worker.
         timeout: seconds to wait for one rollout.
+        should_stop: asked before every rollout; True raises `Stopped` (a population of graph
+            rollouts takes seconds, a cancel should not wait for all of it).
     """
 
     def __init__(self, task: TaskDefinition, workers: list[RolloutClient],
-                 timeout: float = 120.0):
+                 timeout: float = 120.0, should_stop: Callable[[], bool] = lambda: False):
         super().__init__(task)
         if not workers:
             raise ValueError('graph mode needs at least one rollout worker')
-        self.workers, self.timeout = list(workers), timeout
+        self.workers, self.timeout, self.should_stop = list(workers), timeout, should_stop
 
     def run(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
         thetas, taus = self._inputs(thetas, taus)
@@ -53,6 +56,8 @@ class GraphRollouts(Rollouts):
             return list(pool.map(one, range(len(thetas))))
 
     def _one(self, worker: RolloutClient, tau: np.ndarray, theta: np.ndarray) -> RolloutResult:
+        if self.should_stop():
+            raise Stopped('stopped between two rollouts')
         result = worker.rollout(task_id(self.task), tau, theta, timeout=self.timeout)
         if not result.success:
             raise RuntimeError(f'rollout failed: {result.message}')

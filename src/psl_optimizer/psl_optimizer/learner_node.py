@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 
 from psl_controller.policy import policy_for
@@ -32,15 +32,11 @@ from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.graph_rollout import GraphRollouts
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import STRATEGIES, SearchSettings
-from psl_optimizer.rollouts import MODES, Rollouts
+from psl_optimizer.rollouts import MODES, Rollouts, Stopped
 from psl_ros import names
 from psl_ros.client import MemoryClient, RolloutClient
 from psl_ros.node_main import run_node
 from psl_sim.task import TaskDefinition, TaskError, load_task
-
-
-class Cancelled(Exception):
-    """The goal was cancelled; finished tasks are in the checkpoint."""
 
 
 class ServiceSkill:
@@ -119,9 +115,11 @@ class LearnerNode(Node):
         self._batch: dict[Path, BatchRollouts] = {}     # batch mode's rollouts per task
         self._server = ActionServer(
             self, LearnSkill, names.LEARN_SKILL, execute_callback=self.execute,
-            goal_callback=lambda goal: GoalResponse.ACCEPT,
+            # a second goal while a session runs is refused at once (the client hears it)
+            goal_callback=lambda goal: (GoalResponse.REJECT if self._busy.locked()
+                                        else GoalResponse.ACCEPT),
             cancel_callback=lambda handle: CancelResponse.ACCEPT,
-            callback_group=MutuallyExclusiveCallbackGroup())
+            callback_group=ReentrantCallbackGroup())
         self.get_logger().info(f'serving learn_skill ({self.mode} mode)')
 
     # -- the action ---------------------------------------------------------------------------
@@ -144,7 +142,8 @@ class LearnerNode(Node):
                                    f'{settings.seed}, {settings.num_tasks} tasks, {mode} '
                                    f'mode -> {out}')
             try:
-                learner = Learner(task, settings, out, rollouts=self._rollouts(task, mode),
+                learner = Learner(task, settings, out,
+                                  rollouts=self._rollouts(task, mode, goal_handle),
                                   skill=ServiceSkill(self, task,
                                                      self.get_parameter('service_timeout').value))
             except (TaskError, ValueError) as exc:
@@ -154,7 +153,7 @@ class LearnerNode(Node):
             learner.rollouts = WatchedRollouts(learner.rollouts, goal_handle, learner)
             try:
                 metrics = learner.run()
-            except Cancelled:
+            except Stopped:
                 goal_handle.canceled()
                 result.message = self._stopped('cancelled', learner)
                 return result
@@ -201,12 +200,13 @@ class LearnerNode(Node):
                 f'checkpoint in {learner.out} keeps them: send the same goal to resume')
 
     # -- rollouts -----------------------------------------------------------------------------
-    def _rollouts(self, task: TaskDefinition, mode: str) -> Rollouts:
+    def _rollouts(self, task: TaskDefinition, mode: str, goal_handle) -> Rollouts:
         """The session's rollouts: batch mode in this process (built once per task) or graph
-        mode through the rollout workers."""
+        mode through the rollout workers (stopping between two rollouts on a cancel)."""
         if mode == 'graph':
             return GraphRollouts(task, self.rollout_clients,
-                                 timeout=self.get_parameter('rollout_timeout').value)
+                                 timeout=self.get_parameter('rollout_timeout').value,
+                                 should_stop=lambda: goal_handle.is_cancel_requested)
         if task.path not in self._batch:
             self._batch[task.path] = BatchRollouts(task)
         return self._batch[task.path]
@@ -223,7 +223,7 @@ class WatchedRollouts(Rollouts):
 
     def run(self, thetas: np.ndarray, taus: np.ndarray):
         if self.goal_handle.is_cancel_requested:
-            raise Cancelled()
+            raise Stopped('the goal was cancelled')
         results = self.inner.run(thetas, taus)
         done, current = self.learner.done, self.current
         if len(done) >= self.learner.settings.num_tasks:

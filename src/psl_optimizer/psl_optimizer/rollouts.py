@@ -27,6 +27,10 @@ if TYPE_CHECKING:     # the command line reads MODES without loading the physics
 MODES = ('batch', 'graph')
 
 
+class Stopped(Exception):
+    """The owner of the rollouts asked them to stop (e.g. a cancelled goal)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class RolloutResult:
     """One rollout of a population: its evaluation and, if measured, its trajectories."""

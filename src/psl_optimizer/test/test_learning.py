@@ -126,8 +126,9 @@ def test_a_checkpoint_of_another_session_is_refused(task, evaluator, finished):
 
 
 def test_variance_selection_picks_the_candidate_the_skill_knows_least(task, tmp_path):
-    """Checked against the skill itself: the chosen instance is the argmax of the mean
-    predictive variance over the same seeded candidates, and it lies away from the samples."""
+    """Of the candidates it asked the skill about (recorded), the chosen instance has the
+    largest mean predictive variance; the same call chooses the same; it lies away from the
+    samples."""
     from psl_optimizer.learning import InProcessSkill, most_uncertain
     from psl_controller.policy import policy_for
 
@@ -136,12 +137,26 @@ def test_variance_selection_picks_the_candidate_the_skill_knows_least(task, tmp_
     low, high = task.tau_low, task.tau_high
     for u in np.linspace(0.0, 0.4, 6):                # samples in one corner only
         skill.add(low + u * (high - low), theta)
-    chosen = most_uncertain(task, skill.variance, 30, seed=1, index=0)
-    again = most_uncertain(task, skill.variance, 30, seed=1, index=0)
-    np.testing.assert_array_equal(chosen, again)
-    candidates = task_sequence(task, 30, (1 + 2_000_003) * 100_003)
-    scores = [np.mean(skill.variance(c)) for c in candidates]
-    np.testing.assert_array_equal(chosen, candidates[int(np.argmax(scores))])
+
+    def choose(count, index):
+        asked = []
+
+        def variance(tau):
+            asked.append(np.array(tau, copy=True))
+            return skill.variance(tau)
+        return most_uncertain(task, variance, count, seed=1, index=index), np.array(asked)
+
+    chosen, asked = choose(30, index=0)
+    assert asked.shape == (30, len(task.tau_names))
+    assert len(np.unique(asked, axis=0)) == 30                 # 30 different candidates
+    assert np.all((asked >= low) & (asked <= high))            # from the task's ranges
+    scores = np.array([np.mean(skill.variance(tau)) for tau in asked])
+    assert np.any(np.all(asked == chosen, axis=1))             # one of them ...
+    assert np.mean(skill.variance(chosen)) == scores.max()     # ... the least certain
+    assert scores.max() > np.median(scores)                    # (a choice that matters)
+    again, asked_again = choose(30, index=0)
+    np.testing.assert_array_equal(again, chosen)
+    np.testing.assert_array_equal(asked_again, asked)
     unit = (chosen - low) / (high - low)
     assert np.linalg.norm(unit) > 0.8                  # far from the sampled corner
     without = InProcessSkill(task, dataclasses.replace(LearnSettings().skill,

@@ -6,19 +6,46 @@ produces: a folder with ``metadata.yaml`` (version 9) and one ``.mcap`` file who
 the concatenated ``.msg`` definitions (``ros2msg``) with their RIHS01 type hashes, so that
 ``ros2 bag info/play`` on a full install and Foxglove open it.
 
-Messages are taken from raw subscriptions (``raw=True``): the CDR bytes as received are written
-unchanged, stamped with the receive time (``time.time_ns()``, as ``ros2 bag record`` does with
-the system clock). The subscription QoS follows the publishers: reliable if all publishers are
-reliable, transient-local if all are (so latched topics are captured), keep-last
-``SUBSCRIPTION_DEPTH`` deep. The publishers' offered QoS profiles go into the topic metadata.
+Messages are taken as serialized CDR bytes and written unchanged, stamped with the
+middleware's receive time (system clock), as ``ros2 bag record`` of Jazzy does. The
+subscription QoS follows the publishers: reliable if all publishers are reliable,
+transient-local if all are (so latched topics are captured), and keep-all history. The
+publishers' offered QoS profiles go into the topic metadata.
+
+Nothing is dropped silently. Taking and writing are separate threads: a `HotPath` thread
+waits on the recording subscriptions alone (a fixed wait set, not an executor) and takes what
+has arrived, in batches a few milliseconds apart, into an unbounded queue; a writer thread
+empties the queue into the bag every 50 ms, so taking never waits on the disk (about 25 us of
+CPU per message in all, DDS included, against about 200 us for an executor callback that
+wrote under a lock). While the recorder falls behind, a reliable keep-all subscription keeps
+what it has not taken (Fast DDS's default resource limit: 5000 samples per topic; a
+keep-last subscription would overwrite its oldest samples without any notice), and beyond
+that a publisher keeps in its history what the subscription has not acknowledged (the
+graph's per-step topics: `psl_ros.qos.RELIABLE`, 5000 deep). A message lost all the same (a
+publisher's keep-last history overwrote it, a best-effort sample did not arrive, the disk
+refused it) is counted per topic, from the DDS message-lost events of each subscription and,
+while a topic has one publisher, from the gaps in its publication sequence numbers; the count
+is logged as a warning at the end, returned, and written into the bag's metadata: rosbag2 has
+no field for it, so it goes into ``custom_data`` under ``LOSS_KEY`` (a JSON object: every
+topic of the bag -> count, zeros included, so a bag says that it was counted).
+
+Where the ``.mcap`` differs from one ``ros2 bag record`` of Jazzy writes (the rosbags writer;
+``mcap`` and ``ros2 bag`` read both): a message's publish time is its log time (rosbag2: the
+publisher's source time stamp), the channels carry no ``topic_type_hash`` metadata (the hash
+is in metadata.yaml), the metadata says ``ros_distro: rosbags``, and no CRC is computed
+(rosbag2: the summary's); the profile, schemas, channels, chunks with message indexes, the
+statistics and the ``rosbag2`` metadata record (``serialized_metadata``) are as rosbag2's.
 
 Message definitions come from the rosbags typestore for Jazzy; types it does not know
 (``psl_msgs``, or any other package's) are read from the installed ``.msg`` files, found via
 ``ament_index_python`` or, failing that, ``AMENT_PREFIX_PATH``.
 """
 
-from collections.abc import Sequence
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 import importlib
+import json
 import math
 import os
 from pathlib import Path
@@ -28,7 +55,6 @@ import time
 import rclpy
 import rclpy.logging
 from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
@@ -52,17 +78,24 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import get_typestore, get_types_from_msg, Stores
 from rosbags.typesys.store import Typestore
 
-# Keep-last depth of every recording subscription: 1 s of a 1 kHz topic.
-SUBSCRIPTION_DEPTH = 1000
+from psl_ros.hot_path import HotPath
+
 # Topics never recorded when recording "all" topics.
 EXCLUDED_TOPICS = frozenset({'/rosout', '/parameter_events'})
 # Interface packages registered in every typestore made here.
 PROJECT_INTERFACE_PACKAGES = ('psl_msgs',)
 # rosbag2 metadata version written by ROS 2 Jazzy (QoS stored as a YAML list with names).
 BAG_VERSION = 9
+# custom_data key of metadata.yaml: JSON object, recorded topic -> messages known lost.
+LOSS_KEY = 'psl.messages_lost'
 
 _DISCOVERY_PERIOD = 0.2  # [s] between two looks at the ROS graph
-_MAX_SPIN_WAIT = 0.1  # [s] longest wait in one spin, bounds the reaction time to `stop`
+# [s] rest of the taking thread after each wake-up: messages queue up in the middleware
+# meanwhile (a few hundred at the loop's rate, far below what keep-all holds) and are taken
+# with one wake-up instead of one each
+_TAKE_PAUSE = 0.005
+_WRITE_PERIOD = 0.05  # [s] between two wake-ups of the writer thread
+_MAX_WAIT = 0.1  # [s] longest wait of the calling thread, bounds the reaction time to `stop`
 _NODE_NAME = 'psl_bag_recorder'
 
 
@@ -194,14 +227,14 @@ def subscription_qos(publishers: Sequence[TopicEndpointInfo]) -> QoSProfile:
     """Recording QoS compatible with every publisher, as strict as all of them allow.
 
     Reliable if all publishers are reliable (else best effort), transient-local if all are
-    (else volatile), keep-last ``SUBSCRIPTION_DEPTH``.
+    (else volatile), keep-all: a subscription that falls behind keeps what it has not taken
+    (up to the middleware's resource limits) instead of overwriting it.
     """
     reliable = all(p.qos_profile.reliability == ReliabilityPolicy.RELIABLE for p in publishers)
     latched = all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
                   for p in publishers)
     return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=SUBSCRIPTION_DEPTH,
+        history=HistoryPolicy.KEEP_ALL,
         reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
         durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
     )
@@ -238,8 +271,76 @@ def _is_hidden(topic: str) -> bool:
     return any(token.startswith('_') for token in topic.split('/'))
 
 
+@dataclass(frozen=True)
+class Recording:
+    """What `record` wrote.
+
+    Attributes:
+        path: The bag folder.
+        counts: Messages written per topic (fully qualified names; a named topic never
+            seen has 0).
+        lost: Messages known to be lost per topic, same keys (see the module docstring).
+
+    """
+
+    path: Path
+    counts: dict[str, int]
+    lost: dict[str, int]
+
+    @property
+    def total_lost(self) -> int:
+        return sum(self.lost.values())
+
+
+class _Topic:
+    """One recorded topic: its bag connection and what became of its messages.
+
+    ``taken``, ``last_seq`` and ``gaps`` belong to the taking thread, ``written`` and
+    ``write_failures`` to the writer thread; the totals are read after both have ended.
+    """
+
+    __slots__ = ('name', 'connection', 'handle', 'taken', 'written', 'write_failures',
+                 'dds_lost', 'gaps', 'last_seq', 'sequence_usable')
+
+    def __init__(self, name: str, connection: Connection):
+        self.name = name
+        self.connection = connection
+        self.handle = None  # the rcl subscription
+        self.taken = 0
+        self.written = 0
+        self.write_failures = 0
+        self.dds_lost = 0  # the middleware's message-lost total
+        self.gaps = 0  # messages missing between publication sequence numbers
+        self.last_seq: int | None = None
+        self.sequence_usable = True
+
+    def check_sequence(self, seq: int | None) -> None:
+        """Count the messages missing before publication sequence number ``seq``.
+
+        Sequence numbers count one publisher's messages, and the message info does not say
+        which publisher sent one: a jump is counted only while the topic has one publisher,
+        and a number that does not increase (a second publisher interleaving, or a
+        restarted one) ends the counting for the topic (the DDS events still count).
+        """
+        last, self.last_seq = self.last_seq, seq
+        if seq is None or last is None or not self.sequence_usable:
+            return
+        if seq <= last:
+            self.sequence_usable = False
+        elif (seq > last + 1 and self.handle is not None
+              and self.handle.get_publisher_count() == 1):
+            self.gaps += seq - last - 1
+
+    @property
+    def lost(self) -> int:
+        """Both counts see the same losses of one publisher; either may see more (events:
+        any publisher; sequence: losses the middleware does not report), so the larger."""
+        return max(self.dds_lost, self.gaps) + self.write_failures
+
+
 class _Recorder:
-    """Subscribes to topics as they appear and writes their raw messages to an open Writer."""
+    """Subscribes to topics as they appear; takes their messages in a `HotPath` thread and
+    writes them to an open Writer from a queue in a writer thread."""
 
     def __init__(self, node: Node, writer: Writer, typestore: Typestore,
                  wanted: list[str] | None):
@@ -247,21 +348,30 @@ class _Recorder:
         self._writer = writer
         self._typestore = typestore
         self._wanted = wanted  # None: every topic
-        self._lock = threading.Lock()  # callbacks may run in another executor's thread
-        self._closed = False
-        self._subscriptions = {}
-        self._counts: dict[str, int] = dict.fromkeys(wanted or (), 0)
+        self._topics: dict[str, _Topic] = {}
         self._unrecordable: set[str] = set()  # unknown type: reported, not retried
         self._ambiguous: set[str] = set()  # more than one type: reported once, retried
+        self._write_lock = threading.Lock()  # the Writer: connections added while writing
+        self._write_error: Exception | None = None
+        self._queue: deque = deque()  # (topic, receive time, data); appended, popped left
+        self._closing = threading.Event()
+        self._hot_path = HotPath(node, name='bag_recorder_take', pause=_TAKE_PAUSE)
+        self._hot_path.start()
+        self._writer_thread = threading.Thread(target=self._write_loop, name='bag_writer',
+                                               daemon=True)
+        self._writer_thread.start()
 
-    @property
-    def counts(self) -> dict[str, int]:
-        with self._lock:
-            return dict(self._counts)
+    def so_far(self) -> Recording:
+        """The recording up to now: messages taken (queued or written) and known lost per
+        subscribed topic."""
+        entries = list(self._topics.values())
+        return Recording(Path(self._writer.path),
+                         {e.name: e.taken - e.write_failures for e in entries},
+                         {e.name: e.lost for e in entries})
 
     def missing(self) -> list[str]:
         """Named topics not subscribed (yet)."""
-        return [t for t in self._wanted or () if t not in self._subscriptions]
+        return [t for t in self._wanted or () if t not in self._topics]
 
     def never_seen(self) -> list[str]:
         """Named topics never subscribed, other than those already reported (unrecordable
@@ -285,7 +395,7 @@ class _Recorder:
         else:
             return
         for topic in candidates:
-            if (topic in self._subscriptions or topic in self._unrecordable
+            if (topic in self._topics or topic in self._unrecordable
                     or topic not in available):
                 continue
             publishers = self._node.get_publishers_info_by_topic(topic)
@@ -318,46 +428,78 @@ class _Recorder:
                 f'but the installed definition of {msgtype} hashes to {rihs01}; '
                 'the bag stores the installed definition')
         qos = subscription_qos(publishers)
-        with self._lock:
+        with self._write_lock:
             connection = self._writer.add_connection(
                 topic, msgtype, typestore=self._typestore,
                 offered_qos_profiles=[offered_qos(p.qos_profile) for p in publishers])
-            self._counts.setdefault(topic, 0)
-        self._subscriptions[topic] = self._node.create_subscription(
-            msg_class, topic, self._make_callback(topic, connection), qos, raw=True)
+        entry = self._topics[topic] = _Topic(topic, connection)
+        put = self._queue.append
+
+        def on_message(data: bytes, info: dict) -> None:
+            put((entry, info.get('received_timestamp') or time.time_ns(), data))
+            entry.taken += 1
+            entry.check_sequence(info.get('publication_sequence_number'))
+
+        def on_lost(status) -> None:
+            entry.dds_lost = status.total_count
+
+        entry.handle = self._hot_path.subscribe(msg_class, topic, on_message, qos, raw=True,
+                                                info=True, message_lost=on_lost)
         self._node.get_logger().info(
             f'recording {topic} [{msgtype}] ({qos.reliability.name.lower()}, '
-            f'{qos.durability.name.lower()})')
+            f'{qos.durability.name.lower()}, keep all)')
 
-    def _make_callback(self, topic: str, connection: Connection):
-        def on_message(data: bytes) -> None:
-            stamp = time.time_ns()
-            with self._lock:
-                if self._closed:
-                    return
-                self._writer.write(connection, stamp, data)
-                self._counts[topic] += 1
-        return on_message
+    def _write_loop(self) -> None:
+        """The writer thread: every _WRITE_PERIOD, write what the queue holds; once closing,
+        write the rest and end."""
+        pop = self._queue.popleft
+        while True:
+            closing = self._closing.wait(_WRITE_PERIOD)
+            while self._queue:
+                entry, stamp, data = pop()
+                try:
+                    with self._write_lock:
+                        self._writer.write(entry.connection, stamp, data)
+                except Exception as exc:  # noqa: BLE001 - counted as lost, reported at the end
+                    entry.write_failures += 1
+                    if self._write_error is None:
+                        self._write_error = exc
+                        self._node.get_logger().error(f'cannot write to the bag: {exc!r}')
+                else:
+                    entry.written += 1
+            if closing:
+                return
 
-    def close(self) -> None:
-        """Close the writer (the bag is then complete), then drop the subscriptions."""
-        with self._lock:
-            self._closed = True
-            self._writer.close()
-        for subscription in self._subscriptions.values():
-            self._node.destroy_subscription(subscription)
+    def close(self) -> Recording:
+        """Take what the subscriptions still hold, write the queue out, close the writer
+        (the bag is then complete) with the losses in its metadata, drop the subscriptions."""
+        self._hot_path.stop(drain=True)
+        self._closing.set()
+        self._writer_thread.join()
+        counts = dict.fromkeys(self._wanted or (), 0)
+        lost = dict(counts)
+        for name, entry in self._topics.items():
+            counts[name], lost[name] = entry.written, entry.lost
+        self._writer.set_custom_data(LOSS_KEY, json.dumps(
+            {name: lost[name] for name in self._topics}, sort_keys=True))
+        self._writer.close()
+        return Recording(Path(self._writer.path), counts, lost)
 
 
-def _run(recorder: _Recorder, executor: SingleThreadedExecutor | None,
-         duration: float | None, stop: threading.Event | None,
-         discovery_timeout: float, all_topics: bool, logger) -> None:
-    """Discover and (if ``executor``) spin until the duration is over or ``stop`` is set."""
+def _run(recorder: _Recorder, node: Node, duration: float | None,
+         stop: threading.Event | None, discovery_timeout: float, all_topics: bool,
+         progress: Callable[[Recording], None] | None) -> None:
+    """Discover (and report progress) until the duration is over, ``stop`` is set or the
+    context is shut down."""
     start = time.monotonic()
     end = math.inf if duration is None else start + duration
     discovery_end = start + discovery_timeout
     next_look = start
     reported_missing = False
     while not (stop is not None and stop.is_set()):
+        if not node.context.ok():
+            _logger(node).info('recording interrupted: the ROS context was shut down')
+            return
         now = time.monotonic()
         if now >= end:
             break
@@ -369,13 +511,13 @@ def _run(recorder: _Recorder, executor: SingleThreadedExecutor | None,
                 recorder.discover(accept_new=True)
                 if now >= discovery_end and not reported_missing and recorder.missing():
                     reported_missing = True
-                    logger.info('no publisher yet on ' + ', '.join(recorder.missing())
-                                + '; subscribing when they appear')
+                    node.get_logger().info('no publisher yet on ' + ', '.join(recorder.missing())
+                                           + '; subscribing when they appear')
             next_look = now + _DISCOVERY_PERIOD
-        wait = max(0.0, min(next_look, end, now + _MAX_SPIN_WAIT) - now)
-        if executor is not None:
-            executor.spin_once(timeout_sec=wait)
-        elif stop is not None:
+        if progress is not None:
+            progress(recorder.so_far())
+        wait = max(0.0, min(next_look, end, now + _MAX_WAIT) - now)
+        if stop is not None:
             stop.wait(wait)
         else:
             time.sleep(wait)
@@ -391,7 +533,8 @@ def _logger(node: Node):
 
 def record(output: str | Path, topics: Sequence[str] = (), *,
            duration: float | None = None, stop: threading.Event | None = None,
-           discovery_timeout: float = 5.0, node: Node | None = None) -> dict[str, int]:
+           discovery_timeout: float = 5.0, node: Node | None = None,
+           progress: Callable[[Recording], None] | None = None) -> Recording:
     """Record topics into a new rosbag2 bag folder ``output`` (MCAP storage).
 
     Named topics (relative names resolve against the node's namespace) are subscribed as soon
@@ -405,14 +548,16 @@ def record(output: str | Path, topics: Sequence[str] = (), *,
 
     Recording stops after ``duration`` seconds (wall clock, counted from the call), when
     ``stop`` is set, or on KeyboardInterrupt or an external rclpy shutdown (both end the
-    recording normally). The bag is closed (complete and readable) in every case.
+    recording normally). Every message the subscriptions hold when it stops is still written
+    (for a reliable topic: every message they acknowledged before). The bag is closed
+    (complete and readable) in every case. Messages known lost are logged as a warning,
+    returned and stored in the metadata (`LOSS_KEY`).
 
     Node and rclpy: with ``node=None`` a node is created in rclpy's default context and
     destroyed at the end; if rclpy is not initialised yet, record() initialises it and shuts
     it down again at the end (only what it initialised). A given ``node`` is used and left
-    alive: if it already belongs to an executor, that executor must be spinning it (e.g. in
-    another thread) and record() only waits; otherwise record() spins it in its own
-    SingleThreadedExecutor in the calling thread for the duration of the call.
+    alive. Either way the recording subscriptions are served by threads of the recorder, not
+    by an executor: the node needs no spinning, and one that an executor spins is left to it.
 
     Args:
         output: Bag folder to create; must not exist.
@@ -421,9 +566,13 @@ def record(output: str | Path, topics: Sequence[str] = (), *,
         stop: Set to end the recording.
         discovery_timeout: [s] See above.
         node: Node to subscribe with; None to create one.
+        progress: Called in the calling thread about every 0.1 s with the recording so far:
+            per subscribed topic the messages taken (all of them are in the bag once record()
+            returns) and those known lost; e.g. to set ``stop`` once everything expected
+            has arrived or is known lost.
 
     Returns:
-        Messages written per topic (fully qualified names).
+        The bag's path, and the messages written and known lost per topic.
 
     Raises:
         TypeError: ``topics`` is a single string.
@@ -452,34 +601,31 @@ def record(output: str | Path, topics: Sequence[str] = (), *,
             rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
             initialised_here = True
         node = Node(_NODE_NAME)
-    executor = None
     try:
         wanted = list(dict.fromkeys(node.resolve_topic_name(t) for t in topics)) or None
-        if node.executor is None:
-            executor = SingleThreadedExecutor(context=node.context)
-            executor.add_node(node)
         writer = Writer(output, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP)
         writer.open()
         recorder = _Recorder(node, writer, typestore, wanted)
         try:
-            _run(recorder, executor, duration, stop, discovery_timeout,
-                 all_topics=wanted is None, logger=node.get_logger())
-        except (KeyboardInterrupt, ExternalShutdownException):
+            _run(recorder, node, duration, stop, discovery_timeout, all_topics=wanted is None,
+                 progress=progress)
+        except KeyboardInterrupt:
             _logger(node).info('recording interrupted')
         finally:
-            recorder.close()
-        counts = recorder.counts
+            recording = recorder.close()
         logger = _logger(node)
         never_seen = recorder.never_seen()
         if never_seen:
             logger.warning('no publisher seen on ' + ', '.join(never_seen)
                            + '; recorded 0 messages')
-        logger.info(f'wrote {sum(counts.values())} messages to {output}')
-        return counts
+        if recording.total_lost:
+            logger.warning(
+                f'{recording.total_lost} messages lost: '
+                + ', '.join(f'{t} {n}' for t, n in recording.lost.items() if n)
+                + f' (metadata.yaml custom_data {LOSS_KEY})')
+        logger.info(f'wrote {sum(recording.counts.values())} messages to {output}')
+        return recording
     finally:
-        if executor is not None:
-            node.executor = None  # detaches the node from our executor
-            executor.shutdown()
         if own_node:
             node.destroy_node()
         if initialised_here:

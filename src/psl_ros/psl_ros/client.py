@@ -31,6 +31,11 @@ from psl_msgs.srv import (AddSample, CompletePattern, CreateSkill, LoadMemory, Q
 from psl_ros import names
 from psl_ros.action_client import ActionClient
 from psl_ros.futures import wait_for
+from psl_ros.qos import SERVICES
+
+RESEND_AFTER = 2.0     # s without a goal response before a rollout goal is sent again
+RESULT_POLL = 5.0      # s between result requests while a goal runs (an answer can be lost)
+GONE_AFTER = 2.0       # s an action server may be unseen before a wait for it ends
 
 MEMORY_SERVICES = {'query': QuerySkill, 'add_sample': AddSample, 'complete': CompletePattern,
                    'create_skill': CreateSkill, 'save': SaveMemory, 'load': LoadMemory,
@@ -41,12 +46,89 @@ def _floats(values) -> list[float]:
     return [float(x) for x in np.ravel(values)]
 
 
+class Stopped(Exception):
+    """A wait ended because the caller's `stop` event was set (e.g. Ctrl-C)."""
+
+
+def send_goal(action_client: ActionClient, goal, timeout: float, what: str, feedback=None,
+              resend: bool = False):
+    """The goal handle of an accepted goal. With `resend`, a goal without a response after
+    RESEND_AFTER s (doubling) is sent again: a server that could not answer a client it had not
+    matched yet drops the goal unexecuted (rclpy's ActionServer returns before it executes),
+    so only a merely late answer runs a goal twice — for idempotent goals only.
+
+    Raises:
+        TimeoutError: no server, or no answer within `timeout`; RuntimeError: rejected.
+    """
+    deadline = time.monotonic() + timeout
+    if not action_client.wait_for_server(timeout_sec=timeout):
+        raise TimeoutError(f'the action server {what} is not available')
+    wait = RESEND_AFTER if resend else timeout
+    while True:
+        future = action_client.send_goal_async(goal, feedback_callback=feedback)
+        remaining = deadline - time.monotonic()
+        try:
+            handle = wait_for(future, max(0.01, min(wait, remaining)), f'{what} (goal)')
+            break
+        except TimeoutError:
+            if time.monotonic() >= deadline:
+                raise TimeoutError(f'no answer from {what} (goal) within {timeout:.0f} s') from None
+            wait *= 2
+    if not handle.accepted:
+        raise RuntimeError(f'{what} rejected the goal (is it busy with another one?)')
+    return handle
+
+
+def wait_for_result(action_client: ActionClient, handle, timeout: float, what: str,
+                    stop=None):
+    """The result of an accepted goal. The result is asked for again every RESULT_POLL s (an
+    answer can be lost like any), and the wait ends as soon as the server has been gone for
+    GONE_AFTER s (its process ended: Fast DDS drops a dead participant after its lease, 4 s
+    with the profile scripts/env.sh sets), or when `stop` (a threading.Event) is set.
+
+    Raises:
+        TimeoutError: no result within `timeout`; RuntimeError: the server has gone;
+        Stopped: `stop` was set.
+    """
+    deadline = time.monotonic() + timeout
+    answered = threading.Event()
+    futures = []
+
+    def ask() -> None:
+        futures.append(handle.get_result_async())
+        futures[-1].add_done_callback(lambda _: answered.set())
+    ask()
+    asked = time.monotonic()
+    gone_since = None
+    while True:
+        done = next((f for f in futures if f.done()), None)
+        if done is not None:
+            return done.result().result
+        now = time.monotonic()
+        if now > deadline:
+            raise TimeoutError(f'no answer from {what} (result) within {timeout:.0f} s')
+        if stop is not None and stop.is_set():
+            raise Stopped(f'{what}: stopped while waiting for the result')
+        if action_client.server_is_ready():
+            gone_since = None
+        else:
+            gone_since = gone_since or now
+            if now - gone_since > GONE_AFTER:
+                raise RuntimeError(f'the action server {what} has gone (its node ended?) '
+                                   'while the goal ran')
+        if now - asked > RESULT_POLL:
+            ask()
+            asked = now
+        answered.wait(0.1)
+
+
 class MemoryClient:
     """The skill memory node's services, relative to the node's namespace."""
 
     def __init__(self, node: Node, callback_group=None):
         self.clients = {name: node.create_client(srv, names.under(names.SKILL_MEMORY, name),
-                                                 callback_group=callback_group)
+                                                 callback_group=callback_group,
+                                                 qos_profile=SERVICES)
                         for name, srv in MEMORY_SERVICES.items()}
 
     def call(self, service: str, timeout: float = 10.0, **fields):
@@ -69,7 +151,8 @@ class RolloutClient:
         self.rollout_client = ActionClient(node, ExecuteRollout, self.name,
                                            callback_group=callback_group)
         self.reset_client = node.create_client(ResetTask, names.under(worker, names.RESET),
-                                               callback_group=callback_group)
+                                               callback_group=callback_group,
+                                               qos_profile=SERVICES)
         self._ready = False      # the loop was seen complete once
 
     def missing_endpoints(self) -> str:
@@ -124,12 +207,10 @@ class RolloutClient:
             self.wait_until_ready(min(timeout, 30.0))
         goal = ExecuteRollout.Goal(task=task, tau=_floats(tau), theta=_floats(theta))
         start = time.monotonic()
-        handle = wait_for(self.rollout_client.send_goal_async(goal, feedback_callback=feedback),
-                          timeout, f'{self.name} (goal)')
-        if not handle.accepted:
-            raise RuntimeError(f'{self.name} rejected the rollout goal')
+        # a rollout may run twice (a late goal answer), never change the result
+        handle = send_goal(self.rollout_client, goal, timeout, self.name, feedback, resend=True)
         remaining = max(1.0, timeout - (time.monotonic() - start))
-        return wait_for(handle.get_result_async(), remaining, f'{self.name} (result)').result
+        return wait_for_result(self.rollout_client, handle, remaining, self.name)
 
 
 class LearnClient:
@@ -141,15 +222,14 @@ class LearnClient:
 
     def send_goal(self, timeout: float = 30.0, feedback=None, **fields):
         """Send a goal (fields of psl_msgs/LearnSkill.Goal); returns the accepted goal handle
-        (`.get_result_async()`, `.cancel_goal_async()`)."""
-        if not self.learn_client.wait_for_server(timeout_sec=timeout):
-            raise TimeoutError('the learner action server learn_skill is not available '
-                               '(is the graph up?)')
-        handle = wait_for(self.learn_client.send_goal_async(
-            LearnSkill.Goal(**fields), feedback_callback=feedback), timeout, 'learn_skill goal')
-        if not handle.accepted:
-            raise RuntimeError('the learn_skill goal was rejected')
-        return handle
+        (`.get_result_async()`, `.cancel_goal_async()`; `wait_for_result`). A session is not
+        idempotent: the goal is sent once."""
+        return send_goal(self.learn_client, LearnSkill.Goal(**fields), timeout,
+                         names.LEARN_SKILL, feedback)
+
+    def result(self, handle, timeout: float = 3600.0, stop=None) -> LearnSkill.Result:
+        """`wait_for_result` of a learn_skill goal."""
+        return wait_for_result(self.learn_client, handle, timeout, names.LEARN_SKILL, stop)
 
 
 class RosClient:
@@ -229,7 +309,7 @@ class RosClient:
     def learn(self, timeout: float = 3600.0, feedback=None, **fields) -> LearnSkill.Result:
         """One learning session through the learner node; returns its result."""
         handle = self.send_learn_goal(feedback=feedback, **fields)
-        return wait_for(handle.get_result_async(), timeout, 'learn_skill result').result
+        return self.learner.result(handle, timeout)
 
 
 def evaluation_dict(evaluation: RolloutEvaluation) -> dict:

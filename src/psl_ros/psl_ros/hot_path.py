@@ -14,70 +14,166 @@ namespace applied by rcl); they are only invisible to the executor. Callbacks ru
 hot-path thread, in the order the subscriptions were added when several are ready, so a
 node that must see message A before message B (a trajectory before the state it applies
 to) adds A first. Callbacks must not block.
+
+The bag recorder uses the same loop with serialized messages (``raw``), their middleware
+information (``info``: receive time, publication sequence number) and the DDS message-lost
+event of each subscription (``message_lost``), adding subscriptions while it runs, taking in
+batches (``pause``: a consumer that need not answer at once lets messages queue up in the
+middleware and takes them with one wake-up instead of one each) and taking what is left when
+it stops (``stop(drain=True)``).
 """
 from __future__ import annotations
 
 import threading
 from typing import Any, Callable
 
+from rclpy.event_handler import QoSSubscriptionEventType
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from rclpy.type_support import check_is_valid_msg_type
 
 
+class _Subscription:
+    """One subscription of the loop: its rcl handle, what to take and whom to call."""
+
+    __slots__ = ('handle', 'msg_type', 'callback', 'topic', 'raw', 'info', 'event',
+                 'on_lost', 'event_index')
+
+    def __init__(self, handle, msg_type: type, callback: Callable, topic: str, raw: bool,
+                 info: bool, event, on_lost: Callable | None):
+        self.handle, self.msg_type, self.callback, self.topic = handle, msg_type, callback, topic
+        self.raw, self.info = raw, info
+        self.event, self.on_lost = event, on_lost    # message-lost event handle, or None
+        self.event_index = -1                        # in the current wait set
+
+
 class HotPath:
     """A thread that waits on a fixed set of subscriptions and dispatches their messages."""
 
-    def __init__(self, node: Node):
+    def __init__(self, node: Node, name: str = 'hot_path', pause: float = 0.0):
+        """A loop for `node`'s subscriptions (none yet; see `subscribe`).
+
+        Args:
+            node: The node the subscriptions belong to.
+            name: The thread's name.
+            pause: [s] Rest after each wake-up before waiting again (0: answer at once).
+
+        """
         self._node = node
-        self._subs: list[tuple[Any, type, Callable[[Any], None], str]] = []
+        self._name = name
+        self._pause = pause
+        self._lock = threading.Lock()
+        self._subs: tuple[_Subscription, ...] = ()   # replaced, never changed, under _lock
         self._guard = _rclpy.GuardCondition(node.context.handle)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
-    def subscribe(self, msg_type: type, topic: str, callback: Callable[[Any], None],
-                  qos: QoSProfile) -> None:
-        """Add a subscription (before `start`)."""
-        if self._thread is not None:
-            raise RuntimeError('subscribe before start()')
+    def subscribe(self, msg_type: type, topic: str, callback: Callable[..., None],
+                  qos: QoSProfile, *, raw: bool = False, info: bool = False,
+                  message_lost: Callable[[Any], None] | None = None) -> Any:
+        """Add a subscription; a running loop takes it up at once.
+
+        Args:
+            msg_type: The message class.
+            topic: Topic name (resolved by rcl against the node's namespace).
+            callback: Called with each message, ``callback(msg)``, or with ``info``
+                ``callback(msg, info)`` (rmw message info: 'received_timestamp',
+                'source_timestamp', 'publication_sequence_number', ...).
+            qos: The subscription's QoS profile.
+            raw: Pass the serialized message (bytes) instead of a message object.
+            info: Also pass the message info.
+            message_lost: Called with the rmw message-lost status (``total_count``,
+                ``total_count_change``) whenever the middleware reports lost messages.
+
+        Returns:
+            The rcl subscription handle (``get_publisher_count()``, ``get_topic_name()``).
+
+        """
         check_is_valid_msg_type(msg_type)    # imports the type support
         with self._node.handle:
             handle = _rclpy.Subscription(self._node.handle, msg_type, topic,
                                          qos.get_c_qos_profile())
-        self._subs.append((handle, msg_type, callback, topic))
+        event = None
+        if message_lost is not None:
+            with handle:
+                event = _rclpy.EventHandle(
+                    handle, QoSSubscriptionEventType.RCL_SUBSCRIPTION_MESSAGE_LOST)
+        with self._lock:
+            self._subs = self._subs + (_Subscription(handle, msg_type, callback, topic, raw,
+                                                     info, event, message_lost),)
+        if self._thread is not None:
+            self._guard.trigger_guard_condition()    # the loop rebuilds its wait set
+        return handle
 
     def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name='hot_path', daemon=True)
+        self._thread = threading.Thread(target=self._run, name=self._name, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         logger = self._node.get_logger()
-        wait_set = _rclpy.WaitSet(len(self._subs), 1, 0, 0, 0, 0, self._node.context.handle)
+        subs: tuple[_Subscription, ...] | None = None
         while not self._stop.is_set():
-            wait_set.clear_entities()
-            for handle, *_ in self._subs:
-                wait_set.add_subscription(handle)
-            wait_set.add_guard_condition(self._guard)
             try:
+                if subs is not self._subs:
+                    with self._lock:
+                        subs = self._subs
+                    with_events = tuple(s for s in subs if s.event is not None)
+                    wait_set = _rclpy.WaitSet(len(subs), 1, 0, 0, 0, len(with_events),
+                                              self._node.context.handle)
+                wait_set.clear_entities()
+                for sub in subs:
+                    wait_set.add_subscription(sub.handle)
+                for sub in with_events:
+                    sub.event_index = wait_set.add_event(sub.event)
+                wait_set.add_guard_condition(self._guard)
                 wait_set.wait(-1)
             except Exception:  # noqa: BLE001 - the context was shut down: end quietly
                 return
             ready = set(wait_set.get_ready_entities('subscription'))
-            for handle, msg_type, callback, topic in self._subs:
-                if handle.pointer not in ready:
-                    continue
-                while True:    # take everything queued, oldest first
-                    taken = handle.take_message(msg_type, False)
-                    if taken is None:
-                        break
-                    try:
-                        callback(taken[0])
-                    except Exception as exc:  # noqa: BLE001 - a callback bug must not end the loop
-                        logger.error(f'{topic} callback failed: {exc!r}')
+            for sub in subs:
+                if sub.handle.pointer in ready:
+                    self._take_all(sub, logger)
+            for sub in with_events:
+                if wait_set.is_ready('event', sub.event_index):
+                    self._take_event(sub, logger)
+            if self._pause:
+                self._stop.wait(self._pause)
 
-    def stop(self) -> None:
-        """End the thread and destroy the subscriptions (idempotent)."""
+    @staticmethod
+    def _take_all(sub: _Subscription, logger) -> None:
+        """Take everything queued on `sub`, oldest first, and dispatch it."""
+        while True:
+            taken = sub.handle.take_message(sub.msg_type, sub.raw)
+            if taken is None:
+                return
+            try:
+                if sub.info:
+                    sub.callback(taken[0], taken[1])
+                else:
+                    sub.callback(taken[0])
+            except Exception as exc:  # noqa: BLE001 - a callback bug must not end the loop
+                logger.error(f'{sub.topic} callback failed: {exc!r}')
+
+    @staticmethod
+    def _take_event(sub: _Subscription, logger) -> None:
+        status = sub.event.take_event()
+        if status is None:
+            return
+        try:
+            sub.on_lost(status)
+        except Exception as exc:  # noqa: BLE001 - a callback bug must not end the loop
+            logger.error(f'{sub.topic} message-lost callback failed: {exc!r}')
+
+    def stop(self, drain: bool = False) -> None:
+        """End the thread and destroy the subscriptions (idempotent).
+
+        Args:
+            drain: First take and dispatch, in this thread, what the subscriptions still
+                hold (and the last message-lost status): every message the middleware has
+                delivered (for reliable topics: acknowledged) before the call.
+
+        """
         self._stop.set()
         try:
             self._guard.trigger_guard_condition()
@@ -85,6 +181,18 @@ class HotPath:
             pass
         if self._thread is not None:
             self._thread.join(timeout=2.0)
-        for handle, *_ in self._subs:
-            handle.destroy_when_not_in_use()
-        self._subs.clear()
+        with self._lock:
+            subs, self._subs = self._subs, ()
+        if drain and not (self._thread is not None and self._thread.is_alive()):
+            logger = self._node.get_logger()
+            for sub in subs:
+                try:
+                    self._take_all(sub, logger)
+                    if sub.event is not None:
+                        self._take_event(sub, logger)
+                except Exception:  # noqa: BLE001 - the context was shut down: nothing left
+                    break
+        for sub in subs:
+            if sub.event is not None:
+                sub.event.destroy_when_not_in_use()
+            sub.handle.destroy_when_not_in_use()

@@ -14,8 +14,10 @@ JOINT_TRAJECTORY = 'joint_trajectory'   # trajectory_msgs/JointTrajectory, the e
 TASK_INSTANCE = 'task_instance'         # psl_msgs/TaskInstance (latched), the simulator
 ROLLOUT_EVALUATION = 'rollout_evaluation'   # psl_msgs/RolloutEvaluation, the evaluator
 EE_POSE = 'ee_pose'                     # geometry_msgs/PoseStamped, the simulator
+SCENE = 'scene'                         # visualization_msgs/MarkerArray (latched), the simulator
 CLOCK = '/clock'
 DIAGNOSTICS = '/diagnostics'
+WORLD_FRAME = 'world'                   # frame_id of ee_pose and of the scene's markers
 
 # services and actions
 RESET = 'sim/reset'                     # psl_msgs/ResetTask, the simulator's ~/reset
@@ -28,7 +30,7 @@ LOOP_TOPICS = {JOINT_STATES: (1, 2), EFFORT_COMMAND: (1, 1), REFERENCE: (1, 1),
                TASK_INSTANCE: (1, 1), JOINT_TRAJECTORY: (1, 1), ROLLOUT_EVALUATION: (1, 1)}
 # what a recording of the loop holds (psl demo)
 RECORDED_TOPICS = (JOINT_STATES, EE_POSE, EFFORT_COMMAND, REFERENCE, JOINT_TRAJECTORY,
-                   TASK_INSTANCE, ROLLOUT_EVALUATION, CLOCK)
+                   TASK_INSTANCE, ROLLOUT_EVALUATION, CLOCK, SCENE)
 
 
 def under(namespace: str, name: str) -> str:

@@ -1,12 +1,21 @@
-"""bag_recorder: record live topics into an MCAP rosbag2 bag and read it back with rosbags."""
+"""bag_recorder: record live topics into an MCAP rosbag2 bag; read it back with rosbags and with
+an independent reader (the ``mcap`` and ``mcap-ros2-support`` packages); losses counted."""
 
+import json
 import os
+import signal
+import subprocess
+import sys
 import threading
 import time
 
 import pytest
 import rclpy
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from rcl_interfaces.msg import Log
 from rclpy.duration import Duration
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.rosbag2 import Reader
@@ -15,21 +24,33 @@ from psl_msgs.msg import TaskInstance
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from psl_ros.bag_recorder import make_typestore, read_bag_summary, record
+from psl_ros.bag_recorder import LOSS_KEY, make_typestore, read_bag_summary, record
 
 N_EFFORT = 50
 N_JOINT_STATES = 30
 MATCH_TIMEOUT = 8.0  # [s] for the recorder to subscribe to a publisher
 ACK_TIMEOUT = 5.0  # [s] for the recorder to acknowledge everything published
+LOG_TIMEOUT = 10.0  # [s] for the recorder to say that it waits for a late topic
 DISCOVERY_TIMEOUT = 0.5  # [s] given to record()
-LATE_TOPIC_DELAY = 0.7  # [s] > DISCOVERY_TIMEOUT: effort_command appears this late
+NAMED_TOPICS = ['joint_states', 'effort_command', 'task_instance', 'never_there']
+# what the named recording holds
+EXPECTED_COUNTS = {'/joint_states': N_JOINT_STATES, '/effort_command': N_EFFORT,
+                   '/task_instance': 1}
+EXPECTED_TYPES = {'/joint_states': 'sensor_msgs/msg/JointState',
+                  '/effort_command': 'std_msgs/msg/Float64MultiArray',
+                  '/task_instance': 'psl_msgs/msg/TaskInstance'}
+
+
+def _private_domain(monkeypatch) -> None:
+    """A domain of this test process only (set before rclpy.init), discovery on this machine."""
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(100 + os.getpid() % 100))
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 
 @pytest.fixture
 def ros(monkeypatch):
-    """rclpy initialised on a private domain (set before rclpy.init), shut down afterwards."""
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(100 + os.getpid() % 100))
-    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    """rclpy initialised on a private domain, shut down afterwards."""
+    _private_domain(monkeypatch)
     rclpy.init()
     try:
         yield
@@ -43,6 +64,12 @@ def _wait_matched(publisher, timeout: float = MATCH_TIMEOUT) -> None:
         if time.monotonic() > deadline:
             raise TimeoutError(f'no subscription on {publisher.topic_name}')
         time.sleep(0.01)
+
+
+def _wait_acked(*publishers) -> None:
+    for publisher in publishers:
+        if not publisher.wait_for_all_acked(Duration(seconds=ACK_TIMEOUT)):
+            raise TimeoutError(f'{publisher.topic_name} not acknowledged')
 
 
 def _joint_state(i: int) -> JointState:
@@ -67,11 +94,44 @@ def _task_instance() -> TaskInstance:
     return msg
 
 
-def _publish(node: Node, stop: threading.Event, errors: list) -> None:
+class _RecorderLog:
+    """The recorder node's /rosout lines, seen from `node` (spun here in a thread)."""
+
+    def __init__(self, node: Node):
+        self._lines: list[str] = []
+        self._changed = threading.Condition()
+        node.create_subscription(Log, '/rosout', self._on_log, QoSProfile(
+            depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self._executor = SingleThreadedExecutor()
+        self._executor.add_node(node)
+        self._thread = threading.Thread(target=self._executor.spin, daemon=True)
+        self._thread.start()
+
+    def _on_log(self, msg: Log) -> None:
+        if msg.name == 'psl_bag_recorder':
+            with self._changed:
+                self._lines.append(msg.msg)
+                self._changed.notify_all()
+
+    def wait_for(self, text: str, timeout: float = LOG_TIMEOUT) -> None:
+        with self._changed:
+            if not self._changed.wait_for(lambda: any(text in line for line in self._lines),
+                                          timeout):
+                raise TimeoutError(f'the recorder never logged {text!r}: {self._lines}')
+
+    def close(self) -> None:
+        self._executor.shutdown()
+        self._thread.join(timeout=5.0)
+
+
+def _publish(node: Node, log: _RecorderLog, stop: threading.Event, errors: list) -> None:
     """Publish once the recorder listens, then end the recording.
 
-    The effort publisher appears only after the recorder's discovery timeout, so that
-    subscribing to late topics is exercised.
+    The effort publisher appears only once the recorder has said that it is still waiting
+    for it after its discovery timeout, so that subscribing to late topics is exercised. The
+    recording ends when the recorder has acknowledged every message: record() writes every
+    message its subscriptions acknowledged.
     """
     try:
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
@@ -81,7 +141,7 @@ def _publish(node: Node, stop: threading.Event, errors: list) -> None:
         task_pub.publish(_task_instance())  # before anyone listens: latched
         _wait_matched(joint_pub)
         _wait_matched(task_pub)
-        time.sleep(LATE_TOPIC_DELAY)
+        log.wait_for('no publisher yet on /effort_command')
         effort_pub = node.create_publisher(Float64MultiArray, 'effort_command', 10)
         _wait_matched(effort_pub)
         for i in range(max(N_EFFORT, N_JOINT_STATES)):
@@ -90,47 +150,60 @@ def _publish(node: Node, stop: threading.Event, errors: list) -> None:
             if i < N_EFFORT:
                 effort_pub.publish(Float64MultiArray(data=[float(i), -float(i)]))
             time.sleep(0.001)
-        for publisher in (joint_pub, effort_pub, task_pub):
-            if not publisher.wait_for_all_acked(Duration(seconds=ACK_TIMEOUT)):
-                raise TimeoutError(f'{publisher.topic_name} not acknowledged')
-        time.sleep(0.3)  # let the recorder's executor take what was acknowledged
+        _wait_acked(joint_pub, effort_pub, task_pub)
     except Exception as exc:  # reported by the test in the main thread
         errors.append(exc)
     finally:
         stop.set()
 
 
-def test_record_named_topics(ros, tmp_path):
-    publisher_node = Node('bag_test_publisher')
-    stop = threading.Event()
-    errors = []
-    thread = threading.Thread(target=_publish, args=(publisher_node, stop, errors))
-    bag = tmp_path / 'bag'
-    try:
-        thread.start()
-        counts = record(bag, ['joint_states', 'effort_command', 'task_instance', 'never_there'],
-                        stop=stop, duration=20.0, discovery_timeout=DISCOVERY_TIMEOUT)
-        thread.join(timeout=10.0)
-        type_hashes = {t: str(publisher_node.get_publishers_info_by_topic(t)[0].topic_type_hash)
-                       for t in ('/joint_states', '/task_instance')}
-    finally:
-        stop.set()
-        thread.join(timeout=10.0)
-        publisher_node.destroy_node()
+@pytest.fixture(scope='module')
+def named_bag(tmp_path_factory) -> dict:
+    """One recording of NAMED_TOPICS (see `_publish`), read by several tests: the bag, what
+    record() returned, the publishers' type hashes."""
+    bag = tmp_path_factory.mktemp('named') / 'bag'
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        _private_domain(monkeypatch)
+        rclpy.init()
+        try:
+            publisher_node = Node('bag_test_publisher')
+            log = _RecorderLog(publisher_node)
+            stop = threading.Event()
+            errors = []
+            thread = threading.Thread(target=_publish,
+                                      args=(publisher_node, log, stop, errors))
+            try:
+                thread.start()
+                recording = record(bag, NAMED_TOPICS, stop=stop, duration=30.0,
+                                   discovery_timeout=DISCOVERY_TIMEOUT)
+                thread.join(timeout=10.0)
+                type_hashes = {
+                    t: str(publisher_node.get_publishers_info_by_topic(t)[0].topic_type_hash)
+                    for t in ('/joint_states', '/task_instance')}
+            finally:
+                stop.set()
+                thread.join(timeout=10.0)
+                log.close()
+                publisher_node.destroy_node()
+        finally:
+            rclpy.try_shutdown()
     assert not errors, errors
+    return {'bag': bag, 'recording': recording, 'type_hashes': type_hashes}
 
-    assert counts == {'/joint_states': N_JOINT_STATES, '/effort_command': N_EFFORT,
-                      '/task_instance': 1, '/never_there': 0}
-    assert read_bag_summary(bag) == {
-        '/joint_states': ('sensor_msgs/msg/JointState', N_JOINT_STATES),
-        '/effort_command': ('std_msgs/msg/Float64MultiArray', N_EFFORT),
-        '/task_instance': ('psl_msgs/msg/TaskInstance', 1),
-    }
+
+def test_record_named_topics(named_bag):
+    bag, recording = named_bag['bag'], named_bag['recording']
+    assert recording.path == bag
+    assert recording.counts == {**EXPECTED_COUNTS, '/never_there': 0}
+    assert recording.lost == dict.fromkeys(recording.counts, 0)
+    assert read_bag_summary(bag) == {topic: (EXPECTED_TYPES[topic], count)
+                                     for topic, count in EXPECTED_COUNTS.items()}
 
     metadata = YAML(typ='safe').load((bag / 'metadata.yaml').read_text())
     info = metadata['rosbag2_bagfile_information']
     assert info['storage_identifier'] == 'mcap'
     assert info['version'] == 9
+    assert json.loads(info['custom_data'][LOSS_KEY]) == dict.fromkeys(EXPECTED_COUNTS, 0)
     assert [p.suffix for p in bag.iterdir() if p.name != 'metadata.yaml'] == ['.mcap']
     topic_metadata = {t['topic_metadata']['name']: t['topic_metadata']
                       for t in info['topics_with_message_count']}
@@ -140,7 +213,7 @@ def test_record_named_topics(ros, tmp_path):
     assert task_qos[0]['deadline'] == {'sec': 9223372036, 'nsec': 854775807}  # infinite
     joint_qos = topic_metadata['/joint_states']['offered_qos_profiles']
     assert [q['durability'] for q in joint_qos] == ['volatile']
-    for topic, type_hash in type_hashes.items():
+    for topic, type_hash in named_bag['type_hashes'].items():
         assert topic_metadata[topic]['type_description_hash'] == type_hash
 
     typestore = make_typestore()
@@ -172,6 +245,105 @@ def test_record_named_topics(ros, tmp_path):
     assert (task.num_steps, task.control_period) == (500, 0.002)
 
 
+def test_an_independent_mcap_reader_reads_the_bag(named_bag):
+    """The ``mcap`` reader (not rosbags): ros2 profile, a schema per channel, statistics equal
+    to what record() reported, messages decoded by mcap_ros2 from the stored schemas alone,
+    and rosbag2's metadata record."""
+    bag, recording = named_bag['bag'], named_bag['recording']
+    (mcap_file,) = bag.glob('*.mcap')
+    with mcap_file.open('rb') as stream:
+        reader = make_reader(stream, validate_crcs=True, decoder_factories=[DecoderFactory()])
+        assert reader.get_header().profile == 'ros2'
+        summary = reader.get_summary()
+        channels = {c.topic: c for c in summary.channels.values()}
+        assert set(channels) == set(EXPECTED_COUNTS)
+        for topic, channel in channels.items():
+            schema = summary.schemas[channel.schema_id]
+            assert (schema.name, schema.encoding) == (EXPECTED_TYPES[topic], 'ros2msg')
+            assert schema.data
+            assert channel.message_encoding == 'cdr'
+            assert 'offered_qos_profiles' in channel.metadata
+        statistics = summary.statistics
+        per_topic = {c.topic: statistics.channel_message_counts[cid]
+                     for cid, c in summary.channels.items()}
+        assert per_topic == {t: n for t, n in recording.counts.items() if n}
+        assert per_topic == {t: n for t, (_, n) in read_bag_summary(bag).items()}
+        assert statistics.message_count == sum(recording.counts.values())
+
+        decoded: dict[str, list] = {topic: [] for topic in channels}
+        for _schema, channel, message, msg in reader.iter_decoded_messages(
+                log_time_order=False):
+            decoded[channel.topic].append(msg)
+            assert statistics.message_start_time <= message.log_time \
+                <= statistics.message_end_time
+        assert [(m.header.stamp.sec, m.header.stamp.nanosec, list(m.position))
+                for m in decoded['/joint_states']] == [
+            (i, 1000 * i, [0.01 * i, -0.02 * i]) for i in range(N_JOINT_STATES)]
+        assert [list(m.data) for m in decoded['/effort_command']] == [
+            [float(i), -float(i)] for i in range(N_EFFORT)]
+        (task,) = decoded['/task_instance']
+        assert (task.task, list(task.tau), task.num_steps) == ('reach', [0.3, -0.4], 500)
+
+        (metadata,) = [m for m in reader.iter_metadata() if m.name == 'rosbag2']
+    info = YAML(typ='safe').load(metadata.metadata['serialized_metadata'])
+    assert {t['topic_metadata']['name']: t['message_count']
+            for t in info['topics_with_message_count']} == per_topic
+    assert json.loads(info['custom_data'][LOSS_KEY]) == dict.fromkeys(EXPECTED_COUNTS, 0)
+
+
+# record() in its own process, so that the test can stop it (SIGSTOP) like a starved reader
+RECORDER_PROCESS = """
+import sys
+from psl_ros.bag_recorder import record
+record(sys.argv[1], sys.argv[2:], discovery_timeout=0.0)
+"""
+N_BURST = 20000  # published while the recorder is stopped: more than DDS buffers for it
+
+
+def test_losses_are_counted_and_equal_the_gap(ros, tmp_path):
+    """A recorder that takes nothing for a while loses messages from a keep-last publisher
+    (its history overwrites what the recorder has not acknowledged): the losses it counts
+    and writes into the metadata equal the indices missing from the bag."""
+    bag = tmp_path / 'lossy'
+    node = Node('bag_test_lossy_publisher')
+    publisher = node.create_publisher(JointState, 'lossy', QoSProfile(
+        depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    recorder = subprocess.Popen([sys.executable, '-c', RECORDER_PROCESS, str(bag), 'lossy'],
+                                stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_matched(publisher, timeout=60.0)
+        publisher.publish(_joint_state(0))
+        _wait_acked(publisher)  # the recorder receives
+        os.kill(recorder.pid, signal.SIGSTOP)
+        try:
+            for i in range(1, N_BURST + 1):
+                publisher.publish(_joint_state(i))
+        finally:
+            os.kill(recorder.pid, signal.SIGCONT)
+        _wait_acked(publisher)
+        recorder.send_signal(signal.SIGINT)  # ends the recording normally
+        _, stderr = recorder.communicate(timeout=60.0)
+    finally:
+        if recorder.poll() is None:
+            recorder.kill()
+            recorder.communicate()
+        node.destroy_node()
+    assert recorder.returncode == 0, stderr
+
+    typestore = make_typestore()
+    with Reader(bag) as reader:
+        received = [typestore.deserialize_cdr(raw, c.msgtype).header.stamp.sec
+                    for c, _, raw in reader.messages()]
+    metadata = YAML(typ='safe').load((bag / 'metadata.yaml').read_text())
+    lost = json.loads(metadata['rosbag2_bagfile_information']['custom_data'][LOSS_KEY])
+    assert received == sorted(set(received))
+    assert received[0] == 0 and received[-1] == N_BURST  # the last ones are in the history
+    gap = N_BURST + 1 - len(received)
+    assert gap > 0, 'nothing was lost: the scenario did not starve the recorder'
+    assert lost == {'/lossy': gap}
+    assert f'{gap} messages lost: /lossy {gap}' in stderr
+
+
 def test_record_all_topics_for_a_duration(ros, tmp_path):
     publisher_node = Node('bag_test_publisher')
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -179,14 +351,17 @@ def test_record_all_topics_for_a_duration(ros, tmp_path):
     publisher.publish(_task_instance())
     bag = tmp_path / 'all'
     try:
-        start = time.monotonic()
-        counts = record(bag, duration=1.0, discovery_timeout=0.8)
-        elapsed = time.monotonic() - start
+        start, wall_start = time.monotonic(), time.time_ns()
+        recording = record(bag, duration=1.0, discovery_timeout=0.8)
+        elapsed, wall_end = time.monotonic() - start, time.time_ns()
     finally:
         publisher_node.destroy_node()
-    assert counts == {'/task_instance': 1}  # /rosout and /parameter_events left out
+    assert recording.counts == {'/task_instance': 1}  # /rosout and /parameter_events left out
     assert read_bag_summary(bag) == {'/task_instance': ('psl_msgs/msg/TaskInstance', 1)}
-    assert 1.0 <= elapsed < 3.0
+    assert elapsed >= 1.0  # the whole duration, however slow the machine
+    info = YAML(typ='safe').load((bag / 'metadata.yaml').read_text())[
+        'rosbag2_bagfile_information']
+    assert wall_start <= info['starting_time']['nanoseconds_since_epoch'] <= wall_end
 
 
 def test_record_into_existing_path_raises(tmp_path):

@@ -1,8 +1,9 @@
 """The simulator node: a task's MuJoCo model behind standard robot topics.
 
 Publishes ``joint_states`` (sensor_msgs/JointState, effort = torque applied in the step that
-led to the state), ``ee_pose`` (geometry_msgs/PoseStamped), ``/clock`` and, on every reset,
-``task_instance`` (psl_msgs/TaskInstance, latched). Applies ``effort_command``
+led to the state), ``ee_pose`` (geometry_msgs/PoseStamped), ``/clock``, ``scene``
+(visualization_msgs/MarkerArray, latched: see below) and, on every reset, ``task_instance``
+(psl_msgs/TaskInstance, latched). Applies ``effort_command``
 (std_msgs/Float64MultiArray, the forward_command_controller convention) clipped to the
 model's torque limits. ``~/reset`` (psl_msgs/ResetTask) starts an episode of the task's
 length; between episodes the simulation is paused. A reset may name another task of the same
@@ -10,6 +11,15 @@ robot (the same actuated joints); one of another robot is refused, since the con
 every other node of the graph are set up for the joints of the robot the simulator started with.
 ``task_instance`` names the task so that any node can load it: by name, or by its YAML's
 absolute path when the name does not find it (`psl_sim.task.task_id`).
+
+``scene``: the model's visible geoms at their current poses (`psl_sim.scene`: the arm, the
+obstacles, the static geoms; a capsule is a cylinder and two spheres) and the end-effector path
+executed so far in the episode (LINE_STRIP, sampled at the scene rate), in the frame ``world``,
+one marker per (namespace, id) that stays the same, so viewers update markers in place.
+Published at every reset and at the end of every episode, and in between every
+``1 / scene_rate`` seconds of simulated time while someone subscribes, so that the lockstep loop
+pays for it only when watched. Latched: a viewer that joins between episodes gets the scene as
+it is. When a reset switches to a model with other geoms the array starts with DELETEALL.
 
 Modes:
 - ``lockstep``: after publishing a state the simulation waits for the command that answers it,
@@ -26,23 +36,66 @@ from pathlib import Path
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import Point, PoseStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
+from visualization_msgs.msg import Marker, MarkerArray
 
 from psl_msgs.msg import TaskInstance
 from psl_msgs.srv import ResetTask
 from psl_sim.arm_model import ArmModel
+from psl_sim.scene import PATH_SHAPE, Scene, Shape, ShapeKind
 from psl_ros import names
 from psl_ros.graph import SIM_MODES
 from psl_ros.hot_path import HotPath
 from psl_ros.node_main import run_node
 from psl_ros.qos import LATCHED, RELIABLE
-from psl_ros.stamps import time_msg
+from psl_ros.service import create_service
+from psl_ros.stamps import NS_PER_S, time_msg
 from psl_sim.task import TaskError, load_task, task_id
+
+MARKER_TYPES = {ShapeKind.SPHERE: Marker.SPHERE, ShapeKind.CYLINDER: Marker.CYLINDER,
+                ShapeKind.CUBE: Marker.CUBE, ShapeKind.TRIANGLE_LIST: Marker.TRIANGLE_LIST,
+                ShapeKind.LINE_STRIP: Marker.LINE_STRIP}
+
+
+def shape_marker(shape: Shape) -> Marker:
+    """A Marker (frame ``world``, no lifetime) of a shape: everything but pose and stamp."""
+    marker = Marker(ns=shape.namespace, id=shape.marker_id, type=MARKER_TYPES[shape.kind],
+                    action=Marker.ADD)
+    marker.header.frame_id = names.WORLD_FRAME
+    marker.pose.orientation.w = 1.0
+    marker.scale.x, marker.scale.y, marker.scale.z = shape.scale.tolist()
+    marker.color.r, marker.color.g, marker.color.b, marker.color.a = shape.rgba.tolist()
+    if shape.points is not None:
+        marker.points = [Point(x=x, y=y, z=z) for x, y, z in shape.points.tolist()]
+    return marker
+
+
+class SceneMarkers:
+    """The scene of one model as Marker messages, built once; `update` sets poses and stamps
+    in place (only the poses change from one publish to the next)."""
+
+    def __init__(self, scene: Scene):
+        self.scene = scene
+        self.markers = [shape_marker(shape) for shape in scene.shapes]
+        self.path = shape_marker(PATH_SHAPE)
+
+    def update(self, data, stamp, path: list[np.ndarray]) -> list[Marker]:
+        """The markers at data's poses (after a kinematics pass) and the path so far."""
+        poses = self.scene.poses(data)
+        for marker, position, (w, x, y, z) in zip(self.markers, poses.position.tolist(),
+                                                  poses.orientation.tolist()):
+            marker.header.stamp = stamp
+            p, q = marker.pose.position, marker.pose.orientation
+            p.x, p.y, p.z = position
+            q.w, q.x, q.y, q.z = w, x, y, z
+        self.path.header.stamp = stamp
+        self.path.points = [Point(x=x, y=y, z=z) for x, y, z in path]
+        return self.markers + [self.path]
 
 
 class SimNode(Node):
@@ -57,6 +110,9 @@ class SimNode(Node):
             description=' | '.join(SIM_MODES), read_only=True))
         self.declare_parameter('episode_duration', 0.0, ParameterDescriptor(
             description='episode length [s]; 0 = the task duration plus its settle time'))
+        self.declare_parameter('scene_rate', 30.0, ParameterDescriptor(
+            description='scene markers per second of simulated time while someone subscribes '
+                        '[Hz]; 0 = only at resets and episode ends'))
         self.mode = self.get_parameter('mode').value
         if self.mode not in SIM_MODES:
             raise ValueError(f'mode must be one of {SIM_MODES}, got {self.mode!r}')
@@ -68,17 +124,22 @@ class SimNode(Node):
         self.applied = np.zeros(len(self.arm.joint_names))
         self.pending: np.ndarray | None = None   # command answering the last state
         self.episode = {}
+        self._scenes: dict[Path, SceneMarkers] = {}     # by task YAML, like the arms
+        self._scene_shown: SceneMarkers | None = None   # what the last scene message drew
+        self._scene_due_ns = 0                          # next throttled scene publish
+        self._ee_path: list[np.ndarray] = []            # end effector at the scene ticks
 
         self.pub_joints = self.create_publisher(JointState, names.JOINT_STATES, RELIABLE)
         self.pub_pose = self.create_publisher(PoseStamped, names.EE_POSE, RELIABLE)
-        self.pub_clock = self.create_publisher(Clock, names.CLOCK, 10)
+        self.pub_clock = self.create_publisher(Clock, names.CLOCK, RELIABLE)
         self.pub_task = self.create_publisher(TaskInstance, names.TASK_INSTANCE, LATCHED)
         self.pub_diag = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
+        self.pub_scene = self.create_publisher(MarkerArray, names.SCENE, LATCHED)
         self.hot_path = HotPath(self)
         self.hot_path.subscribe(Float64MultiArray, names.EFFORT_COMMAND, self.on_command,
                                 RELIABLE)
         self.hot_path.start()
-        self.create_service(ResetTask, '~/reset', self.on_reset)
+        create_service(self, ResetTask, '~/reset', self.on_reset)
         if self.mode == 'realtime':
             self._stop = threading.Event()
             self._thread = threading.Thread(target=self._realtime_loop, daemon=True)
@@ -93,6 +154,8 @@ class SimNode(Node):
             if p.name == 'episode_duration' and not p.value >= 0.0:
                 return SetParametersResult(successful=False,
                                            reason='episode_duration must be >= 0 seconds')
+            if p.name == 'scene_rate' and not p.value >= 0.0:
+                return SetParametersResult(successful=False, reason='scene_rate must be >= 0 Hz')
         return SetParametersResult(successful=True)
 
     def _arm(self, task_name: str) -> ArmModel:
@@ -131,6 +194,8 @@ class SimNode(Node):
                 stamp=time_msg(self.t_ns), task=task_id(arm.task), tau=tau.tolist(),
                 num_steps=num_steps, control_period=arm.task.control_period))
             self._publish_state()
+            self._ee_path = []
+            self._scene_tick(always=True)
         response.success, response.message = True, f'episode of {num_steps} steps started'
         response.stamp, response.num_steps = time_msg(self.t_ns), num_steps
         response.joint_names = list(arm.joint_names)
@@ -160,6 +225,8 @@ class SimNode(Node):
         self.t_ns += self.arm.task.control_period_ns
         self.steps_left -= 1
         self._publish_state()
+        if self.steps_left == 0 or self.t_ns >= self._scene_due_ns:
+            self._scene_tick(always=self.steps_left == 0)
         done = self.episode['steps'] - self.steps_left
         if self.steps_left == 0 or done % max(1, self.episode['steps'] // 10) == 0:
             self._publish_status(done)
@@ -212,18 +279,42 @@ class SimNode(Node):
         js.position = arm.q.tolist()
         js.velocity = arm.qd.tolist()
         js.effort = self.applied.tolist()
+        # the state first: the controller answers it while the clock and the pose (a bag
+        # records them) are built and sent
+        self.pub_joints.publish(js)
         # building and serialising a message costs more than asking whether anyone listens
         if self.pub_clock.get_subscription_count():
             self.pub_clock.publish(Clock(clock=t))
         if self.pub_pose.get_subscription_count():
             pose = PoseStamped()
-            pose.header.stamp, pose.header.frame_id = t, 'world'
+            pose.header.stamp, pose.header.frame_id = t, names.WORLD_FRAME
             pos, quat = arm.end_effector_pose()
             pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = pos.tolist()
             (pose.pose.orientation.w, pose.pose.orientation.x,
              pose.pose.orientation.y, pose.pose.orientation.z) = quat.tolist()
             self.pub_pose.publish(pose)
-        self.pub_joints.publish(js)
+
+    def _scene_tick(self, always: bool) -> None:
+        """A scene sample: note the end effector on the path, schedule the next sample, and
+        publish the scene if `always` (reset, episode end) or someone subscribes."""
+        rate = self.get_parameter('scene_rate').value
+        self._scene_due_ns = (self.t_ns + int(round(NS_PER_S / rate)) if rate > 0
+                              else np.iinfo(np.int64).max)
+        path = self.arm.task.path
+        if path not in self._scenes:
+            self._scenes[path] = SceneMarkers(Scene(self.arm.model))
+        scene = self._scenes[path]
+        state = scene.scene.forward(self.arm.data)     # poses of this state, not the last
+        self._ee_path.append(state.site_xpos[self.arm.ee_site].copy())
+        if not (always or self.pub_scene.get_subscription_count()):
+            return
+        markers = scene.update(state, time_msg(self.t_ns), self._ee_path)
+        if self._scene_shown is not None and self._scene_shown is not scene:
+            clear = Marker(action=Marker.DELETEALL)                  # another model's geoms
+            clear.header.frame_id, clear.header.stamp = names.WORLD_FRAME, time_msg(self.t_ns)
+            markers = [clear] + markers
+        self._scene_shown = scene
+        self.pub_scene.publish(MarkerArray(markers=markers))
 
     def destroy_node(self):
         self.hot_path.stop()

@@ -1,0 +1,123 @@
+"""``psl render`` (psl_cli.render): a short rollout drawn into a GIF by MuJoCo's offscreen
+renderer (in a fresh process, as the command runs) and by the matplotlib stick figure; the
+fallback from one to the other; bad input refused with one line and exit code 2."""
+import argparse
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image, ImageChops
+
+from psl_cli import render
+from psl_sim.task import load_task
+
+TASK = 'reach_over_obstacle'
+FPS = 5.0                       # frames per second of simulated time: few frames, fast
+SIZE = (160, 120)               # px
+EPISODE = 2.0                   # s, reach_over_obstacle: duration 1.5 + settle 0.5
+FRAMES = int(EPISODE * FPS) + 1     # t = 0, 0.2, ..., 2.0 s
+FRAME_MS = 200                  # 1 / FPS
+
+
+@pytest.fixture(autouse=True)
+def gl_environment(monkeypatch):
+    """run() sets MUJOCO_GL for this process; keep it from the later tests' processes."""
+    monkeypatch.delenv('MUJOCO_GL', raising=False)
+
+
+def parse(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    render.add_arguments(parser)
+    return parser.parse_args(list(argv))
+
+
+def check_gif(path) -> None:
+    """An animated GIF of the requested size, the whole episode long, whose frames differ."""
+    with Image.open(path) as gif:
+        assert gif.format == 'GIF' and gif.size == SIZE
+        assert gif.n_frames >= 3
+        frames, total_ms = [], 0
+        for k in range(gif.n_frames):
+            gif.seek(k)
+            frames.append(gif.convert('RGB'))
+            total_ms += gif.info['duration']
+    # Pillow merges identical consecutive frames (the arm at rest) and adds up their durations
+    assert total_ms == FRAMES * FRAME_MS
+    assert ImageChops.difference(frames[0], frames[gif.n_frames // 2]).getbbox() is not None
+    assert ImageChops.difference(frames[0], frames[-1]).getbbox() is not None
+
+
+def test_frames_sample_the_episode_at_the_frame_rate():
+    task = load_task(TASK)
+    steps = render.frame_steps(task.num_steps, task.control_rate, FPS)
+    np.testing.assert_array_equal(steps, np.arange(FRAMES) * 100)      # every 0.2 s = 100 steps
+    steps = render.frame_steps(task.num_steps, task.control_rate, 30.0)
+    assert steps[0] == 0 and steps[-1] == task.num_steps and len(steps) == 61
+
+
+def test_mujoco_renders_a_short_rollout_in_a_fresh_process(tmp_path):
+    """As ``psl render`` runs: MUJOCO_GL unset, run() picks EGL before mujoco loads."""
+    out = tmp_path / 'rollout.gif'
+    done = subprocess.run([sys.executable, '-m', 'psl_cli.main', 'render', '--task', TASK,
+                           '--fps', str(FPS), '--size', *map(str, SIZE), '-o', str(out)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert 'MuJoCo offscreen renderer (MUJOCO_GL=egl)' in done.stdout
+    assert 'failed' not in done.stdout
+    check_gif(out)
+
+
+def test_the_stick_figure_draws_the_same_rollout(tmp_path, capsys):
+    out = tmp_path / 'rollout.gif'
+    code = render.run(parse('--task', TASK, '--fps', str(FPS), '--size', *map(str, SIZE),
+                            '--renderer', 'matplotlib', '-o', str(out)))
+    assert code == 0
+    assert 'matplotlib stick figure' in capsys.readouterr().out
+    check_gif(out)
+
+
+def test_auto_falls_back_to_the_stick_figure_and_says_why(tmp_path, capsys, monkeypatch):
+    def no_gl(replay, width, height):
+        raise RuntimeError('no OpenGL context\nsecond line')
+
+    monkeypatch.setitem(render.RENDER, 'mujoco', (no_gl, 'MuJoCo offscreen renderer'))
+    out = tmp_path / 'rollout.gif'
+    code = render.run(parse('--fps', str(FPS), '--size', *map(str, SIZE), '-o', str(out)))
+    printed = capsys.readouterr().out
+    assert code == 0
+    assert 'matplotlib stick figure' in printed and 'failed: no OpenGL context' in printed
+    assert 'second line' not in printed
+    check_gif(out)
+    # asked for MuJoCo only: no fallback, exit code 1 and the reason
+    code = render.run(parse('--renderer', 'mujoco', '-o', str(tmp_path / 'other.gif')))
+    err = capsys.readouterr().err
+    assert code == 1 and err.count('\n') == 1 and 'no OpenGL context' in err
+    assert not (tmp_path / 'other.gif').exists()
+
+
+@pytest.mark.parametrize('argv, words', [
+    (['--tau', '0.6'], 'takes 2 task parameters'),
+    (['--tau', '0.6', '0.9'], 'outside its range'),
+    (['--task', 'no_such_task'], 'unknown task'),
+    (['--theta-file', 'THETA'], 'takes theta with 24 entries'),
+    (['--fps', '0'], '--fps'),
+    (['--size', '0', '10'], '--size'),
+    (['-o', 'rollout.mp4'], 'no video encoder'),
+    (['-o', 'rollout.png'], 'must be a .gif'),
+    (['-o', 'missing/rollout.gif'], 'does not exist'),
+])
+def test_bad_input_is_refused_with_one_line_and_exit_code_2(tmp_path, capsys, argv, words):
+    theta = tmp_path / 'theta.txt'
+    theta.write_text('1 2 3')
+    argv = [str(theta) if a == 'THETA' else a for a in argv]
+    argv = [str(tmp_path / a) if a.startswith(('rollout.', 'missing/')) else a for a in argv]
+    if '-o' not in argv:
+        argv += ['-o', str(tmp_path / 'rollout.gif')]
+    code = render.run(parse(*argv))
+    captured = capsys.readouterr()
+    assert code == 2
+    assert captured.err.count('\n') == 1 and captured.err.startswith('psl render: ')
+    assert words in captured.err and 'Traceback' not in captured.err
+    assert captured.out == ''
+    assert not list(tmp_path.glob('rollout.*'))
