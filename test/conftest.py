@@ -8,6 +8,9 @@ import os
 
 os.environ['ROS_DOMAIN_ID'] = os.environ.get('PSL_TEST_DOMAIN_ID', str(1 + os.getpid() % 100))
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+# the memory nodes the tests start keep their files under the system's temporary folder, where
+# every tmp_path lies (a memory node refuses paths outside its memory_dir)
+os.environ['PSL_MEMORY_DIR'] = __import__('tempfile').gettempdir()
 
 import time  # noqa: E402
 

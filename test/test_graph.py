@@ -65,6 +65,7 @@ def test_lockstep_rollouts_are_identical(client, task, theta, reference_result):
     (TASK, [float('nan'), 0.2], None, ['finite']),
     (TASK, None, 'short', ['theta', 'entries', 'got 3']),
     (TASK, None, 'nan', ['NaN']),
+    (TASK, None, 'huge', ['theta[0]', 'a units or scaling error']),
 ])
 def test_bad_rollout_requests_get_clear_errors(client, task, theta, reference_result,
                                                task_name, tau, theta_change, words):
@@ -73,6 +74,8 @@ def test_bad_rollout_requests_get_clear_errors(client, task, theta, reference_re
         bad_theta = theta[:3]
     elif theta_change == 'nan':
         bad_theta[5] = np.nan
+    elif theta_change == 'huge':
+        bad_theta[:] = 1e308
     result = client.rollout(task_name, task.tau_default if tau is None else tau, bad_theta)
     assert not result.success
     for word in words:

@@ -158,14 +158,51 @@ def test_a_missing_skill_is_created_from_the_task(client, tmp_path):
     assert skill['num_samples'] == sum(r['fulfilled'] for r in metrics['tasks'])
 
 
-def test_a_skill_of_other_sizes_aborts_with_the_reason(client, tmp_path):
+def test_continuing_from_a_skill_of_other_sizes_aborts_with_the_reason(client, tmp_path):
     other = SkillMemory(SKILL)
     other.add(TASK, [0.5], [1.0, 2.0, 3.0])          # the task's name, but 1 tau and 3 theta
     other.save(tmp_path / 'other.npz')
-    assert client.memory('load', path=str(tmp_path / 'other.npz')).success
-    result = client.learn(timeout=60, **goal(settings('bootstrap', 2, 5, 0), tmp_path / 'x'))
+    result = client.learn(timeout=60, continue_from=str(tmp_path / 'other.npz'),
+                          **goal(settings('bootstrap', 2, 5, 0), tmp_path / 'x'))
     assert not result.success and 'exists with 1 task and 3 policy parameters' in result.message
     assert not (tmp_path / 'x' / 'checkpoint.json').exists()
+
+
+def test_a_new_session_starts_from_an_empty_skill_unless_told_to_continue(client, tmp_path):
+    """The memory node still holds the skill of an earlier session: a new session does not
+    start from it (it equals the in-process session), unless continue_from names a memory."""
+    first = settings('bootstrap', num_tasks=3, budget=40, seed=6)
+    assert client.learn(timeout=300, **goal(first, tmp_path / 'first')).success
+    assert num_samples(client) > 0
+    again = settings('bootstrap', num_tasks=2, budget=40, seed=7)
+    result = client.learn(timeout=300, **goal(again, tmp_path / 'again'))
+    assert result.success, result.message
+    metrics = json.loads(open(result.metrics_path).read())
+    assert_same_session(metrics, in_process(again, tmp_path / 'reference'))
+    # continuing from the first session's memory: the skill starts with its samples
+    kept = SkillMemory.read(tmp_path / 'first' / 'memory.npz').get(TASK).num_samples
+    goes_on = client.learn(timeout=300, continue_from=str(tmp_path / 'first' / 'memory.npz'),
+                           **goal(again, tmp_path / 'goes_on'))
+    assert goes_on.success, goes_on.message
+    done = json.loads(open(goes_on.metrics_path).read())
+    assert num_samples(client) == kept + sum(r['fulfilled'] for r in done['tasks'])
+
+
+def test_goals_beyond_the_limits_are_refused_and_a_long_one_ends_on_cancel(client, tmp_path,
+                                                                           wait_until):
+    fields = goal(settings('bootstrap', 1, 5, 0), tmp_path / 'huge')
+    for change, words in (({'num_tasks': 4_000_000_000}, 'num_tasks must be between 1 and'),
+                          ({'max_rollouts_per_task': 1_000_000}, 'max_rollouts_per_task must')):
+        result = client.learn(timeout=30, **{**fields, **change})
+        assert not result.success and words in result.message, result.message
+    # the largest session the learner takes: its task sequence is lazy, a cancel ends it
+    out = tmp_path / 'long'
+    handle = client.send_learn_goal(**{**goal(settings('bootstrap', 10_000, 40, 0), out)})
+    assert wait_until(lambda: (out / 'checkpoint.json').is_file(), 120)
+    client.wait(handle.cancel_goal_async(), 30, 'cancel')
+    result = client.learner.result(handle, timeout=60)
+    assert not result.success and 'cancelled' in result.message
+    assert len(json.loads((out / 'checkpoint.json').read_text())['tasks']) < 10_000
 
 
 def test_a_cancelled_session_resumes_when_the_goal_comes_again(client, tmp_path):

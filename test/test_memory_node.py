@@ -4,6 +4,7 @@ import math
 import os
 import signal
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -113,9 +114,13 @@ BAD_REQUESTS = [
     ('complete', {'skill': 'curve', 'pattern': [0.1, 0.2], 'known': [True, False]},
      'known needs 4 entries'),
     ('complete', {'skill': 'nope', 'pattern': [0.1], 'known': [True]}, 'unknown skill'),
-    ('save', {'path': '/nonexistent_folder/memory.npz'}, 'does not exist'),
-    ('save', {'path': ''}, 'give a path'),
-    ('load', {'path': '/nonexistent_folder/memory.npz'}, 'no such file'),
+    ('save', {'path': '/nonexistent_folder/memory.npz'}, 'outside the memory folder'),
+    ('save', {'path': ''}, 'give a file name'),
+    ('load', {'path': '/nonexistent_folder/memory.npz'}, 'outside the memory folder'),
+    ('load', {'path': 'no_such_memory_file.npz'}, 'no such file'),
+    ('query', {'skill': 'curve', 'tau': [-1e308]}, 'a units or scaling error'),
+    ('add_sample', {'skill': 'curve', 'tau': [0.5], 'theta': [1e308, 2.0, 3.0]},
+     'a units or scaling error'),
     ('create_skill', {'skill': 'curve', 'tau_low': [0.0, 0.0], 'tau_high': [1.0, 1.0],
                       'theta_reference': [0.0, 0.0, 0.0]}, 'exists with 1 task'),
     ('create_skill', {'skill': 'new', 'tau_low': [1.0], 'tau_high': [0.0],
@@ -138,6 +143,63 @@ def test_bad_requests_get_clear_errors_and_change_nothing(client, service, field
     assert words in response.message, response.message
     assert info(client) == before
     assert list(client.memory("query", skill="curve", tau=[0.3]).theta) == list(query_before)
+
+
+def test_memory_files_stay_inside_the_memory_folder(client, tmp_path):
+    """The node's memory_dir is the system's temporary folder here (conftest): nothing
+    outside it is written or read, no link is followed, no device, FIFO or folder replaced."""
+    import tempfile
+    before = info(client)
+    root = Path(tempfile.gettempdir())
+    outside = root.parent / f'psl-never-{os.getpid()}.npz'        # next to the folder
+    victim = tmp_path / 'victim.txt'
+    victim.write_text('keep me')
+    link = tmp_path / 'link.npz'
+    link.symlink_to(victim)
+    fifo = tmp_path / 'pipe.npz'
+    os.mkfifo(fifo)
+    for path, words in ((str(outside), 'outside the memory folder'),
+                        (f'../{outside.name}', 'outside the memory folder'),
+                        (str(tmp_path / os.path.relpath(outside, tmp_path)), 'outside'),
+                        (str(link), 'symbolic link'), (str(fifo), 'not a regular file'),
+                        (str(tmp_path), 'is a directory')):
+        for service in ('save', 'load'):
+            response = client.memory(service, path=path)
+            assert not response.success and words in response.message, (service, path,
+                                                                          response.message)
+    assert not outside.exists()
+    assert victim.read_text() == 'keep me' and link.is_symlink()
+    assert fifo.exists() and not fifo.is_file()
+    assert info(client) == before
+    inside = tmp_path / 'inside.npz'                               # a path inside works
+    assert client.memory('save', path=str(inside)).success and inside.is_file()
+    name = f'psl-memory-test-{os.getpid()}.npz'                    # so does a bare name
+    try:
+        assert client.memory('save', path=name).success and (root / name).is_file()
+        assert client.memory('load', path=name).success
+    finally:
+        (root / name).unlink(missing_ok=True)
+    assert info(client) == before
+
+
+def test_a_file_declaring_gigabytes_is_refused_before_it_is_read(client, tmp_path):
+    """A small zip whose array inflates to more than the node's limit (256 MB): refused from
+    the archive's declared sizes, nothing inflated, the memory kept."""
+    import zipfile
+    before = info(client)
+    bomb = tmp_path / 'bomb.npz'
+    header = np.lib.format.header_data_from_array_1_0(np.zeros(1))
+    header['shape'] = (300 * 2**20 // 8,)
+    with zipfile.ZipFile(bomb, 'w', zipfile.ZIP_DEFLATED) as archive:
+        with archive.open('__meta__.npy', 'w', force_zip64=True) as member:
+            np.lib.format.write_array_header_1_0(member, header)
+            zeros = bytes(2**20)
+            for _ in range(300):
+                member.write(zeros)
+    assert bomb.stat().st_size < 2**20 * 2                        # small on disk
+    response = client.memory('load', path=str(bomb))
+    assert not response.success and 'more than the limit' in response.message, response.message
+    assert info(client) == before
 
 
 def test_corrupt_file_is_refused_and_memory_kept(client, tmp_path):

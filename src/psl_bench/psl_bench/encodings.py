@@ -43,7 +43,8 @@ def run_encodings(task_name: str, seeds: Sequence[int], num_tasks: int, budget: 
                   progress: Callable[[str], None] = lambda line: None) -> dict:
     from psl_controller.policy import policy_for
     from psl_optimizer.batch_rollout import BatchRollouts
-    from psl_optimizer.learning import Learner, LearnSettings, held_out_tasks
+    from psl_optimizer.learning import Learner, LearnSettings
+    from psl_optimizer.task_selection import held_out_tasks
     from psl_optimizer.policy_search import SearchSettings
     from psl_sim.task import load_task
 
@@ -81,7 +82,8 @@ def run_encodings(task_name: str, seeds: Sequence[int], num_tasks: int, budget: 
 def run_selection(task_name: str, seeds: Sequence[int], num_tasks: int, budget: int,
                   num_test: int, progress: Callable[[str], None] = lambda line: None) -> dict:
     from psl_optimizer.batch_rollout import BatchRollouts
-    from psl_optimizer.learning import Learner, LearnSettings, held_out_tasks
+    from psl_optimizer.learning import Learner, LearnSettings
+    from psl_optimizer.task_selection import held_out_tasks
     from psl_optimizer.policy_search import SearchSettings
     from psl_sim.task import load_task
 

@@ -2,20 +2,54 @@
 from __future__ import annotations
 
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
+NPY_MAGIC = b'\x93NUMPY'        # the first bytes of an .npy file (numpy.lib.format)
+
 
 def load_vector(path: str | Path) -> np.ndarray:
-    """A flat vector from a .npy, a .json list or a whitespace-separated text file.
+    """A flat vector of finite floats from a file: an .npy array (any shape, flattened), a
+    .json list (nested lists are flattened) or, under any other name, whitespace-separated
+    text (``#`` starts a comment). What the content is, not the name, decides between .npy and
+    the others: an .npz archive (several named arrays, `np.savez`) is refused.
 
     Raises:
-        OSError: the file cannot be read; ValueError: it holds no numbers.
+        ValueError: the file is missing, a directory, unreadable, an .npz archive, not of its
+            kind, empty or not all finite numbers; the message names the file and says which.
     """
     file = Path(path)
-    if file.suffix == '.npy':
-        return np.load(file, allow_pickle=False).ravel().astype(float)
-    if file.suffix == '.json':
-        return np.asarray(json.loads(file.read_text()), dtype=float).ravel()
-    return np.loadtxt(file, ndmin=1).ravel()
+    try:
+        if file.is_dir():
+            raise ValueError(f'{file} is a directory, not a file')
+        with open(file, 'rb') as f:
+            data = f.read()
+    except FileNotFoundError:
+        raise ValueError(f'{file}: no such file') from None
+    except OSError as exc:
+        raise ValueError(f'{file} cannot be read: {exc.strerror or exc}') from None
+    if zipfile.is_zipfile(file):
+        raise ValueError(f'{file} is an .npz archive (several named arrays); save the one '
+                         'vector with np.save (.npy), as a .json list or as text')
+    try:
+        if data.startswith(NPY_MAGIC):
+            vector = np.load(file, allow_pickle=False)
+        elif file.suffix == '.npy':
+            raise ValueError('not an .npy file (no NumPy header)')
+        elif file.suffix == '.json':
+            vector = json.loads(data.decode())
+        else:
+            vector = [float(word) for line in data.decode().splitlines()
+                      for word in line.split('#', 1)[0].split()]
+        vector = np.asarray(vector, dtype=float).ravel()
+    except UnicodeDecodeError:
+        raise ValueError(f'{file} is not text (and not an .npy file)') from None
+    except (ValueError, TypeError, EOFError) as exc:
+        raise ValueError(f'{file} holds no vector of numbers: {exc}') from None
+    if vector.size == 0:
+        raise ValueError(f'{file} holds no numbers')
+    if not np.all(np.isfinite(vector)):
+        raise ValueError(f'{file} holds values that are not finite (NaN or inf)')
+    return vector

@@ -27,6 +27,7 @@ from psl_sim.task import TaskDefinition
 
 
 KINDS = ('dmp', 'gmr')     # how theta_K encodes the joint trajectory
+THETA_SPREADS = 1000.0     # a rollout's theta entries lie within this many default spreads
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,6 +68,8 @@ class TaskPolicy:
         self.kinematics = slice(0, n_kin)               # theta_K in theta
         self.dynamics = slice(n_kin, n_kin + n_dyn)     # theta_D in theta (empty without)
         self.default_theta = np.concatenate([self.movement.get_theta(), np.zeros(n_dyn)])
+        # range policy of a rollout: an entry this far from the default is an absurd magnitude
+        self.theta_bound = THETA_SPREADS * max(1.0, float(np.max(np.abs(self.default_theta))))
 
     @property
     def num_parameters(self) -> int:
@@ -99,6 +102,12 @@ class TaskPolicy:
                              f'{self.num_parameters} entries, got {theta.size}')
         if not np.all(np.isfinite(theta)):
             raise ValueError('theta contains NaN or inf')
+        far = np.abs(theta - self.default_theta) > self.theta_bound
+        if np.any(far):
+            i = int(np.flatnonzero(far)[0])
+            raise ValueError(f'theta[{i}] = {theta[i]:g} lies more than {self.theta_bound:g} '
+                             f'from the default policy ({self.default_theta[i]:g}) of task '
+                             f'{self.task.name!r}: a units or scaling error')
         self.movement.set_theta(theta[self.kinematics])
         dt = self.task.control_period
         traj = self.movement.integrate(dt, self.task.num_steps * dt)

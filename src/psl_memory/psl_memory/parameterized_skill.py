@@ -12,7 +12,10 @@
 Normalisation: tau by its ranges (the task YAML's, or around the first sample for a skill
 created ad hoc); theta around a reference vector (the task's default theta, or the first
 sample) with one common spread (the largest magnitude in the reference, at least 1), since all
-entries of theta share their units. Values outside the ranges are allowed.
+entries of theta share their units. Range policy (`check_tau`, `check_theta`), the same for a
+query, a sample and the known entries of a completion: a skill with a task's ranges refuses a
+tau more than TAU_MARGIN of its range outside it; any skill refuses absurd magnitudes (tau
+MAX_SPREADS ranges away, theta THETA_SPREADS spreads from its reference) and NaN or inf.
 Imports no ROS.
 """
 from __future__ import annotations
@@ -23,7 +26,12 @@ from psl_memory.elm import ELMFeatures, RangeScaler
 from psl_memory.registry import ASSOCIATIVE_MEMORIES, READOUTS
 from psl_memory.skill_config import SkillConfig
 
-MAX_SPREADS = 1e6    # a sample this many ranges away from the skill is a units error
+# The range policy, one rule for query, add and complete (known entries):
+TAU_MARGIN = 0.5       # a skill created with ranges (a task's): tau may lie this share of its
+                       # range outside it
+MAX_SPREADS = 1e6      # a skill created by its first sample: tau this many ranges away is a
+                       # units error
+THETA_SPREADS = 100.0  # theta this many spreads from the skill's reference is a units error
 
 
 
@@ -39,8 +47,8 @@ class ParameterizedSkill:
     """theta = PS(tau) with predictive variance, learned one sample at a time."""
 
     def __init__(self, name: str, tau_scaler: RangeScaler, theta_scaler: RangeScaler,
-                 config: SkillConfig = SkillConfig()):
-        self.name, self.config = name, config
+                 config: SkillConfig = SkillConfig(), bounded: bool = False):
+        self.name, self.config, self.bounded = name, config, bool(bounded)
         self.tau_scaler, self.theta_scaler = tau_scaler, theta_scaler
         self.features = ELMFeatures(tau_scaler, config.n_hidden, config.seed, config.alpha)
         self.readout = READOUTS[config.readout].from_config(config.n_hidden, theta_scaler.dim,
@@ -73,16 +81,43 @@ class ParameterizedSkill:
             raise ValueError(f'{name} contains NaN or inf')
         return array
 
+    def check_tau(self, tau, entries=None) -> np.ndarray:
+        """tau (E,) as floats, or ValueError naming the entry and the range (see the range
+        policy in the module docstring); `entries` (a mask) limits the range check."""
+        tau = self._vector(tau, self.tau_dim, 'tau')
+        unit = np.abs(self.tau_scaler.to_unit(tau))
+        limit = 1.0 + 2.0 * TAU_MARGIN if self.bounded else MAX_SPREADS
+        bad = np.flatnonzero((unit > limit) & (True if entries is None else entries))
+        if bad.size:
+            i = int(bad[0])
+            low, high = self.tau_scaler.low[i], self.tau_scaler.high[i]
+            allowed = (f'more than {100 * TAU_MARGIN:.0f} % of it' if self.bounded else
+                       f'{MAX_SPREADS:g} ranges away: a units or scaling error')
+            raise ValueError(f'tau[{i}] = {tau[i]:g} lies outside the range [{low:g}, {high:g}] '
+                             f'of skill {self.name!r} by {allowed}')
+        return tau
+
+    def check_theta(self, theta, entries=None) -> np.ndarray:
+        """theta (F,) as floats, or ValueError: an entry THETA_SPREADS spreads or more from the
+        skill's reference (`entries`, a mask, limits the check)."""
+        theta = self._vector(theta, self.theta_dim, 'theta')
+        unit = np.abs(self.theta_scaler.to_unit(theta))
+        bad = np.flatnonzero((unit > THETA_SPREADS) & (True if entries is None else entries))
+        if bad.size:
+            i = int(bad[0])
+            centre = 0.5 * (self.theta_scaler.low[i] + self.theta_scaler.high[i])
+            spread = 0.5 * (self.theta_scaler.high[i] - self.theta_scaler.low[i])
+            raise ValueError(f'theta[{i}] = {theta[i]:g} lies more than {THETA_SPREADS:g} '
+                             f'spreads ({spread:g}) from the reference {centre:g} of skill '
+                             f'{self.name!r}: a units or scaling error')
+        return theta
+
     def add(self, tau, theta) -> int:
         """Consolidate one sample (eq. 2.5-2.11 depending on the readout); returns the number
-        of samples. Raises ValueError and changes nothing for a bad sample."""
-        tau = self._vector(tau, self.tau_dim, 'tau')
-        theta = self._vector(theta, self.theta_dim, 'theta')
+        of samples. Raises ValueError and changes nothing for a bad sample (range policy:
+        `check_tau`, `check_theta`)."""
+        tau, theta = self.check_tau(tau), self.check_theta(theta)
         unit = self.theta_scaler.to_unit(theta)
-        if np.max(np.abs(unit)) > MAX_SPREADS or np.max(np.abs(self.tau_scaler.to_unit(tau))) \
-                > MAX_SPREADS:
-            raise ValueError(f'sample lies more than {MAX_SPREADS:g} ranges outside skill '
-                             f'{self.name!r}: refused as a units or scaling error')
         self.readout.update(self.features.transform(tau), unit)
         self.associative.add(np.r_[tau, theta])
         self._taus.append(tau)
@@ -102,8 +137,9 @@ class ParameterizedSkill:
     def query(self, tau) -> tuple[np.ndarray, np.ndarray | None]:
         """theta = PS(tau) (eq. 2.1) and its per-dimension predictive variance (eq. 2.14) in
         theta's units, or None when the readout has none. With no sample yet, theta is the
-        centre of the theta range (the task's default policy)."""
-        tau = self._vector(tau, self.tau_dim, 'tau')
+        centre of the theta range (the task's default policy). Raises ValueError for a tau
+        the range policy refuses (`check_tau`)."""
+        tau = self.check_tau(tau)
         h = self.features.transform(tau)
         theta = self.theta_scaler.from_unit(self.readout.predict(h))
         var = self.readout.predict_variance(h)
@@ -115,15 +151,20 @@ class ParameterizedSkill:
         (the result says which)."""
         if self.num_samples == 0:
             raise ValueError(f'skill {self.name!r} has no samples to complete from')
-        return self.associative.complete(
-            self._vector(pattern, self.tau_dim + self.theta_dim, 'pattern'), known,
-            tol=self.config.completion_tolerance,
-            max_iter=self.config.completion_max_iterations)
+        pattern = self._vector(pattern, self.tau_dim + self.theta_dim, 'pattern')
+        mask = np.asarray(known)
+        if mask.shape == pattern.shape and mask.dtype == bool:   # else the memory says why
+            e = self.tau_dim
+            self.check_tau(pattern[:e], mask[:e])
+            self.check_theta(pattern[e:], mask[e:])
+        return self.associative.complete(pattern, known, tol=self.config.completion_tolerance,
+                                         max_iter=self.config.completion_max_iterations)
 
     def refitted(self, config: SkillConfig) -> 'ParameterizedSkill':
         """A skill with the same ranges and another configuration (e.g. another readout), fed
         this skill's samples in their order."""
-        other = ParameterizedSkill(self.name, self.tau_scaler, self.theta_scaler, config)
+        other = ParameterizedSkill(self.name, self.tau_scaler, self.theta_scaler, config,
+                                   self.bounded)
         for tau, theta in zip(self.taus, self.thetas):
             other.add(tau, theta)
         return other
@@ -134,7 +175,7 @@ class ParameterizedSkill:
         state = {'tau_low': self.tau_scaler.low, 'tau_high': self.tau_scaler.high,
                  'theta_low': self.theta_scaler.low, 'theta_high': self.theta_scaler.high,
                  'w_inp': self.features.w_inp, 'bias': self.features.bias,
-                 'taus': self.taus, 'thetas': self.thetas}
+                 'taus': self.taus, 'thetas': self.thetas, 'bounded': np.array(self.bounded)}
         state.update({f'readout.{k}': np.asarray(v) for k, v in self.readout.get_state().items()})
         state.update({f'associative.{k}': np.asarray(v)
                       for k, v in self.associative.get_state().items()})
@@ -144,7 +185,8 @@ class ParameterizedSkill:
     def from_state(cls, name: str, config: SkillConfig, state: dict) -> 'ParameterizedSkill':
         """Rebuild a skill saved with get_state. Raises ValueError if anything disagrees."""
         skill = cls(name, RangeScaler(state['tau_low'], state['tau_high']),
-                    RangeScaler(state['theta_low'], state['theta_high']), config)
+                    RangeScaler(state['theta_low'], state['theta_high']), config,
+                    bounded=bool(state.get('bounded', False)))   # files before the policy: no
         if not (np.array_equal(skill.features.w_inp, state['w_inp'])
                 and np.array_equal(skill.features.bias, state['bias'])):
             raise ValueError(f'skill {name!r}: the saved random weights differ from those of '

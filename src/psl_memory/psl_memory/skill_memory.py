@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 import tempfile
 import zipfile
 from pathlib import Path
@@ -23,6 +24,8 @@ from psl_memory.skill_config import SkillConfig
 
 FORMAT = 'psl-skill-memory'
 VERSION = 1
+MAX_FILE_BYTES = 256 * 2**20     # a memory file, and the arrays it declares, at most this big
+MAX_MEMBERS = 100_000            # arrays in one file
 
 
 class MemoryFileError(ValueError):
@@ -37,9 +40,10 @@ class SkillMemory:
         self.skills: dict[str, ParameterizedSkill] = {}
 
     def create(self, name: str, tau_low, tau_high, theta_reference,
-               exist_ok: bool = False) -> ParameterizedSkill:
+               exist_ok: bool = False, replace: bool = False) -> ParameterizedSkill:
         """A skill with known tau ranges (e.g. a task's) and a theta reference (its default
-        policy, which theta is normalised around).
+        policy, which theta is normalised around); with `replace` an existing skill of that
+        name is replaced by the new, empty one.
 
         Raises:
             ValueError: no name, bad ranges or reference, or a skill of that name exists (with
@@ -51,7 +55,7 @@ class SkillMemory:
         theta_scaler = scaler_around(theta_reference)
         if tau_scaler.dim == 0 or theta_scaler.dim == 0:
             raise ValueError('a skill needs at least one task and one policy parameter')
-        if name in self.skills:
+        if name in self.skills and not replace:
             skill = self.skills[name]
             if not exist_ok:
                 raise ValueError(f'skill {name!r} exists already')
@@ -60,7 +64,7 @@ class SkillMemory:
                                  f'{skill.theta_dim} policy parameters, not {tau_scaler.dim} '
                                  f'and {theta_scaler.dim}')
             return skill
-        skill = ParameterizedSkill(name, tau_scaler, theta_scaler, self.config)
+        skill = ParameterizedSkill(name, tau_scaler, theta_scaler, self.config, bounded=True)
         self.skills[name] = skill
         return skill
 
@@ -112,25 +116,56 @@ class SkillMemory:
                 np.savez(f, **arrays)
                 f.flush()
                 os.fsync(f.fileno())
+            if path.is_symlink() or (path.exists() and not path.is_file()):
+                raise OSError(f'cannot save to {path}: not a regular file (a link, directory, '
+                              'device or FIFO); it is not replaced')
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise
 
     @classmethod
-    def read(cls, path: str | Path) -> 'SkillMemory':
-        """A new memory from a file; raises MemoryFileError saying what is wrong with it."""
+    def read(cls, path: str | Path, max_bytes: int = MAX_FILE_BYTES) -> 'SkillMemory':
+        """A new memory from a file; raises MemoryFileError saying what is wrong with it.
+
+        The file is opened without following a symbolic link and must be a regular file; its
+        size and the sizes its archive declares for the arrays are checked against
+        `max_bytes` before any array is read, so a crafted file (a zip of gigabytes of zeros)
+        is refused at once, at a bounded memory cost."""
         path = Path(path)
-        if not path.is_file():
-            raise MemoryFileError(f'{path}: no such file')
         try:
-            with zipfile.ZipFile(path) as archive:
-                archive.testzip()                      # every member's CRC
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {key: data[key] for key in data.files}
-        except Exception as exc:  # noqa: BLE001 - numpy/zipfile raise many kinds for bad bytes
-            raise MemoryFileError(f'{path}: not a readable psl memory file '
-                                  f'({type(exc).__name__}: {exc})') from exc
+            fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)   # a FIFO: no wait
+        except FileNotFoundError:
+            raise MemoryFileError(f'{path}: no such file') from None
+        except OSError as exc:
+            raise MemoryFileError(f'{path}: cannot be opened as a file ({exc.strerror})') from exc
+        status = os.fstat(fd)
+        if not stat.S_ISREG(status.st_mode):
+            os.close(fd)
+            raise MemoryFileError(f'{path}: is a directory, not a memory file'
+                                  if stat.S_ISDIR(status.st_mode) else
+                                  f'{path}: not a regular file (a device, FIFO or socket)')
+        with os.fdopen(fd, 'rb') as f:
+            if status.st_size > max_bytes:
+                raise MemoryFileError(f'{path}: {status.st_size} bytes, more than the limit of '
+                                      f'{max_bytes}')
+            try:
+                with zipfile.ZipFile(f) as archive:
+                    members = archive.infolist()
+                    declared = sum(m.file_size for m in members)
+                    if len(members) > MAX_MEMBERS or declared > max_bytes:
+                        raise MemoryFileError(
+                            f'{path}: declares {len(members)} arrays of {declared} bytes in '
+                            f'all, more than the limit of {max_bytes} bytes; not read')
+                    archive.testzip()                      # every member's CRC
+                f.seek(0)
+                with np.load(f, allow_pickle=False) as data:
+                    arrays = {key: data[key] for key in data.files}
+            except MemoryFileError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - numpy/zipfile raise many kinds
+                raise MemoryFileError(f'{path}: not a readable psl memory file '
+                                      f'({type(exc).__name__}: {exc})') from exc
         if '__meta__' not in arrays:
             raise MemoryFileError(f'{path}: not a psl memory file (no header)')
         try:

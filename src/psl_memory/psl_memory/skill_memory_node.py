@@ -4,10 +4,19 @@ Serves ``~/query`` (psl_msgs/QuerySkill: theta = PS(tau) and its per-dimension p
 variance), ``~/add_sample`` (AddSample), ``~/complete`` (CompletePattern: associative completion
 of [tau, theta] with the known dimensions clamped), ``~/create_skill`` (CreateSkill: a skill
 with a task's tau ranges and theta reference), ``~/save`` and ``~/load`` (SaveMemory,
-LoadMemory: one versioned file) and ``~/info`` (std_srvs/Trigger: the skills as JSON).
+LoadMemory: one versioned file, named inside the node's ``memory_dir``) and ``~/info``
+(std_srvs/Trigger: the skills as JSON).
 The node knows no tasks: a task's skill is created by whoever knows the task (``psl up``, the
 learner) through ``~/create_skill``, or by its first sample. Every bad request gets ``success=false`` and a message saying what was wrong; the memory
-is unchanged and the node keeps serving. With ``autosave_path`` set, the memory is loaded from
+is unchanged and the node keeps serving.
+
+Memory files live in one folder, ``memory_dir`` (default: the working directory the node was
+started in, i.e. where ``psl up`` ran): ``~/save`` and ``~/load`` take a file name or a path
+inside it and refuse anything else — a path leading out (``..``, an absolute path elsewhere),
+a symbolic link on the way, a file that is not a regular file (directory, device, FIFO) —
+without creating, replacing or reading anything (`psl_memory.memory_directory`). A file is
+checked against ``max_file_megabytes`` (its size and the sizes its archive declares) before an
+array is read, and read outside the service lock, so the other services go on answering. With ``autosave_path`` set, the memory is loaded from
 that file at start (if it exists) and written back after every added sample, so a killed node
 restarts with everything it had learned.
 """
@@ -15,8 +24,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import threading
-from pathlib import Path
 
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor
@@ -26,7 +35,8 @@ from std_srvs.srv import Trigger
 from psl_msgs.srv import (AddSample, CompletePattern, CreateSkill, LoadMemory, QuerySkill,
                           SaveMemory)
 from psl_memory.skill_config import SkillConfig
-from psl_memory.skill_memory import MemoryFileError, SkillMemory
+from psl_memory.memory_directory import MemoryDirectory, MemoryPathError
+from psl_memory.skill_memory import MAX_FILE_BYTES, MemoryFileError, SkillMemory
 from psl_ros.node_main import run_node
 from psl_ros.service import create_service
 
@@ -52,13 +62,20 @@ class SkillMemoryNode(Node):
                  'recall stops when no entry moves more than this (normalised units)'),
                 ('completion_max_iterations', defaults.completion_max_iterations,
                  'recall iteration cap'),
-                ('autosave_path', '', 'memory file loaded at start and written after every '
-                                      'sample; empty = no autosave')):
+                ('memory_dir', '', "the folder of the memory files ('' = the working "
+                                   'directory); save, load and autosave stay inside it'),
+                ('max_file_megabytes', MAX_FILE_BYTES / 2**20,
+                 'largest memory file (and declared array content) that is read'),
+                ('autosave_path', '', 'memory file (inside memory_dir) loaded at start and '
+                                      'written after every sample; empty = no autosave')):
             self.declare_parameter(name, default, ParameterDescriptor(description=text,
                                                                       read_only=True))
         self.config = SkillConfig(**{field.name: self.get_parameter(field.name).value
                                      for field in dataclasses.fields(SkillConfig)})
-        self.autosave = self.get_parameter('autosave_path').value
+        self.files = MemoryDirectory(self.get_parameter('memory_dir').value or os.getcwd())
+        self.max_bytes = int(self.get_parameter('max_file_megabytes').value * 2**20)
+        autosave = self.get_parameter('autosave_path').value
+        self.autosave = self.files.for_writing(autosave) if autosave else None
         self._lock = threading.Lock()
         self.memory = self._initial_memory()
         for name, srv, callback in (('~/query', QuerySkill, self.on_query),
@@ -72,8 +89,9 @@ class SkillMemoryNode(Node):
         self.get_logger().info(f'skills: {json.dumps(self.memory.info())}')
 
     def _initial_memory(self) -> SkillMemory:
-        if self.autosave and Path(self.autosave).is_file():
-            memory = SkillMemory.read(self.autosave)      # a corrupt file stops the node here
+        if self.autosave is not None and self.autosave.is_file():
+            # a corrupt file stops the node here
+            memory = SkillMemory.read(self.autosave, self.max_bytes)
             self.get_logger().info(f'restored the memory from {self.autosave}')
             return memory
         return SkillMemory(self.config)
@@ -102,22 +120,23 @@ class SkillMemoryNode(Node):
         def work():
             response.num_samples = self.memory.add(request.skill, np.asarray(request.tau),
                                                    np.asarray(request.theta))
-            if self.autosave:
+            if self.autosave is not None:
                 self.memory.save(self.autosave)
             return f'{response.num_samples} samples'
         return self._serve(response, work)
 
     def on_create(self, request, response):
         def work():
-            existed = request.skill in self.memory.skills
+            existed = request.skill in self.memory.skills and not request.replace
             skill = self.memory.create(request.skill, np.asarray(request.tau_low),
                                        np.asarray(request.tau_high),
-                                       np.asarray(request.theta_reference), exist_ok=True)
+                                       np.asarray(request.theta_reference), exist_ok=True,
+                                       replace=request.replace)
             response.created, response.num_samples = not existed, skill.num_samples
             if existed:
                 return (f'skill {request.skill!r} exists ({skill.num_samples} samples); kept '
                         'as it is')
-            if self.autosave:
+            if self.autosave is not None:
                 self.memory.save(self.autosave)
             return (f'created skill {request.skill!r} ({skill.tau_dim} task, '
                     f'{skill.theta_dim} policy parameters)')
@@ -138,20 +157,25 @@ class SkillMemoryNode(Node):
 
     def on_save(self, request, response):
         def work():
-            if not request.path:
-                raise ValueError('give a path to save to')
-            self.memory.save(request.path)
-            return f'saved {len(self.memory.skills)} skills to {request.path}'
+            path = self.files.for_writing(request.path)
+            self.memory.save(path)
+            return f'saved {len(self.memory.skills)} skills to {path}'
         return self._serve(response, work)
 
     def on_load(self, request, response):
+        # read and checked outside the lock: a large or crafted file does not stall the
+        # other services; the memory is swapped under the lock
+        try:
+            path = self.files.for_reading(request.path)
+            memory = SkillMemory.read(path, self.max_bytes)
+        except (MemoryPathError, MemoryFileError) as exc:
+            response.success = False
+            response.message = f'{exc}; the memory in use is unchanged'
+            return response
+
         def work():
-            try:
-                memory = SkillMemory.read(request.path)
-            except MemoryFileError as exc:
-                raise ValueError(f'{exc}; the memory in use is unchanged') from exc
             self.memory = memory
-            return f'loaded {len(memory.skills)} skills from {request.path}'
+            return f'loaded {len(memory.skills)} skills from {path}'
         return self._serve(response, work)
 
     def on_info(self, request, response):

@@ -550,7 +550,7 @@ def wrong_config(arrays: dict) -> None:
 
 CORRUPT = {   # case: (make the bad file at `path` (a good file is there), fragment of the message)
     'missing path': (lambda p: p.unlink(), 'no such file'),
-    'a folder': (lambda p: (p.unlink(), p.mkdir()), 'no such file'),
+    'a folder': (lambda p: (p.unlink(), p.mkdir()), 'is a directory'),
     'empty file': (lambda p: p.write_bytes(b''), 'not a readable'),
     'truncated to half': (lambda p: p.write_bytes(p.read_bytes()[:p.stat().st_size // 2]),
                           'not a readable'),
@@ -696,3 +696,42 @@ def test_create_keeps_a_skill_of_the_same_sizes_and_refuses_others():
         with pytest.raises(ValueError):
             memory.create(*bad)
     assert list(memory.skills) == ['reach']
+
+
+# -- the range policy -----------------------------------------------------------------------------
+def test_a_task_skill_refuses_tau_beyond_its_margin_everywhere():
+    from psl_memory.parameterized_skill import TAU_MARGIN
+    memory = SkillMemory(SkillConfig())
+    skill = memory.create('task', [0.5, 0.1], [0.8, 0.2], np.ones(4))
+    inside = [0.8 + 0.99 * TAU_MARGIN * 0.3, 0.1 - 0.99 * TAU_MARGIN * 0.1]    # just inside
+    outside = [0.8 + 1.01 * TAU_MARGIN * 0.3, 0.15]                          # just beyond
+    skill.add(inside, np.ones(4))
+    skill.query(inside)
+    for call in (lambda: skill.query(outside), lambda: skill.add(outside, np.ones(4)),
+                 lambda: skill.complete(np.r_[outside, np.ones(4)], [True, True] + [False] * 4)):
+        with pytest.raises(ValueError, match=r'tau\[0\] = .* outside the range \[0.5, 0.8\]'):
+            call()
+    assert skill.num_samples == 1
+    # a free entry of a completion is a guess, not a request: no range applies to it
+    skill.complete(np.r_[0.0, 0.15, np.ones(4)], [False, True] + [True] * 4)
+
+
+def test_absurd_magnitudes_are_refused_by_any_skill():
+    memory = SkillMemory(SkillConfig())
+    memory.add('adhoc', [0.0], [1.0, 2.0])                    # ranges around the first sample
+    skill = memory.get('adhoc')
+    skill.add([25.0], [1.0, 2.0])                           # far for a task, fine ad hoc
+    for call in (lambda: skill.query([-1e308]), lambda: skill.add([1e300], [1.0, 2.0]),
+                 lambda: skill.add([0.5], [1e308, 2.0])):
+        with pytest.raises(ValueError, match='a units or scaling error'):
+            call()
+    assert skill.num_samples == 2
+
+
+def test_a_memory_file_keeps_whether_a_skill_has_a_tasks_ranges(tmp_path):
+    memory = SkillMemory(SkillConfig())
+    memory.create('task', [0.0], [1.0], np.zeros(2))
+    memory.add('adhoc', [0.0], [1.0, 2.0])
+    memory.save(tmp_path / 'm.npz')
+    again = SkillMemory.read(tmp_path / 'm.npz')
+    assert again.get('task').bounded and not again.get('adhoc').bounded

@@ -69,16 +69,20 @@ class ServiceSkill:
     def save(self, path: Path) -> None:
         self._call('save', path=str(Path(path).resolve()))
 
-    def restore(self, path: Path | None) -> None:
-        """From a checkpoint: load it into the memory node. Without one, the session starts
-        from the skill the memory node holds now, created from the task if it has none."""
-        if path is not None:
-            self._call('load', path=str(Path(path).resolve()))
-            return
+    def start(self, continue_from: str) -> None:
+        """A new session: the memory node's skill of the task replaced by an empty one, or
+        (continue_from, a memory file of the node's memory_dir) loaded from that file."""
+        if continue_from:
+            self._call('load', path=continue_from)
         task = self.task
         self._call('create_skill', skill=self.name, tau_low=task.tau_low.tolist(),
                    tau_high=task.tau_high.tolist(),
-                   theta_reference=policy_for(task).default_theta.tolist())
+                   theta_reference=policy_for(task).default_theta.tolist(),
+                   replace=not continue_from)
+
+    def restore(self, path: Path) -> None:
+        """A resumed session: the checkpoint's memory loaded into the memory node."""
+        self._call('load', path=str(Path(path).resolve()))
 
 
 class LearnerNode(Node):
@@ -92,6 +96,8 @@ class LearnerNode(Node):
                 ('output_root', 'runs', 'sessions write into <output_root>/<task>-<strategy>-'
                                         'seed<seed>'),
                 ('test_tasks', LearnSettings.num_test, 'held-out instances tested at the end'),
+                ('max_tasks', 10_000, 'a goal with more training tasks is refused'),
+                ('max_rollouts_per_task', 10_000, 'a goal with a larger budget is refused'),
                 ('popsize', defaults.popsize, 'CMA-ES population size'),
                 ('sigma0', defaults.sigma0, 'CMA-ES initial step size, normalised theta units'),
                 ('cost_weight', defaults.cost_weight, 'beta of bootstrap_cost'),
@@ -179,17 +185,24 @@ class LearnerNode(Node):
         if goal.strategy not in STRATEGIES:
             raise ValueError(f'unknown strategy {goal.strategy!r}; known: '
                              f'{", ".join(STRATEGIES)}')
-        if goal.num_tasks == 0:
-            raise ValueError('num_tasks must be at least 1')
-        task = load_task(goal.task)
         p = self.get_parameter
+        if not 1 <= goal.num_tasks <= p('max_tasks').value:
+            raise ValueError(f'num_tasks must be between 1 and {p("max_tasks").value} (the '
+                             f"learner's max_tasks), got {goal.num_tasks}")
+        budget = int(goal.max_rollouts_per_task or SearchSettings.max_rollouts)   # 0: default
+        if budget > p('max_rollouts_per_task').value:
+            raise ValueError(f'max_rollouts_per_task must be at most '
+                             f'{p("max_rollouts_per_task").value} (0 = the default '
+                             f'{SearchSettings.max_rollouts}), got {budget}')
+        task = load_task(goal.task)
         search = SearchSettings(
-            max_rollouts=int(goal.max_rollouts_per_task or SearchSettings.max_rollouts),
+            max_rollouts=budget,
             popsize=p('popsize').value, sigma0=p('sigma0').value,
             cost_weight=p('cost_weight').value)
         settings = LearnSettings(strategy=goal.strategy, num_tasks=int(goal.num_tasks),
                                  seed=int(goal.seed), num_test=p('test_tasks').value,
-                                 search=search, task_selection=goal.task_selection or 'random')
+                                 search=search, task_selection=goal.task_selection or 'random',
+                                 continue_from=goal.continue_from)
         out = Path(goal.output_dir or Path(p('output_root').value)
                    / f'{task.name}-{goal.strategy}-seed{goal.seed}')
         return task, settings, out, mode

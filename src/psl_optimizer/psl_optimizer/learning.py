@@ -1,7 +1,7 @@
 """The learning loop: for each new task instance, search theta starting from the skill, add the
 solution to the memory at once, go on; then measure zero-shot success on held-out instances.
 
-Task sequences come from a seed (`task_sequence`); the held-out test instances come from a
+Task sequences come from a seed (`task_stream`); the held-out test instances come from a
 separate stream and are never trained on. After every task the loop writes a checkpoint
 (memory file + progress JSON) into its output folder, and `Learner.run` resumes from it, so a
 crash or a cancel loses no finished task. Imports no ROS; the learner node and ``psl learn``
@@ -40,7 +40,7 @@ from psl_optimizer.metrics import Metrics, Summary, TaskRecord
 from psl_optimizer.policy_search import SearchResult, SearchSettings, search
 from psl_optimizer.rollouts import Rollouts
 from psl_optimizer.task_selection import (TASK_SELECTIONS, held_out_tasks, most_uncertain,
-                                          task_sequence)
+                                          task_stream)
 from psl_sim.task import TaskDefinition
 
 FEEDFORWARD_SCALE = 0.5          # theta_D's CMA-ES unit: this share of the joint's torque limit
@@ -61,9 +61,16 @@ class LearnSettings:
     # which instance comes next: 'random' (the seeded sequence) or 'variance' (the candidate
     # with the largest predictive variance of the skill, `most_uncertain`)
     task_selection: str = 'random'
+    # a new session starts from an empty skill, or ('continue_from': a memory file) from the
+    # skill of this task that file holds (batch mode: a path; graph mode: a file of the memory
+    # node's memory_dir); resuming from the session's own checkpoint does not look at it
+    continue_from: str = ''
     selection_candidates: int = 20
 
     def __post_init__(self):
+        if self.num_tasks < 1 or self.num_test < 1:
+            raise ValueError(f'num_tasks and num_test must be at least 1, got {self.num_tasks} '
+                             f'and {self.num_test}')
         if self.task_selection not in TASK_SELECTIONS:
             raise ValueError(f'unknown task selection {self.task_selection!r}; known: '
                              f'{", ".join(TASK_SELECTIONS)}')
@@ -76,16 +83,19 @@ class InProcessSkill:
 
     def __init__(self, task: TaskDefinition, config: SkillConfig, default_theta: np.ndarray):
         self.task, self.config, self.default_theta = task, config, default_theta
-        self.restore(None)
+        self.start('')
 
-    def restore(self, path: Path | None) -> None:
-        """A fresh skill (path None) or the one saved at path."""
-        if path is None:
-            self.memory = SkillMemory(self.config)
-            self.memory.create(self.task.name, self.task.tau_low, self.task.tau_high,
-                               self.default_theta)
-        else:
-            self.memory = SkillMemory.read(path)
+    def start(self, continue_from: str) -> None:
+        """A new session: an empty skill of the task, or the memory saved at `continue_from`
+        (which must hold a skill of the task's sizes)."""
+        self.memory = SkillMemory(self.config) if not continue_from else SkillMemory.read(
+            continue_from)
+        self.memory.create(self.task.name, self.task.tau_low, self.task.tau_high,
+                           self.default_theta, exist_ok=bool(continue_from))
+
+    def restore(self, path: Path) -> None:
+        """A resumed session: the memory of its checkpoint."""
+        self.memory = SkillMemory.read(path)
 
     def query(self, tau: np.ndarray) -> np.ndarray:
         return self.memory.get(self.task.name).query(tau)[0]
@@ -128,7 +138,7 @@ class Learner:
     Args:
         rollouts: where rollouts run (`Rollouts`: batch or graph mode); default: batch mode
             in-process (`BatchRollouts`).
-        skill: object with query/variance/add/save/restore (InProcessSkill, or the
+        skill: object with query/variance/add/save/start/restore (InProcessSkill, or the
             skill_memory node behind its services); default: InProcessSkill.
     """
 
@@ -158,7 +168,7 @@ class Learner:
 
     def _load_checkpoint(self) -> list[TaskRecord]:
         if not self.checkpoint_path.is_file():
-            self.skill.restore(None)
+            self.skill.start(self.settings.continue_from)
             return []
         state = json.loads(self.checkpoint_path.read_text())
         mine = self._identity()
@@ -185,11 +195,14 @@ class Learner:
         s = self.settings
         done = self.done = self._load_checkpoint()
         centre, scale = search_normalisation(self.task, self.default_theta)
-        taus = task_sequence(self.task, s.num_tasks, s.seed)
+        stream = task_stream(self.task, s.seed)            # lazy: any num_tasks is cheap
+        for _ in range(len(done)):
+            next(stream)                                   # the instances already done
         for index in range(len(done), s.num_tasks):
             if should_stop is not None and should_stop():
                 break
-            tau = taus[index] if s.task_selection == 'random' else most_uncertain(
+            drawn = next(stream)
+            tau = drawn if s.task_selection == 'random' else most_uncertain(
                 self.task, self.skill.variance, s.selection_candidates, s.seed, index)
             start = time.perf_counter()
             result = self._search(tau, index, centre, scale)

@@ -7,7 +7,8 @@ the candidate where the skill is least certain (`most_uncertain`). Imports no RO
 """
 from __future__ import annotations
 
-from typing import Callable
+import itertools
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -16,10 +17,17 @@ from psl_sim.task import TaskDefinition
 TEST_SEED_OFFSET = 1_000_003     # held-out instances: a stream no training sequence uses
 
 
-def task_sequence(task: TaskDefinition, count: int, seed: int) -> np.ndarray:
-    """`count` training instances (count, E), uniform over the task's ranges."""
+def task_stream(task: TaskDefinition, seed: int) -> Iterator[np.ndarray]:
+    """The training instances of a seed, one at a time (E,), uniform over the task's ranges;
+    endless and lazy, so a session of any length costs memory for one instance only."""
     rng = np.random.default_rng(seed)
-    return np.array([task.sample_tau(rng) for _ in range(count)]).reshape(count, -1)
+    while True:
+        yield task.sample_tau(rng)
+
+
+def task_sequence(task: TaskDefinition, count: int, seed: int) -> np.ndarray:
+    """The first `count` instances of `task_stream` as an array (count, E)."""
+    return np.array(list(itertools.islice(task_stream(task, seed), count))).reshape(count, -1)
 
 
 def held_out_tasks(task: TaskDefinition, count: int, seed: int) -> np.ndarray:

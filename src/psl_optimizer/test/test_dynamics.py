@@ -92,8 +92,8 @@ def test_ilc_reaches_the_oracles_precision(task, batch):
 def test_skill_interpolates_the_feedforward_between_trained_masses(task, batch, tmp_path,
                                                                    monkeypatch):
     import psl_optimizer.learning as learning
-    monkeypatch.setattr(learning, 'task_sequence',
-                        lambda task, count, seed: np.array(TRAIN_MASSES)[:count, None])
+    monkeypatch.setattr(learning, 'task_stream',
+                        lambda task, seed: iter(np.array(TRAIN_MASSES)[:, None]))
     settings = LearnSettings(strategy='bootstrap', num_tasks=len(TRAIN_MASSES), seed=0,
                              num_test=2, search=SearchSettings(max_rollouts=60))
     learner = Learner(task, settings, tmp_path, batch)

@@ -12,7 +12,8 @@ import pytest
 
 from psl_memory.skill_memory import SkillMemory
 from psl_optimizer.batch_rollout import BatchRollouts
-from psl_optimizer.learning import Learner, LearnSettings, held_out_tasks, task_sequence
+from psl_optimizer.learning import Learner, LearnSettings
+from psl_optimizer.task_selection import held_out_tasks, task_sequence
 from psl_optimizer.policy_search import SearchSettings
 from psl_sim.task import load_task
 
@@ -129,7 +130,8 @@ def test_variance_selection_picks_the_candidate_the_skill_knows_least(task, tmp_
     """Of the candidates it asked the skill about (recorded), the chosen instance has the
     largest mean predictive variance; the same call chooses the same; it lies away from the
     samples."""
-    from psl_optimizer.learning import InProcessSkill, most_uncertain
+    from psl_optimizer.learning import InProcessSkill
+    from psl_optimizer.task_selection import most_uncertain
     from psl_controller.policy import policy_for
 
     skill = InProcessSkill(task, LearnSettings().skill, policy_for(task).default_theta)

@@ -111,12 +111,15 @@ class Graph:
 
     def params(self, name: str) -> dict:
         """The -p parameters of a node: the task for the simulator and the controller, the
-        mode for the simulator, the workers for the learner, then `extra_params`."""
+        mode for the simulator, the workers for the learner, the memory folder
+        (``PSL_MEMORY_DIR``, if set) for the skill memory, then `extra_params`."""
         params = {'task': self.task} if name in ('sim', 'pd_controller') else {}
         if name == 'sim':
             params['mode'] = self.mode
         if name == 'learner' and self.workers:
             params['workers'] = '[' + ','.join(self.worker_namespaces(relative=True)) + ']'
+        if name == 'skill_memory' and os.environ.get('PSL_MEMORY_DIR'):
+            params['memory_dir'] = os.environ['PSL_MEMORY_DIR']   # the memory files' folder
         params.update(self.extra_params.get(name, {}))
         return params
 

@@ -1,0 +1,109 @@
+"""The options several ``psl`` commands share, each defined once, and the checks of their values.
+
+Every bad value is refused by argparse (one usage line and one error line, exit code 2) or by
+a ``ValueError`` whose message is the one line the command prints (`fail`). This module imports
+nothing heavy: the parser of every command is built from it.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+DEFAULT_TASK = 'reach_over_obstacle'       # the embedded default task
+
+
+# -- values -----------------------------------------------------------------------------------
+def _integer(text: str, low: int, what: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a whole number') from None
+    if value < low:
+        raise argparse.ArgumentTypeError(f'must be {what}, got {value}')
+    return value
+
+
+def positive_int(text: str) -> int:
+    """An argparse type: a whole number >= 1 (a count of tasks, seeds, runs)."""
+    return _integer(text, 1, '1 or more')
+
+
+def non_negative_int(text: str) -> int:
+    """An argparse type: a whole number >= 0."""
+    return _integer(text, 0, '0 or more')
+
+
+def positive_float(text: str) -> float:
+    """An argparse type: a finite number > 0 (a timeout in seconds)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+    if not 0.0 < value < float('inf'):
+        raise argparse.ArgumentTypeError(f'must be a number > 0, got {text}')
+    return value
+
+
+def output_folder(path: str | Path) -> Path:
+    """The folder `path` (absolute), created with its parents if missing.
+
+    Raises:
+        ValueError: `path` or one of its parents is a file, or the folder cannot be created
+        (the message says which and why).
+    """
+    folder = Path(path).expanduser().resolve()
+    try:
+        existing = next(p for p in (folder, *folder.parents) if p.exists())
+        if not existing.is_dir():
+            what = ('is a file' if existing == folder
+                    else f'cannot be created: {existing} is a file')
+            raise ValueError(f'the output folder {folder} {what}')
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f'the output folder {folder} cannot be created: '
+                         f'{exc.strerror or exc}') from None
+    return folder
+
+
+def fail(command: str, message: object, code: int) -> int:
+    """Print `message` as the one line ``<command>: <message>`` on stderr; return `code`."""
+    text = ' '.join(str(message).split()) or type(message).__name__
+    print(f'{command}: {text}', file=sys.stderr, flush=True)
+    return code
+
+
+# -- options ----------------------------------------------------------------------------------
+def add_task(parser: argparse.ArgumentParser, default: str = DEFAULT_TASK) -> None:
+    """``--task``: a task name or a task YAML path."""
+    parser.add_argument('--task', default=default,
+                        help=f'task name or YAML path (default {default})')
+
+
+def add_tau(parser: argparse.ArgumentParser, required: bool = False) -> None:
+    """``--tau``: the task parameters."""
+    parser.add_argument('--tau', type=float, nargs='+', required=required,
+                        help='task parameters' + ('' if required else
+                                                  ' (default: the task defaults)'))
+
+
+def add_theta_file(parser: argparse.ArgumentParser,
+                   default: str = "the demonstration's fit") -> None:
+    """``--theta-file``: a policy vector in a file (`psl_cli.vectors.load_vector`)."""
+    parser.add_argument('--theta-file', metavar='FILE',
+                        help='theta from a .npy, a .json list or whitespace-separated text'
+                        + (f'; default: {default}' if default else ''))
+
+
+def add_out(parser: argparse.ArgumentParser, help: str, default: str | None = None) -> None:
+    """``-o/--out``: where a command writes (a folder or a file, as `help` says)."""
+    parser.add_argument('-o', '--out', default=default, help=help)
+
+
+def add_graph(parser: argparse.ArgumentParser, timeout: float, waits_for: str) -> None:
+    """``--namespace`` and ``--timeout`` of a command that talks to the running graph."""
+    parser.add_argument('--namespace', default='',
+                        help="the graph's namespace (as given to psl up; default: none)")
+    parser.add_argument('--timeout', type=positive_float, default=timeout,
+                        help=f'seconds to wait for {waits_for} (default {timeout:g}); '
+                        'without a graph the command ends after it, naming what is missing')
