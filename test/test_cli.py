@@ -14,10 +14,10 @@ from psl_ros.graph import NODES, pid_alive
 PSL = [sys.executable, '-m', 'psl_cli.main']
 
 
-def start_up(tmp_path):
+def start_up(tmp_path, *options):
     """`psl up` in its own session; returns (process, {node: pid}) once all nodes started."""
     log = open(tmp_path / 'up.log', 'w+')
-    proc = subprocess.Popen(PSL + ['up'], stdout=log, stderr=subprocess.STDOUT,
+    proc = subprocess.Popen(PSL + ['up', *options], stdout=log, stderr=subprocess.STDOUT,
                             start_new_session=True, text=True)
     deadline = time.monotonic() + 30
     pids = {}
@@ -168,3 +168,33 @@ def test_rollout_cli_refuses_bad_input_before_sending(args, words):
     assert out.returncode == 2
     for word in words:
         assert word in out.stderr
+
+
+def test_memory_files_go_to_the_memory_dir_and_a_session_continues_from_one(tmp_path):
+    """psl up --memory-dir DIR: psl memory save NAME writes DIR/NAME; psl learn
+    --continue-from starts from that memory's skill (batch mode here: a path)."""
+    memory_dir = tmp_path / 'memories'
+    proc, pids, log = start_up(tmp_path, '--memory-dir', str(memory_dir))
+    try:
+        wait_for_line(log, 'graph ready')
+        saved = subprocess.run(PSL + ['memory', 'save', 'mine.npz'], capture_output=True,
+                               text=True, timeout=60)
+        assert saved.returncode == 0, saved.stderr
+        assert (memory_dir / 'mine.npz').is_file()
+        outside = subprocess.run(PSL + ['memory', 'save', str(tmp_path / 'elsewhere.npz')],
+                                 capture_output=True, text=True, timeout=60)
+        assert outside.returncode == 1 and 'outside the memory folder' in outside.stderr
+        assert not (tmp_path / 'elsewhere.npz').exists()
+    finally:
+        end(proc, pids)
+    first, second = tmp_path / 'first', tmp_path / 'second'
+    for out, extra in ((first, []), (second, ['--continue-from', str(first / 'memory.npz')])):
+        done = subprocess.run(PSL + ['learn', '--tasks', '3', '--budget', '30', '--test-tasks',
+                                     '3', '-o', str(out), *extra],
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+    from psl_memory.skill_memory import SkillMemory
+    kept = SkillMemory.read(first / 'memory.npz').get('reach_over_obstacle').num_samples
+    goes_on = SkillMemory.read(second / 'memory.npz').get('reach_over_obstacle')
+    added = sum(t['fulfilled'] for t in json.loads((second / 'metrics.json').read_text())['tasks'])
+    assert kept > 0 and goes_on.num_samples == kept + added

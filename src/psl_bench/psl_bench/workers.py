@@ -100,19 +100,18 @@ def measure(task_name: str = 'reach_over_obstacle', workers: Sequence[int] = (1,
         ValueError: bad worker counts.
         RuntimeError: a graph did not come up or a session failed.
     """
+    from psl_ros.graph import default_log_dir
     from psl_sim.task import load_task
 
     workers = [int(n) for n in workers]
     if not workers or min(workers) < 1 or len(set(workers)) != len(workers):
         raise ValueError(f'workers must be distinct counts >= 1, got {workers}')
     task = load_task(task_name)
-    root = Path(os.environ.get('PSL_ROOT', '.')) / 'log' / 'graph'
-    stamp = time.strftime('%Y%m%d-%H%M%S')
     runs = []
     with tempfile.TemporaryDirectory(prefix='psl-bench-workers-') as tmp:
         for n in workers:
             runs.append(_session(n, task_name, strategy, tasks, budget, seed,
-                                 Path(tmp) / f'workers{n}', root / f'{stamp}-workers{n}'))
+                                 Path(tmp) / f'workers{n}', default_log_dir(f'-workers{n}')))
             if progress is not None:
                 r = runs[-1]
                 progress(f'{n} worker(s): {r["seconds"]:.1f} s for {r["training_rollouts"]} '

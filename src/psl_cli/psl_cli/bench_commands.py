@@ -2,7 +2,7 @@
 
 Each subcommand parses its options, calls its benchmark (which returns a report: plain data)
 and prints the report's table, or the report as JSON with ``--json``. A bad setting ends with
-exit code 2 and the reason. Numbers are printed, never stored (``--out`` keeps run folders).
+exit code 2 and the reason. Numbers are printed, never stored (``-o/--out`` keeps run folders).
 """
 from __future__ import annotations
 
@@ -13,63 +13,78 @@ from pathlib import Path
 
 from psl_bench.dynamics import OPTIMISERS
 from psl_bench.memories import MEMORIES, STARTS
+from psl_cli import options
+from psl_cli.options import fail, non_negative_int, positive_int
 from psl_memory.registry import READOUTS
 from psl_optimizer.policy_search import STRATEGIES
+
+RUN_FOLDERS = 'keep every run folder (metrics.json) here, for psl plot'
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest='bench', required=True)
 
-    def bench(name: str, help: str, task: str = 'reach_over_obstacle'):
-        p = sub.add_parser(name, help=help)
-        p.add_argument('--task', default=task)
+    def bench(name: str, help: str, task: str | None = options.DEFAULT_TASK):
+        p = sub.add_parser(name, help=help, description=help)
+        if task is not None:
+            options.add_task(p, default=task)
         p.add_argument('--json', action='store_true', help='the whole report as JSON')
         return p
 
     def sessions(p, seeds: int, tasks: int, test_tasks: int, after: bool = True) -> None:
         """The options of benchmarks made of learning sessions."""
         p.add_argument('--seeds', type=int, nargs='+', default=list(range(seeds)))
-        p.add_argument('--tasks', type=int, default=tasks, help='training tasks per session')
-        p.add_argument('--budget', type=int, default=300, help='rollouts per task at most')
-        p.add_argument('--test-tasks', type=int, default=test_tasks,
+        p.add_argument('--tasks', type=positive_int, default=tasks,
+                       help='training tasks per session')
+        p.add_argument('--budget', type=positive_int, default=300,
+                       help='rollouts per task at most')
+        p.add_argument('--test-tasks', type=positive_int, default=test_tasks,
                        help='held-out tasks per seed')
         if after:
-            p.add_argument('--after', type=int, default=20,
+            p.add_argument('--after', type=non_negative_int, default=20,
                            help='rollouts per task are averaged over the tasks after this many')
 
     p = bench('graph', 'lockstep steps/s, DDS round trip, realtime misses')
-    p.add_argument('--rollouts', type=int, default=10)
-    p.add_argument('--round-trips', type=int, default=2000)
+    p.add_argument('--rollouts', type=positive_int, default=10)
+    p.add_argument('--round-trips', type=positive_int, default=2000)
     p.add_argument('--realtime-seconds', type=float, default=60.0,
                    help='length of the realtime episode (0 skips it)')
     p = bench('rollout', 'batch-mode steps/s beside raw mujoco.rollout')
-    p.add_argument('--population', type=int, default=32)
-    p.add_argument('--repeats', type=int, default=7)
-    p = sub.add_parser('memory', help='readout update/query time against N; service round '
-                       'trip of query beside a bare DDS round trip')
-    p.add_argument('--sizes', type=int, nargs='+', default=[10, 100, 1000, 10000])
-    p.add_argument('--n-hidden', type=int, default=100)
-    p.add_argument('--service-samples', type=int, default=1000)
-    p.add_argument('--round-trips', type=int, default=1000)
-    p.add_argument('--json', action='store_true', help='the whole report as JSON')
-    p = sub.add_parser('memory-load', help='many clients at once on the skill memory: lost '
-                       'answers and answer times')
-    p.add_argument('--clients', type=int, default=8, help='querying client processes')
-    p.add_argument('--adders', type=int, default=2, help='adding client processes')
-    p.add_argument('--calls', type=int, default=1000, help='queries per client (adds: a fifth)')
-    p.add_argument('--json', action='store_true', help='the whole report as JSON')
+    p.add_argument('--population', type=positive_int, default=32)
+    p.add_argument('--repeats', type=positive_int, default=7)
+    p = bench('memory', 'readout update/query time against N; service round trip of query '
+              'beside a bare DDS round trip', task=None)
+    p.add_argument('--sizes', type=positive_int, nargs='+', default=[10, 100, 1000, 10000])
+    p.add_argument('--n-hidden', type=positive_int, default=100)
+    p.add_argument('--service-samples', type=positive_int, default=1000)
+    p.add_argument('--round-trips', type=positive_int, default=1000)
+    p = bench('memory-load', 'many clients at once on the skill memory: lost answers and '
+              'answer times', task=None)
+    p.add_argument('--clients', type=positive_int, default=8, help='querying client processes')
+    p.add_argument('--adders', type=non_negative_int, default=2,
+                   help='adding client processes')
+    p.add_argument('--calls', type=positive_int, default=1000,
+                   help='queries per client (adds: a fifth)')
+    p = bench('cli', 'a psl command that talks to the graph (psl memory info), end to end as '
+              'a process: total, to the answer, after it; beside the call in this process',
+              task=None)
+    p.add_argument('--runs', type=positive_int, default=10, help='runs of each')
+    p.add_argument('--timeout', type=options.positive_float, default=10.0,
+                   help="seconds to wait for the skill memory's answer")
     p = bench('recording', 'lockstep steps/s with and without a bag recorder, messages kept and '
               'lost per topic')
-    p.add_argument('--rollouts', type=int, default=5, help='rollouts per round and phase')
-    p.add_argument('--rounds', type=int, default=3)
-    p.add_argument('--busy', type=int, default=0, help='cores kept busy meanwhile')
+    p.add_argument('--rollouts', type=positive_int, default=5,
+                   help='rollouts per round and phase')
+    p.add_argument('--rounds', type=positive_int, default=3)
+    p.add_argument('--busy', type=non_negative_int, default=0,
+                   help='cores kept busy meanwhile')
     p.add_argument('--topics', nargs='+', help='topics to record (default: what psl demo '
                    'records)')
     p = bench('workers', 'one graph-mode learning session with 1 and 2 rollout workers')
-    p.add_argument('--workers', type=int, nargs='+', default=[1, 2])
+    p.add_argument('--workers', type=positive_int, nargs='+', default=[1, 2])
     p.add_argument('--strategy', choices=STRATEGIES, default='scratch')
-    p.add_argument('--tasks', type=int, default=3)
-    p.add_argument('--budget', type=int, default=22)
+    p.add_argument('--tasks', type=positive_int, default=3)
+    p.add_argument('--budget', type=positive_int, default=22)
     p.add_argument('--seed', type=int, default=5)
     p = bench('learn', 'policy-search strategies over task instances: rollouts per task, '
               'zero-shot success on held-out tasks')
@@ -77,22 +92,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sessions(p, seeds=5, tasks=30, test_tasks=20)
     p.add_argument('--readout', choices=READOUTS,
                    help="the skill's readout (default: the learner's)")
-    p.add_argument('--out', help='keep every run folder (metrics.json) here, for psl plot')
+    options.add_out(p, RUN_FOLDERS)
     p = bench('dynamics', 'learned feed-forward on held-out payloads: tracking error of PD '
               'only, learned and the inverse-dynamics oracle', task='payload_transport')
     p.add_argument('--optimisers', nargs='+', choices=OPTIMISERS, default=list(OPTIMISERS),
                    help='ilc (ILC of theta_D, then CMA-ES) and/or cma (CMA-ES only)')
     sessions(p, seeds=3, tasks=8, test_tasks=10, after=False)
-    p.add_argument('--out', help='keep every run folder (metrics.json) here, for psl plot')
+    options.add_out(p, RUN_FOLDERS)
     p = bench('memories', 'associative memories: completion error both ways on learned '
               'sessions')
     p.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
-    p.add_argument('--out', default='runs/bench-learn',
-                   help='session folders (as psl bench learn --out leaves them); missing '
-                   'bootstrap sessions are learned here first')
-    p.add_argument('--tasks', type=int, default=30,
+    options.add_out(p, 'session folders (as psl bench learn --out leaves them); missing '
+                    'bootstrap sessions are learned here first', default='runs/bench-learn')
+    p.add_argument('--tasks', type=positive_int, default=30,
                    help='training tasks of a session learned here')
-    p.add_argument('--stride', type=int, default=3,
+    p.add_argument('--stride', type=positive_int, default=3,
                    help='hold out every stride-th sample in turn (1: leave-one-out)')
     p.add_argument('--memories', nargs='+', choices=MEMORIES, default=list(MEMORIES))
     p.add_argument('--start', choices=STARTS, default=STARTS[0],
@@ -100,13 +114,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    'training samples')
     p = bench('encodings', 'DMP vs GMR encoding, random vs variance-driven task selection')
     sessions(p, seeds=5, tasks=30, test_tasks=20)
-    p.add_argument('--n-components', type=int, default=6, help='GMR components')
-    p.add_argument('--out', help='also write the report (with the learning curves) as JSON')
+    p.add_argument('--n-components', type=positive_int, default=6, help='GMR components')
+    options.add_out(p, 'also write the report (with the learning curves) as JSON')
     p.add_argument('--figure', help='also draw the task-selection curves into this PNG')
 
 
 def _progress(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
+
+
+def _folder(path: str | None) -> str | None:
+    """An -o/--out folder, created before the benchmark runs (ValueError if it cannot be)."""
+    return None if path is None else str(options.output_folder(path))
+
+
+def _file(path: str | None) -> Path | None:
+    """An output file, checked before the benchmark runs (ValueError if it cannot be written)."""
+    return None if path is None else options.output_file(path)
 
 
 def _graph(args) -> tuple[dict, str]:
@@ -133,6 +157,12 @@ def _memory_load(args) -> tuple[dict, str]:
     return report, memory_load.format_report(report)
 
 
+def _cli(args) -> tuple[dict, str]:
+    from psl_bench import cli_latency
+    report = cli_latency.measure(args.runs, args.timeout)
+    return report, cli_latency.format_report(report)
+
+
 def _recording(args) -> tuple[dict, str]:
     from psl_bench import recording
     from psl_ros import names
@@ -152,7 +182,7 @@ def _learn(args) -> tuple[dict, str]:
     from psl_bench import learn
     report = learn.run(task_name=args.task, strategies=args.strategies, seeds=args.seeds,
                        num_tasks=args.tasks, budget=args.budget, num_test=args.test_tasks,
-                       after=args.after, out=args.out, readout=args.readout,
+                       after=args.after, out=_folder(args.out), readout=args.readout,
                        progress=_progress)
     return report, learn.format_table(report)
 
@@ -161,13 +191,13 @@ def _dynamics(args) -> tuple[dict, str]:
     from psl_bench import dynamics
     report = dynamics.run(task_name=args.task, optimisers=args.optimisers, seeds=args.seeds,
                           num_tasks=args.tasks, budget=args.budget, num_test=args.test_tasks,
-                          out=args.out, progress=_progress)
+                          out=_folder(args.out), progress=_progress)
     return report, dynamics.format_table(report)
 
 
 def _memories(args) -> tuple[dict, str]:
     from psl_bench import memories
-    report = memories.run(task_name=args.task, seeds=args.seeds, out=args.out,
+    report = memories.run(task_name=args.task, seeds=args.seeds, out=_folder(args.out),
                           num_tasks=args.tasks, stride=args.stride, memories=args.memories,
                           start=args.start, progress=_progress)
     return report, memories.format_table(report)
@@ -175,31 +205,31 @@ def _memories(args) -> tuple[dict, str]:
 
 def _encodings(args) -> tuple[dict, str]:
     from psl_bench import encodings
+    out, figure = _file(args.out), _file(args.figure)
     report = encodings.run(args.task, args.seeds, args.tasks, args.budget, args.test_tasks,
                            args.after, args.n_components, progress=_progress)
-    if args.out:
-        Path(args.out).write_text(json.dumps(report, indent=1))
-    if args.figure:
-        _progress(f'figure: {encodings.plot_selection(report, args.figure)}')
+    if out:
+        out.write_text(json.dumps(report, indent=1))
+    if figure:
+        _progress(f'figure: {encodings.plot_selection(report, figure)}')
     return report, encodings.format_tables(report)
 
 
 BENCHES = {'graph': _graph, 'rollout': _rollout, 'memory': _memory,
-           'memory-load': _memory_load, 'recording': _recording, 'workers': _workers,
+           'memory-load': _memory_load, 'cli': _cli, 'recording': _recording, 'workers': _workers,
            'learn': _learn, 'dynamics': _dynamics, 'memories': _memories,
            'encodings': _encodings}
 
 
 def run(args) -> int:
     """Run the benchmark `args.bench`; print its table (or JSON). Exit code 2 for a bad
-    setting, 1 when the graph could not run it."""
+    setting or a folder or file it cannot write, 1 when the graph could not run it."""
+    command = f'psl bench {args.bench}'
     try:
         report, table = BENCHES[args.bench](args)
-    except ValueError as exc:
-        print(f'psl bench {args.bench}: {exc}', file=sys.stderr)
-        return 2
+    except (ValueError, OSError) as exc:
+        return fail(command, exc, 2)
     except (RuntimeError, TimeoutError) as exc:
-        print(f'psl bench {args.bench}: {exc}', file=sys.stderr)
-        return 1
+        return fail(command, exc, 1)
     print(json.dumps(report, indent=2) if args.json else table, end='\n' if args.json else '')
     return 0

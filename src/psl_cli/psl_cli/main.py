@@ -1,34 +1,49 @@
 """``psl``: start the node graph, run rollouts, learn skills, query the memory, plot, record
-bags, run the demo and benchmarks."""
+bags, run the demo and benchmarks.
+
+Bad input gets one line on stderr and a non-zero exit code (2 for a bad argument or file, 1
+when the graph cannot do it), never a traceback; output cut short by a closed pipe (``psl ...
+| head``) ends quietly with exit code 141 (128 + SIGPIPE, as a shell reports it). Only the
+options of the command given are built, so a command imports what it needs and no more.
+"""
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 import threading
 from pathlib import Path
+from typing import Callable, NamedTuple
 
-from psl_optimizer.policy_search import STRATEGIES
-from psl_optimizer.rollouts import MODES
-from psl_optimizer.task_selection import TASK_SELECTIONS
-from psl_cli.vectors import load_vector
-from psl_ros.graph import SIM_MODES
+from psl_cli import options
+from psl_cli.options import fail
 
-
+SIGPIPE_EXIT = 128 + signal.SIGPIPE       # what a shell reports for a process ended by SIGPIPE
 
 
+# -- psl up ----------------------------------------------------------------------------------
 def cmd_up(args) -> int:
     from psl_ros.graph import Graph
 
+    try:
+        log_dir = None if args.log_dir is None else options.output_folder(args.log_dir)
+    except ValueError as exc:
+        return fail('psl up', exc, 2)
+    if args.memory_dir is not None:
+        os.environ['PSL_MEMORY_DIR'] = os.path.abspath(args.memory_dir)  # the memory node's
     graph = Graph(task=args.task, mode=args.mode, namespace=args.namespace,
-                  workers=args.workers)
+                  workers=args.workers, log_dir=log_dir)
     names = {name for name, *_ in graph.nodes_spec}
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     try:
-        graph.start()
+        try:
+            graph.start()
+        except OSError as exc:        # a log folder that cannot be made, a missing executable
+            return fail('psl up', exc, 1)
         for p in graph.processes:
             print(f'started {p.name:18s} pid {p.pid}')
         print(f'logs in {graph.log_dir}; Ctrl-C ends the graph', flush=True)
@@ -71,6 +86,26 @@ def create_task_skill(task_name: str, namespace: str = '', timeout: float = 30.0
     return response.message
 
 
+def _up_options(p: argparse.ArgumentParser) -> None:
+    from psl_ros.graph import LOG_ROOT_VARIABLE, SIM_MODES
+
+    options.add_task(p)
+    p.add_argument('--mode', choices=SIM_MODES, default=SIM_MODES[0])
+    p.add_argument('--namespace', default='')
+    p.add_argument('--workers', type=options.non_negative_int, default=0,
+                   help='N rollout workers (sim, controller, executor, evaluator) under '
+                   '<namespace>/worker0..N-1; the learner spreads a population over them')
+    p.add_argument('--log-dir', metavar='DIR',
+                   help="folder for the nodes' output, one <node>.log each (default: a new "
+                   f'folder named by the start time under ${LOG_ROOT_VARIABLE}, or when that is '
+                   'unset under ./log/graph in the current working directory)')
+    p.add_argument('--memory-dir', metavar='DIR',
+                   help="the skill memory's folder: psl memory save/load, checkpoints of "
+                   'graph-mode sessions and autosave stay inside it (default: $PSL_MEMORY_DIR, '
+                   'or the current working directory)')
+
+
+# -- psl rollout -----------------------------------------------------------------------------
 def format_evaluation(ev: dict) -> str:
     lines = [f"reward {ev['reward']:.4f}  fulfilled {ev['fulfilled']}  "
              f"steps {ev['num_steps']}  tracking error {ev['tracking_error']:.4f} rad"]
@@ -79,76 +114,83 @@ def format_evaluation(ev: dict) -> str:
 
 
 def cmd_rollout(args) -> int:
+    from psl_cli.vectors import load_vector
     from psl_controller.policy import policy_for
     from psl_ros.client import RosClient, evaluation_dict
-    from psl_sim.task import TaskError, load_task, task_id
+    from psl_sim.task import load_task, task_id
 
     try:
         task = load_task(args.task)
         tau = task.tau_default if args.tau is None else task.validate_tau(args.tau)
         theta = (policy_for(task).default_theta if args.theta_file is None
                  else load_vector(args.theta_file))
-    except (TaskError, OSError, ValueError) as exc:
-        print(f'psl rollout: {exc}', file=sys.stderr)
-        return 2
+    except ValueError as exc:          # TaskError too
+        return fail('psl rollout', exc, 2)
     with RosClient(args.namespace) as client:
         try:
             # by name, or by absolute path: the graph's processes have their own working dir
             result = client.rollout(task_id(task), tau, theta, timeout=args.timeout)
         except (TimeoutError, RuntimeError) as exc:
-            print(f'psl rollout: {exc}', file=sys.stderr)
-            return 1
+            return fail('psl rollout', exc, 1)
     if not result.success:
-        print(f'psl rollout: {result.message}', file=sys.stderr)
-        return 1
+        return fail('psl rollout', result.message, 1)
     ev = evaluation_dict(result.evaluation)
     print(json.dumps(ev) if args.json else format_evaluation(ev))
     return 0
 
 
+def _rollout_options(p: argparse.ArgumentParser) -> None:
+    options.add_task(p)
+    options.add_tau(p)
+    options.add_theta_file(p)
+    options.add_graph(p, timeout=120.0, waits_for='the rollout worker and its result')
+    p.add_argument('--json', action='store_true', help='the evaluation as JSON')
+
+
+# -- psl query, psl memory -------------------------------------------------------------------
 def _floats(values) -> list[float]:
     return [float(v) for v in values]
 
 
 def cmd_memory(args) -> int:
     """psl query / psl memory add|complete|save|load|info: one call to the skill memory."""
-    from psl_ros.client import RosClient
-
     action = 'query' if args.command == 'query' else args.action
+    command = 'psl query' if action == 'query' else f'psl memory {action}'
     if action == 'query':
         service, fields = 'query', {'skill': args.skill, 'tau': _floats(args.tau)}
     elif action == 'add':
         if (args.theta is None) == (args.theta_file is None):
-            print('psl memory add: give --theta or --theta-file', file=sys.stderr)
-            return 2
+            return fail(command, 'give --theta or --theta-file', 2)
         try:
-            theta = args.theta if args.theta is not None else load_vector(args.theta_file)
-        except (OSError, ValueError) as exc:
-            print(f'psl memory add: {exc}', file=sys.stderr)
-            return 2
+            if args.theta is not None:
+                theta = args.theta
+            else:
+                from psl_cli.vectors import load_vector
+                theta = load_vector(args.theta_file)
+        except ValueError as exc:
+            return fail(command, exc, 2)
         service, fields = 'add_sample', {'skill': args.skill, 'tau': _floats(args.tau),
                                          'theta': _floats(theta)}
     elif action == 'complete':
-        pattern = _floats(args.pattern)
-        known = [c == '1' for c in args.known]
         if set(args.known) - {'0', '1'}:
-            print('psl memory complete: --known is a string of 0 and 1, one per entry',
-                  file=sys.stderr)
-            return 2
-        service, fields = 'complete', {'skill': args.skill, 'pattern': pattern, 'known': known}
+            return fail(command, '--known is a string of 0 and 1, one per entry', 2)
+        service, fields = 'complete', {'skill': args.skill, 'pattern': _floats(args.pattern),
+                                       'known': [c == '1' for c in args.known]}
     elif action in ('save', 'load'):
-        service, fields = action, {'path': str(Path(args.path).resolve())}
+        # as given: the memory node resolves a name or relative path inside its memory folder
+        # (and says why it refuses one: outside it, a directory, a link, ...)
+        service, fields = action, {'path': args.path}
     else:
         service, fields = 'info', {}
+    from psl_ros.client import RosClient
+
     with RosClient(args.namespace) as client:
         try:
             response = client.memory(service, timeout=args.timeout, **fields)
         except TimeoutError as exc:
-            print(f'psl: {exc}', file=sys.stderr)
-            return 1
+            return fail(command, exc, 1)
     if not response.success:
-        print(f'psl: {response.message}', file=sys.stderr)
-        return 1
+        return fail(command, response.message, 1)
     result = {'message': response.message}
     for key in ('theta', 'variance', 'pattern', 'num_samples'):
         if hasattr(response, key):
@@ -164,39 +206,66 @@ def cmd_memory(args) -> int:
     return 0
 
 
+def _memory_call_options(p: argparse.ArgumentParser) -> None:
+    """The options every call of the skill memory has."""
+    options.add_graph(p, timeout=10.0, waits_for="the skill memory's answer")
+    p.add_argument('--json', action='store_true', help='the answer as JSON')
+
+
+def _query_options(p: argparse.ArgumentParser) -> None:
+    _memory_call_options(p)
+    p.add_argument('--skill', required=True)
+    options.add_tau(p, required=True)
+
+
+def _memory_options(p: argparse.ArgumentParser) -> None:
+    actions = p.add_subparsers(dest='action', required=True)
+
+    def action(name: str, help: str) -> argparse.ArgumentParser:
+        parser = actions.add_parser(name, help=help, description=help)
+        _memory_call_options(parser)
+        return parser
+    add = action('add', 'add one sample (tau, theta)')
+    add.add_argument('--skill', required=True)
+    options.add_tau(add, required=True)
+    add.add_argument('--theta', type=float, nargs='+', help='theta (or --theta-file)')
+    options.add_theta_file(add, default='')
+    complete = action('complete', 'complete [tau, theta] with the known entries clamped')
+    complete.add_argument('--skill', required=True)
+    complete.add_argument('--pattern', type=float, nargs='+', required=True)
+    complete.add_argument('--known', required=True, help="e.g. 11000: one 0/1 per entry")
+    for name in ('save', 'load'):
+        action(name, f'{name} the whole memory').add_argument(
+            'path', help="the memory file (.npz): a name or a path inside the memory node's "
+            'memory folder (its memory_dir)')
+    action('info', 'the skills and their sample counts')
+
+
+# -- psl learn -------------------------------------------------------------------------------
 def cmd_learn(args) -> int:
     """psl learn: one learning session, resumable from its output folder. Batch mode runs
     in this process; graph mode sends the session to the running graph's learner node."""
-    from psl_sim.task import TaskError, load_task
+    from psl_cli.progress import LearnProgress
+    from psl_sim.task import load_task
 
     try:
         task = load_task(args.task)
-    except TaskError as exc:
-        print(f'psl learn: {exc}', file=sys.stderr)
-        return 2
-    out = Path(args.out or f'runs/{task.name}-{args.strategy}-seed{args.seed}').resolve()
+        out = options.output_folder(args.out or
+                                    f'runs/{task.name}-{args.strategy}-seed{args.seed}')
+    except ValueError as exc:          # TaskError too
+        return fail('psl learn', exc, 2)
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    progress = LearnProgress(args.tasks, bar=False if args.verbose else None)
     try:
         learn = _learn_in_graph if args.mode == 'graph' else _learn_in_process
-        return learn(args, task, out, stop)
+        return learn(args, task, out, stop, progress)
     finally:
+        progress.close()
         signal.signal(signal.SIGINT, previous)
 
 
-def _progress_line(args, index: int, rollouts: int, best: float, fulfilled: bool,
-                   final: bool) -> None:
-    """One line per task, redrawn while it is searched."""
-    done = index + 1 if final else index
-    bar = '#' * int(30 * done / args.tasks)
-    state = 'fulfilled' if fulfilled else ('NOT fulfilled' if final else 'searching')
-    print(f"\r[{bar:30s}] task {index + 1}/{args.tasks}: {rollouts:4d} rollouts, {state}, "
-          f"best reward {best:.3f}   ", end='\n' if (args.verbose and final) else '',
-          flush=True)
-
-
 def _print_summary(args, metrics, out: Path) -> None:
-    print()
     s = metrics.summary
     if s is not None:
         print(f"{s.total_rollouts} rollouts over {args.tasks} tasks; held-out zero-shot "
@@ -208,27 +277,31 @@ def _print_summary(args, metrics, out: Path) -> None:
                   f"{m['learned']:.4f}, oracle {m['oracle']:.4f} rad")
 
 
-def _learn_in_process(args, task, out: Path, stop: threading.Event) -> int:
+def _learn_in_process(args, task, out: Path, stop: threading.Event, progress) -> int:
     from psl_optimizer.learning import Learner, LearnSettings
     from psl_optimizer.policy_search import SearchSettings
 
+    # --budget 0 is the default budget, as max_rollouts_per_task = 0 in a learn_skill goal
     settings = LearnSettings(strategy=args.strategy, num_tasks=args.tasks, seed=args.seed,
                              num_test=args.test_tasks, task_selection=args.task_selection,
-                             search=SearchSettings(max_rollouts=args.budget))
-
-    def progress(record) -> None:
-        _progress_line(args, record.index, record.rollouts, record.best_reward,
-                       record.fulfilled, final=True)
-
+                             search=SearchSettings(max_rollouts=args.budget
+                                                   or SearchSettings.max_rollouts),
+                             continue_from=args.continue_from or '')
     try:
-        metrics = Learner(task, settings, out).run(progress=progress, should_stop=stop.is_set)
+        learner = Learner(task, settings, out)
+
+        def finished(record) -> None:
+            progress.finished(record.index, record.best_reward, record.fulfilled,
+                              in_all=sum(done.rollouts for done in learner.done),
+                              rollouts=record.rollouts)
+        metrics = learner.run(progress=finished, should_stop=stop.is_set)
     except ValueError as exc:
-        print(f'\npsl learn: {exc}', file=sys.stderr)
-        return 2
+        progress.close()
+        return fail('psl learn', exc, 2)
+    progress.close(complete=metrics.complete)
     if not metrics.complete:
-        print(f"\npsl learn: stopped after {len(metrics.tasks)} of {args.tasks} tasks; the "
-              f'same command resumes from {out}', file=sys.stderr)
-        return 130
+        return fail('psl learn', f'stopped after {len(metrics.tasks)} of {args.tasks} tasks; '
+                    f'the same command resumes from {out}', 130)
     _print_summary(args, metrics, out)
     return 0
 
@@ -236,44 +309,80 @@ def _learn_in_process(args, task, out: Path, stop: threading.Event) -> int:
 CANCEL_WAIT = 30.0     # s psl learn waits, after Ctrl-C, for the learner to say what it kept
 
 
-def _learn_in_graph(args, task, out: Path, stop: threading.Event) -> int:
+def _learn_in_graph(args, task, out: Path, stop: threading.Event, progress) -> int:
     from psl_optimizer.metrics import read_metrics
     from psl_ros.client import RosClient, Stopped
     from psl_sim.task import task_id
 
     def feedback(message) -> None:
         fb = message.feedback
-        _progress_line(args, fb.task_index, fb.rollouts, fb.best_reward, fb.fulfilled,
-                       final=False)
+        progress.batch(fb.task_index, fb.rollouts, fb.best_reward, fb.fulfilled)
 
     with RosClient(args.namespace) as client:
         try:
             handle = client.send_learn_goal(
-                feedback=feedback, task=task_id(task), strategy=args.strategy,
-                num_tasks=args.tasks, max_rollouts_per_task=args.budget, seed=args.seed,
-                mode='graph', output_dir=str(out), task_selection=args.task_selection)
+                timeout=args.timeout, feedback=feedback, task=task_id(task),
+                strategy=args.strategy, num_tasks=args.tasks,
+                max_rollouts_per_task=args.budget, seed=args.seed, mode='graph',
+                output_dir=str(out), task_selection=args.task_selection,
+                continue_from=args.continue_from or '')
             try:
                 result = client.learner.result(handle, stop=stop)
             except Stopped:
-                print('\npsl learn: cancelling (finished tasks stay in the checkpoint; Ctrl-C '
-                      'again ends at once)', file=sys.stderr)
+                progress.close()
+                print('psl learn: cancelling (finished tasks stay in the checkpoint; Ctrl-C '
+                      'again ends at once)', file=sys.stderr, flush=True)
                 stop.clear()
                 handle.cancel_goal_async()
                 try:       # the learner stops between two rollouts and says what it kept
                     result = client.learner.result(handle, timeout=CANCEL_WAIT, stop=stop)
                 except Stopped:
-                    print('psl learn: ended without the learner\'s answer', file=sys.stderr)
-                    return 130
+                    return fail('psl learn', "ended without the learner's answer", 130)
         except (TimeoutError, RuntimeError) as exc:
-            print(f'\npsl learn: {exc}', file=sys.stderr)
-            return 1
+            progress.close()
+            return fail('psl learn', exc, 1)
+    progress.close(complete=result.success)
     if not result.success:
-        print(f'\npsl learn: {result.message}', file=sys.stderr)
-        return 1
+        return fail('psl learn', result.message, 1)
     _print_summary(args, read_metrics(Path(result.metrics_path).parent), out)
     return 0
 
 
+def _learn_options(p: argparse.ArgumentParser) -> None:
+    from psl_optimizer.policy_search import STRATEGIES, SearchSettings
+    from psl_optimizer.rollouts import MODES
+    from psl_optimizer.task_selection import TASK_SELECTIONS
+
+    options.add_task(p)
+    p.add_argument('--strategy', choices=STRATEGIES, default='bootstrap')
+    p.add_argument('--tasks', type=options.positive_int, default=30,
+                   help='training task instances (default 30)')
+    p.add_argument('--budget', type=options.non_negative_int, default=0,
+                   help='rollouts per task at most; 0 (the default) is the learner\'s '
+                   f'default budget, {SearchSettings.max_rollouts}')
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--test-tasks', type=options.positive_int, default=20,
+                   help='held-out instances tested zero-shot at the end (default 20)')
+    options.add_out(p, 'output folder (default runs/TASK-STRATEGY-seedK); the same folder '
+                    'resumes the session')
+    p.add_argument('--mode', choices=MODES, default=MODES[0],
+                   help='batch: rollouts in this process with mujoco.rollout (fast); graph: '
+                   "the running graph's learner node, rollouts through execute_rollout")
+    p.add_argument('--task-selection', choices=TASK_SELECTIONS, default=TASK_SELECTIONS[0],
+                   help='next instance: random, or the most uncertain of 20 candidates '
+                   "(the skill's predictive variance)")
+    p.add_argument('--continue-from', metavar='FILE',
+                   help='start from the skill this memory file holds instead of an empty one '
+                   "(graph mode: a file of the memory node's memory folder); a resumed session "
+                   'starts from its checkpoint')
+    options.add_graph(p, timeout=30.0,
+                      waits_for='the learner node to take the goal (graph mode)')
+    p.add_argument('--verbose', action='store_true',
+                   help='one line per finished task also on a terminal (instead of the bar; '
+                   'always so when stderr is not a terminal)')
+
+
+# -- psl plot, record, demo, render, bench ---------------------------------------------------
 def cmd_plot(args) -> int:
     """psl plot DIR...: rollouts per task, reward over tau, predictive variance over tau; for a
     task with feed-forward also commanded vs executed joints and the torques (PD only,
@@ -282,16 +391,22 @@ def cmd_plot(args) -> int:
     from psl_bench.plot_learning import plot_runs
     from psl_optimizer.metrics import read_metrics
 
-    out = Path(args.out) if args.out else Path(args.dirs[0]) / 'learning.png'
     try:
+        out = (options.output_file(args.out) if args.out
+               else Path(args.dirs[0]) / 'learning.png')
         print(plot_runs(args.dirs, out))
         summary = read_metrics(args.dirs[0]).summary
         if summary is not None and summary.tracking_rmse is not None:   # with feed-forward
             print(plot_dynamics(args.dirs[0], out.with_name(out.stem + '_dynamics.png')))
     except (ValueError, OSError) as exc:
-        print(f'psl plot: {exc}', file=sys.stderr)
-        return 2
+        return fail('psl plot', exc, 2)
     return 0
+
+
+def _plot_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument('dirs', nargs='+', metavar='DIR', help='run folders; several seeds of a '
+                   'strategy are drawn as mean and min-max band')
+    options.add_out(p, 'PNG file (default: DIR/learning.png of the first DIR)')
 
 
 def cmd_record(args) -> int:
@@ -299,19 +414,49 @@ def cmd_record(args) -> int:
 
     try:
         recording = record(args.output, args.topics, duration=args.duration)
-    except (FileExistsError, ValueError) as exc:
-        print(f'psl record: {exc}', file=sys.stderr)
-        return 2
+    except (ValueError, OSError) as exc:      # FileExistsError too
+        return fail('psl record', exc, 2)
     for topic, count in recording.counts.items():
         lost = recording.lost[topic]
         print(f'{topic:30s} {count}' + (f'  ({lost} lost)' if lost else ''))
     return 0
 
 
+def _record_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument('-o', '--output', required=True, help='the bag folder to create')
+    p.add_argument('--duration', type=options.positive_float, default=None,
+                   help='seconds (default: until Ctrl-C)')
+    p.add_argument('topics', nargs='*', help='topics (default: all)')
+
+
 def cmd_demo(args) -> int:
     from psl_cli.demo import run_demo
 
-    return run_demo(task=args.task, out=Path(args.out), positions=args.positions)
+    try:
+        out = options.output_folder(args.out)
+    except ValueError as exc:
+        return fail('psl demo', exc, 2)
+    return run_demo(task=args.task, out=out, positions=args.positions)
+
+
+def _demo_options(p: argparse.ArgumentParser) -> None:
+    options.add_task(p)
+    options.add_out(p, 'folder for the bag and the learned skill (default demo)',
+                    default='demo')
+    p.add_argument('--positions', type=options.positive_int, default=5,
+                   help='task instances rolled out before and after learning')
+
+
+def cmd_render(args) -> int:
+    from psl_cli import render
+
+    return render.run(args)
+
+
+def _render_options(p: argparse.ArgumentParser) -> None:
+    from psl_cli import render
+
+    render.add_arguments(p)
 
 
 def cmd_bench(args) -> int:
@@ -320,114 +465,85 @@ def cmd_bench(args) -> int:
     return bench_commands.run(args)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog='psl', description=__doc__)
-    sub = parser.add_subparsers(dest='command', required=True)
-
-    up = sub.add_parser('up', help='start the node graph; Ctrl-C ends it')
-    up.add_argument('--task', default='reach_over_obstacle')
-    up.add_argument('--mode', choices=SIM_MODES, default=SIM_MODES[0])
-    up.add_argument('--namespace', default='')
-    up.add_argument('--workers', type=int, default=0,
-                    help='N rollout workers (sim, controller, executor, evaluator) under '
-                    '<namespace>/worker0..N-1; the learner spreads a population over them')
-    up.set_defaults(func=cmd_up)
-
-    ro = sub.add_parser('rollout', help='one rollout through the running graph')
-    ro.add_argument('--task', default='reach_over_obstacle')
-    ro.add_argument('--tau', type=float, nargs='+', help='task parameters (default: the task '
-                    'defaults)')
-    ro.add_argument('--theta-file', help='.npy, .json or whitespace-separated text; default: '
-                    "the demonstration's fit")
-    ro.add_argument('--namespace', default='')
-    ro.add_argument('--timeout', type=float, default=120.0)
-    ro.add_argument('--json', action='store_true')
-    ro.set_defaults(func=cmd_rollout)
-
-    common = argparse.ArgumentParser(add_help=False)
-    common.add_argument('--namespace', default='')
-    common.add_argument('--timeout', type=float, default=10.0)
-    common.add_argument('--json', action='store_true')
-
-    query = sub.add_parser('query', parents=[common], help='theta = PS(tau) and its variance')
-    query.add_argument('--skill', required=True)
-    query.add_argument('--tau', type=float, nargs='+', required=True)
-    query.set_defaults(func=cmd_memory)
-
-    memory = sub.add_parser('memory', help='the skill memory: add, complete, save, load, info')
-    actions = memory.add_subparsers(dest='action', required=True)
-    add = actions.add_parser('add', parents=[common], help='add one sample (tau, theta)')
-    add.add_argument('--skill', required=True)
-    add.add_argument('--tau', type=float, nargs='+', required=True)
-    add.add_argument('--theta', type=float, nargs='+')
-    add.add_argument('--theta-file')
-    complete = actions.add_parser('complete', parents=[common],
-                                  help='complete [tau, theta] with the known entries clamped')
-    complete.add_argument('--skill', required=True)
-    complete.add_argument('--pattern', type=float, nargs='+', required=True)
-    complete.add_argument('--known', required=True, help="e.g. 11000: one 0/1 per entry")
-    for name in ('save', 'load'):
-        p = actions.add_parser(name, parents=[common], help=f'{name} the whole memory')
-        p.add_argument('path')
-    actions.add_parser('info', parents=[common], help='the skills and their sample counts')
-    memory.set_defaults(func=cmd_memory)
-
-    learn = sub.add_parser('learn', help='learn a skill over random task instances (resumes '
-                           'from the checkpoint in --out)')
-    learn.add_argument('--task', default='reach_over_obstacle')
-    learn.add_argument('--strategy', choices=STRATEGIES, default='bootstrap')
-    learn.add_argument('--tasks', type=int, default=30)
-    learn.add_argument('--budget', type=int, default=200, help='rollouts per task at most')
-    learn.add_argument('--seed', type=int, default=0)
-    learn.add_argument('--test-tasks', type=int, default=20)
-    learn.add_argument('--out', help='output folder (default runs/TASK-STRATEGY-seedK)')
-    learn.add_argument('--mode', choices=MODES, default=MODES[0],
-                       help='batch: rollouts in this process with mujoco.rollout (fast); graph: '
-                       "the running graph's learner node, rollouts through execute_rollout")
-    learn.add_argument('--task-selection', choices=TASK_SELECTIONS, default=TASK_SELECTIONS[0],
-                       help='next instance: random, or the most uncertain of 20 candidates '
-                       "(the skill's predictive variance)")
-    learn.add_argument('--namespace', default='', help='graph mode: namespace of the graph')
-    learn.add_argument('--verbose', action='store_true', help='one line per task')
-    learn.set_defaults(func=cmd_learn)
-
-    plot = sub.add_parser('plot', help='plot learning runs (output folders of psl learn) '
-                          'into one PNG')
-    plot.add_argument('dirs', nargs='+', metavar='DIR', help='run folders; several seeds of a '
-                      'strategy are drawn as mean and min-max band')
-    plot.add_argument('--out', help='PNG file (default: DIR/learning.png of the first DIR)')
-    plot.set_defaults(func=cmd_plot)
-
-    rec = sub.add_parser('record', help='record topics into a rosbag2 (MCAP) bag')
-    rec.add_argument('-o', '--output', required=True)
-    rec.add_argument('--duration', type=float, default=None, help='seconds (default: Ctrl-C)')
-    rec.add_argument('topics', nargs='*', help='topics (default: all)')
-    rec.set_defaults(func=cmd_record)
-
-    demo = sub.add_parser('demo', help='start the graph, roll the demonstration out over a '
-                          'few obstacle positions, learn the skill, roll it out zero-shot on '
-                          'the same positions, record a bag, end everything')
-    demo.add_argument('--task', default='reach_over_obstacle')
-    demo.add_argument('--out', default='demo')
-    demo.add_argument('--positions', type=int, default=5)
-    demo.set_defaults(func=cmd_demo)
-
-    render_parser = sub.add_parser('render', help='draw one rollout offscreen into an animated '
-                                   'GIF')
-    from psl_cli import render
-    render.add_arguments(render_parser)
-    render_parser.set_defaults(func=render.run)
-
-    bench_parser = sub.add_parser('bench', help='benchmarks (see docs/benchmarks.md)')
+def _bench_options(p: argparse.ArgumentParser) -> None:
     from psl_cli import bench_commands
-    bench_commands.add_arguments(bench_parser)
-    bench_parser.set_defaults(func=cmd_bench)
+
+    bench_commands.add_arguments(p)
+
+
+# -- the parser ------------------------------------------------------------------------------
+class Command(NamedTuple):
+    help: str
+    add_options: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+
+
+COMMANDS = {
+    'up': Command('start the node graph; Ctrl-C ends it', _up_options, cmd_up),
+    'rollout': Command('one rollout through the running graph', _rollout_options,
+                       cmd_rollout),
+    'query': Command('theta = PS(tau) and its variance', _query_options, cmd_memory),
+    'memory': Command('the skill memory: add, complete, save, load, info', _memory_options,
+                      cmd_memory),
+    'learn': Command('learn a skill over random task instances (resumes from the checkpoint '
+                     'in --out)', _learn_options, cmd_learn),
+    'plot': Command('plot learning runs (output folders of psl learn) into one PNG',
+                    _plot_options, cmd_plot),
+    'record': Command('record topics into a rosbag2 (MCAP) bag', _record_options, cmd_record),
+    'demo': Command('start the graph, roll the demonstration out over a few obstacle '
+                    'positions, learn the skill, roll it out zero-shot on the same positions, '
+                    'record a bag, end everything', _demo_options, cmd_demo),
+    'render': Command('draw one rollout offscreen into an animated GIF', _render_options,
+                      cmd_render),
+    'bench': Command('benchmarks (see docs/benchmarks.md)', _bench_options, cmd_bench),
+}
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse's parser, with an error as one line on stderr (exit code 2) that points to
+    ``--help`` instead of printing the usage."""
+
+    def error(self, message: str):
+        self.exit(2, f'{self.prog}: {message} (see {self.prog} --help)\n')
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser of ``psl``: every command with its help; the options of `command` only
+    (of every command when None), so that a command imports no other command's modules."""
+    parser = Parser(prog='psl', description=__doc__,
+                    formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest='command', required=True, metavar='COMMAND')
+    for name, spec in COMMANDS.items():
+        p = sub.add_parser(name, help=spec.help, description=spec.help)
+        if command is None or command == name:
+            spec.add_options(p)
+        p.set_defaults(func=spec.run)
     return parser
 
 
+def _stdout_to_devnull() -> None:
+    """After a BrokenPipeError: what is left to write (also at interpreter exit) goes to
+    /dev/null, as the Python docs recommend (signal module, "Note on SIGPIPE")."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):       # a stdout without a file descriptor (a test's capture)
+        pass
+
+
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    return args.func(args)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = argv[0] if argv and argv[0] in COMMANDS else None
+    try:
+        args = build_parser(command).parse_args(argv)
+        code = args.func(args)
+        sys.stdout.flush()      # a closed pipe raises here, not at exit
+        return code
+    except BrokenPipeError:
+        _stdout_to_devnull()
+        return SIGPIPE_EXIT
+    except KeyboardInterrupt:           # Ctrl-C in a command without its own handler
+        return 128 + signal.SIGINT
 
 
 if __name__ == '__main__':

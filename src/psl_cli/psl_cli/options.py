@@ -58,12 +58,30 @@ def output_folder(path: str | Path) -> Path:
         if not existing.is_dir():
             what = ('is a file' if existing == folder
                     else f'cannot be created: {existing} is a file')
-            raise ValueError(f'the output folder {folder} {what}')
+            raise ValueError(f'the folder {folder} {what}')
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise ValueError(f'the output folder {folder} cannot be created: '
+        raise ValueError(f'the folder {folder} cannot be created: '
                          f'{exc.strerror or exc}') from None
     return folder
+
+
+def output_file(path: str | Path) -> Path:
+    """The file `path` (absolute) to write, in a folder that exists.
+
+    Raises:
+        ValueError: `path` is a folder, or its folder is missing or a file.
+    """
+    file = Path(path).expanduser().resolve()
+    try:
+        if file.is_dir():
+            raise ValueError(f'{file} is a folder, not a file')
+        if not file.parent.is_dir():
+            state = 'is a file' if file.parent.exists() else 'does not exist'
+            raise ValueError(f'cannot write {file}: the folder {file.parent} {state}')
+    except OSError as exc:
+        raise ValueError(f'cannot write {file}: {exc.strerror or exc}') from None
+    return file
 
 
 def fail(command: str, message: object, code: int) -> int:
@@ -105,5 +123,5 @@ def add_graph(parser: argparse.ArgumentParser, timeout: float, waits_for: str) -
     parser.add_argument('--namespace', default='',
                         help="the graph's namespace (as given to psl up; default: none)")
     parser.add_argument('--timeout', type=positive_float, default=timeout,
-                        help=f'seconds to wait for {waits_for} (default {timeout:g}); '
-                        'without a graph the command ends after it, naming what is missing')
+                        help=f'seconds to wait for {waits_for}, default {timeout:g}; with no '
+                        'graph up the command ends after it, naming what is missing')

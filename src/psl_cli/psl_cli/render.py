@@ -62,11 +62,11 @@ PATH_POINTS = 150               # the commanded path is drawn through at most th
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of ``psl render``."""
-    parser.add_argument('--task', default='reach_over_obstacle', help='task name or YAML path')
-    parser.add_argument('--tau', type=float, nargs='+',
-                        help='task parameters (default: the task defaults)')
-    parser.add_argument('--theta-file', help=".npy, .json or whitespace-separated text; "
-                        "default: the demonstration's fit")
+    from psl_cli import options
+
+    options.add_task(parser)
+    options.add_tau(parser)
+    options.add_theta_file(parser)
     parser.add_argument('-o', '--output', required=True, help='animated GIF to write (.gif)')
     parser.add_argument('--fps', type=float, default=DEFAULT_FPS,
                         help='frames per second of simulated time')
@@ -298,6 +298,7 @@ def select_offscreen_gl() -> str:
 def run(args: argparse.Namespace) -> int:
     """``psl render``: 0 when written, 2 for bad input, 1 when no renderer could draw."""
     gl = select_offscreen_gl()                  # before anything imports mujoco
+    from psl_cli.options import fail
     from psl_cli.vectors import load_vector
     from psl_controller.policy import policy_for
     from psl_sim.task import TaskError, load_task
@@ -311,8 +312,7 @@ def run(args: argparse.Namespace) -> int:
                  else load_vector(args.theta_file))
         replay = replay_rollout(task, tau, theta, args.fps)
     except (TaskError, OSError, ValueError) as exc:
-        print(f'psl render: {exc}', file=sys.stderr)
-        return 2
+        return fail('psl render', exc, 2)
     names = ['mujoco', 'matplotlib'] if args.renderer == 'auto' else [args.renderer]
     failed = ''
     for name in names:
@@ -332,5 +332,4 @@ def run(args: argparse.Namespace) -> int:
               f'{label}{note}; tau {replay.tau.tolist()}, reward {ev.reward:.4f}, '
               f'fulfilled {ev.fulfilled}')
         return 0
-    print(f'psl render: {failed}', file=sys.stderr)
-    return 1
+    return fail('psl render', failed, 1)

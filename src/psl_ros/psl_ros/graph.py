@@ -8,6 +8,10 @@ line, the benchmarks and the tests start graphs alike. Every node is its own exe
 starts them with ROS arguments (namespace, parameters), keeps their PIDs, writes each one's
 output to a log file, and ends them by PID: SIGINT, then SIGTERM, then SIGKILL. If one dies,
 `Graph.dead` and `Graph.describe_death` say which one and its last output.
+
+The logs go to the folder given as `log_dir`, else to a new folder named by the start time
+under `PSL_LOG_DIR` (environment), else under ``log/graph`` in the current working directory
+(`default_log_dir`).
 """
 from __future__ import annotations
 
@@ -18,6 +22,8 @@ import subprocess
 import time
 from pathlib import Path
 
+LOG_ROOT_VARIABLE = 'PSL_LOG_DIR'       # environment: where the graphs' log folders go
+DEFAULT_LOG_ROOT = Path('log') / 'graph'  # ... when unset: relative to the working directory
 SIM_MODES = ('lockstep', 'realtime')     # how the simulator advances (psl_sim/sim_node.py)
 NODES = (  # (name, package, executable)
     ('sim', 'psl_sim', 'sim'),
@@ -42,6 +48,17 @@ def pid_alive(pid: int) -> bool:
             return f.read().rsplit(')', 1)[-1].split()[0] != 'Z'
     except OSError:
         return False
+
+
+def log_root() -> Path:
+    """The folder under which graphs put their log folders: ``$PSL_LOG_DIR``, else
+    ``./log/graph`` (absolute, from the current working directory)."""
+    return Path(os.environ.get(LOG_ROOT_VARIABLE) or DEFAULT_LOG_ROOT).expanduser().resolve()
+
+
+def default_log_dir(suffix: str = '') -> Path:
+    """A graph's log folder when none is given: ``log_root()/<start time><suffix>``."""
+    return log_root() / (time.strftime('%Y%m%d-%H%M%S') + suffix)
 
 
 def _prefixes() -> list[Path]:
@@ -102,9 +119,7 @@ class Graph:
         self.workers = workers
         self.task, self.mode = task, mode
         self.namespace = '/' + namespace.strip('/') if namespace.strip('/') else ''
-        root = Path(os.environ.get('PSL_ROOT', '.'))
-        self.log_dir = Path(log_dir) if log_dir else (
-            root / 'log' / 'graph' / time.strftime('%Y%m%d-%H%M%S'))
+        self.log_dir = Path(log_dir).resolve() if log_dir else default_log_dir()
         self.nodes_spec = nodes
         self.extra_params = extra_params or {}
         self.processes: list[NodeProcess] = []

@@ -1,0 +1,189 @@
+"""Bad input to ``psl``: one line on stderr, a non-zero exit code, never a traceback; the same
+when no graph is up (the line names what is missing) and when stdout is a closed pipe.
+
+Every command runs as its own process (``python -m psl_cli.main``), on files this test makes.
+The memory-node cases start one skill_memory process (the session's ROS_DOMAIN_ID, conftest.py,
+and a namespace of its own; ended by PID); the no-graph cases use a namespace nothing serves.
+"""
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from psl_ros.graph import Graph, pid_alive
+
+PSL = [sys.executable, '-m', 'psl_cli.main']
+NOBODY = f'nobody_{os.getpid()}'           # a namespace no node serves
+MEMORY_NS = f'cli_input_{os.getpid()}'     # the namespace of this module's memory node
+MEMORY_ONLY = (('skill_memory', 'psl_memory', 'skill_memory'),)
+
+
+def run(args, cwd, timeout: float = 120.0) -> subprocess.CompletedProcess:
+    return subprocess.run(PSL + [str(a) for a in args], capture_output=True, text=True,
+                          cwd=cwd, timeout=timeout)
+
+
+def assert_one_line(done: subprocess.CompletedProcess, *words: str) -> str:
+    """A non-zero exit, exactly one line on stderr (containing `words`), no traceback."""
+    lines = done.stderr.splitlines()
+    assert done.returncode != 0, done
+    assert 'Traceback' not in done.stderr, done.stderr
+    assert len(lines) == 1 and lines[0].strip(), done.stderr
+    for word in words:
+        assert word in lines[0], lines[0]
+    return lines[0]
+
+
+@pytest.fixture
+def files(tmp_path):
+    """Bad theta files and a plain file, in tmp_path."""
+    (tmp_path / 'garbage.txt').write_text('garbage 1.0 2.0\n')
+    np.savez(tmp_path / 'theta.npz', theta=np.ones(24))
+    (tmp_path / 'folder').mkdir()
+    (tmp_path / 'plain_file').write_text('not a folder\n')
+    return tmp_path
+
+
+THETA_FILES = [('garbage.txt', 'garbage'), ('theta.npz', '.npz archive'),
+               ('folder', 'is a directory'), ('missing.txt', 'no such file')]
+
+
+@pytest.mark.parametrize('name, words', THETA_FILES)
+@pytest.mark.parametrize('command', [['rollout'], ['memory', 'add', '--skill', 's', '--tau',
+                                                   '0.5']])
+def test_a_bad_theta_file_is_one_line(files, command, name, words):
+    done = run(command + ['--theta-file', name, '--namespace', NOBODY], cwd=files)
+    assert done.returncode == 2
+    assert_one_line(done, name, words)
+
+
+def test_memory_add_without_theta_is_one_line(tmp_path):
+    done = run(['memory', 'add', '--skill', 's', '--tau', '1'], cwd=tmp_path)
+    assert done.returncode == 2
+    assert_one_line(done, '--theta')
+
+
+@pytest.mark.parametrize('out, words', [
+    ('plain_file', ['plain_file', 'is a file']),
+    ('plain_file/run', ['cannot be created', 'plain_file is a file']),
+    ('x' * 300, ['cannot be created', 'too long']),
+])
+def test_learn_refuses_an_output_folder_it_cannot_make(files, out, words):
+    for flag in ('--out', '-o'):
+        done = run(['learn', '--tasks', '1', flag, out], cwd=files)
+        assert done.returncode == 2
+        assert_one_line(done, 'psl learn', *words)
+
+
+@pytest.mark.parametrize('args, words', [
+    (['--tasks', '-5'], ['--tasks', '1 or more', '-5']),
+    (['--tasks', '0'], ['--tasks', '1 or more']),
+    (['--test-tasks', '0'], ['--test-tasks', '1 or more']),
+    (['--budget', '-1'], ['--budget', '0 or more']),
+    (['--tasks', 'many'], ['--tasks', 'not a whole number']),
+])
+def test_learn_refuses_bad_counts_before_learning(tmp_path, args, words):
+    done = run(['learn', '--out', tmp_path / 'run'] + args, cwd=tmp_path)
+    assert done.returncode == 2
+    assert_one_line(done, *words)
+    assert not (tmp_path / 'run').exists()
+
+
+def test_budget_zero_is_the_default_budget(tmp_path):
+    """--budget 0 means the default budget (as max_rollouts_per_task = 0 over ROS): the
+    session records the same settings as --budget 200 (SearchSettings.max_rollouts)."""
+    import json
+
+    from psl_optimizer.policy_search import SearchSettings
+
+    runs = {}
+    for budget in ('0', str(SearchSettings.max_rollouts)):
+        out = tmp_path / f'budget{budget}'
+        done = run(['learn', '--tasks', '1', '--test-tasks', '1', '--budget', budget, '-o',
+                    out], cwd=tmp_path)
+        assert done.returncode == 0, done.stderr
+        runs[budget] = json.loads((out / 'metrics.json').read_text())
+    zero, default = runs.values()
+    assert zero['settings']['search']['max_rollouts'] == SearchSettings.max_rollouts
+    assert zero['settings'] == default['settings']
+
+
+def test_learn_progress_is_one_plain_line_per_task_when_stderr_is_no_terminal(tmp_path):
+    done = run(['learn', '--tasks', '2', '--test-tasks', '1', '--budget', '5', '-o',
+                tmp_path / 'run'], cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    lines = done.stderr.splitlines()
+    assert len(lines) == 2, done.stderr
+    assert all(line.startswith(f'task {k}/2 ') and 'best reward' in line
+               for k, line in enumerate(lines, 1)), done.stderr
+    assert '\r' not in done.stderr
+    assert 'rollouts over 2 tasks' in done.stdout
+
+
+@pytest.mark.parametrize('args, words', [
+    (['memory', 'info', '--timeout', '2'], [f'/{NOBODY}/skill_memory/info', 'not available']),
+    (['query', '--skill', 's', '--tau', '0.5', '--timeout', '2'],
+     [f'/{NOBODY}/skill_memory/query']),
+    (['rollout', '--timeout', '1'], [f'/{NOBODY}', 'not up', 'execute_rollout']),
+    (['learn', '--mode', 'graph', '--tasks', '1', '--timeout', '2'],
+     ['learn_skill', 'not available']),
+])
+def test_without_a_graph_a_command_names_what_is_missing(tmp_path, args, words):
+    done = run(args + ['--namespace', NOBODY, *(['-o', tmp_path / 'run'] if args[0] == 'learn'
+                                               else [])], cwd=tmp_path)
+    assert done.returncode == 1
+    assert_one_line(done, *words)
+
+
+def closed_pipe_run(args, cwd) -> subprocess.CompletedProcess:
+    """`psl args` with stdout a pipe whose reading end is closed before it starts (as after
+    ``| head -c 10`` has exited)."""
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        process = subprocess.Popen(PSL + args, stdout=write, stderr=subprocess.PIPE,
+                                   text=True, cwd=cwd)
+    finally:
+        os.close(write)
+    _, stderr = process.communicate(timeout=120)
+    return subprocess.CompletedProcess(process.args, process.returncode, '', stderr)
+
+
+def test_a_closed_pipe_ends_quietly(tmp_path):
+    """Exit code 141 (128 + SIGPIPE), nothing on stderr but the progress lines."""
+    done = closed_pipe_run(['learn', '--tasks', '1', '--test-tasks', '1', '--budget', '5',
+                            '-o', str(tmp_path / 'run')], tmp_path)
+    assert done.returncode == 141, done.stderr
+    assert done.stderr.startswith('task 1/1 ') and len(done.stderr.splitlines()) == 1, \
+        done.stderr
+
+
+@pytest.fixture(scope='module')
+def memory_folder(tmp_path_factory):
+    """A skill_memory process (memory files in the folder returned), ended by PID."""
+    folder = tmp_path_factory.mktemp('memory_files')
+    graph = Graph(nodes=MEMORY_ONLY, namespace=MEMORY_NS,
+                  log_dir=tmp_path_factory.mktemp('memory_logs'),
+                  extra_params={'skill_memory': {'memory_dir': str(folder)}})
+    try:
+        graph.start()
+        yield folder
+    finally:
+        graph.stop()
+        assert not [p.name for p in graph.processes if pid_alive(p.pid)]
+
+
+def test_loading_a_directory_says_it_is_one(memory_folder):
+    (memory_folder / 'a_folder').mkdir()
+    done = run(['memory', 'load', 'a_folder', '--namespace', MEMORY_NS, '--timeout', '30'],
+               cwd=memory_folder)
+    assert done.returncode == 1
+    assert_one_line(done, 'psl memory load', 'a_folder', 'directory')
+
+
+def test_an_answer_into_a_closed_pipe_ends_quietly(memory_folder):
+    done = closed_pipe_run(['memory', 'info', '--namespace', MEMORY_NS, '--timeout', '30',
+                            '--json'], memory_folder)
+    assert done.returncode == 141 and done.stderr == '', done.stderr
