@@ -161,9 +161,10 @@ def test_recorded_bag_reads_back(client, task, theta, tmp_path, reference_result
     expected = {'/joint_states': n, '/reference': n, '/effort_command': n,
                 '/task_instance': 2, '/rollout_evaluation': 1, '/joint_trajectory': 1}
     stop = threading.Event()
-    recordings = []
+    recordings, so_far = [], {}
     recorder = threading.Thread(target=lambda: recordings.append(
-        record(bag, topics, stop=stop, discovery_timeout=1.0)))
+        record(bag, topics, stop=stop, discovery_timeout=1.0,
+               progress=lambda recording: so_far.update(recording.counts))))
     # a second listener beside the recorder: what has reached this machine's subscribers
     delivered = {}
     probes = count_messages(client.node, expected, delivered)
@@ -171,9 +172,10 @@ def test_recorded_bag_reads_back(client, task, theta, tmp_path, reference_result
     try:
         client.wait_for_subscribers(topics, extra=2)           # the recorder and the probes
         result = client.rollout(TASK, task.tau_default, theta)
-        # the rollout is over, its last messages may still be on their way: stop the
-        # recorder once they have reached the probes
-        wait_until(lambda: delivered == expected, DELIVERY_TIMEOUT)
+        # the rollout is over, its last messages may still be on their way (a reliable
+        # reader that missed a sample gets it on the writer's next heartbeat): stop the
+        # recorder once they have reached the probes and the recorder
+        wait_until(lambda: delivered == expected and so_far == expected, DELIVERY_TIMEOUT)
     finally:
         stop.set()
         recorder.join(timeout=30)

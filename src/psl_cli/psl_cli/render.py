@@ -124,7 +124,7 @@ def replay_rollout(task: TaskDefinition, tau: np.ndarray, theta: np.ndarray, fps
     commanded = rollouts.geometry.replay(result.q_ref[None, shown], tau[None]).end_effector[0]
     arm = ArmModel(task)
     arm.reset(tau)                          # the task instance's bodies placed
-    return Replay(arm=arm, steps=frame_steps(task.num_steps, task.control_rate, fps),
+    return Replay(arm=arm, steps=frame_steps(task.num_steps_of(tau), task.control_rate, fps),
                   q=result.q, commanded_path=commanded, tau=tau,
                   evaluation=result.evaluation)
 

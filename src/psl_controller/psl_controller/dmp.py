@@ -74,6 +74,12 @@ class DMP:
         k_s: spring constant (> 0).
         k_d: damping constant (>= 0); default ``2 sqrt(k_s)`` (critically damped).
         canonical: canonical system kind, ``"linear"`` or ``"exponential"``.
+        learn_goal: the goal is part of theta: ``theta = [weights, goal]`` (dmpbbo's
+            selectable parameters), else theta holds the weights only.
+        time_scale: temporal scaling tau_s > 0 (Ijspeert et al.'s tau):
+            ``tau_s^2 ydd = k_s (g - y) - k_d tau_s yd + f``; the same theta then gives the
+            same path ``tau_s`` times slower. A DMP of duration T0 stretched to duration T
+            has ``duration=T, time_scale=T / T0``.
 
     Raises:
         ValueError: invalid sizes, gains or canonical kind.
@@ -81,7 +87,8 @@ class DMP:
 
     def __init__(self, n_dims: int, n_basis: int, duration: float, y0, goal,
                  k_s: float = 400.0, k_d: float | None = None,
-                 canonical: str = 'linear') -> None:
+                 canonical: str = 'linear', learn_goal: bool = False,
+                 time_scale: float = 1.0) -> None:
         if isinstance(n_dims, bool) or int(n_dims) != n_dims or n_dims < 1:
             raise ValueError(f'n_dims must be an integer >= 1, got {n_dims!r}')
         if k_d is None:
@@ -90,14 +97,21 @@ class DMP:
             raise ValueError(f'k_s must be finite and > 0, got {k_s!r}')
         if not (np.isfinite(k_d) and k_d >= 0.0):
             raise ValueError(f'k_d must be finite and >= 0, got {k_d!r}')
+        if not (np.isfinite(time_scale) and time_scale > 0.0):
+            raise ValueError(f'time_scale must be finite and > 0, got {time_scale!r}')
         self._n_dims = int(n_dims)
         self._k_s = float(k_s)
         self._k_d = float(k_d)
+        self._learn_goal = bool(learn_goal)
+        self._time_scale = float(time_scale)
         self._canonical = CanonicalSystem(duration, kind=canonical)
         self._basis = NormalizedGaussianBasis(n_basis)
-        # Transformation system in error coordinates e = [y - g, yd]: edot = A e + B f.
-        self._a = np.array([[0.0, 1.0], [-self._k_s, -self._k_d]])  # (2, 2)
-        self._b = np.array([0.0, 1.0])  # (2,)
+        # Transformation system in error coordinates e = [y - g, yd]: edot = A e + B f, the
+        # gains of the time-scaled system (k_s / tau_s^2, k_d / tau_s, forcing / tau_s^2).
+        s2 = self._time_scale ** 2
+        self._ks_eff, self._kd_eff = self._k_s / s2, self._k_d / self._time_scale
+        self._a = np.array([[0.0, 1.0], [-self._ks_eff, -self._kd_eff]])  # (2, 2)
+        self._b = np.array([0.0, 1.0 / s2])  # (2,)
         self._cache: dict[tuple[float, int], _GridResponse] = {}
         self._y0 = _as_vector(y0, self._n_dims, 'y0')
         self._goal = _as_vector(goal, self._n_dims, 'goal')
@@ -133,8 +147,20 @@ class DMP:
         return self._basis
 
     @property
-    def num_parameters(self) -> int:
+    def learn_goal(self) -> bool:
+        return self._learn_goal
+
+    @property
+    def time_scale(self) -> float:
+        return self._time_scale
+
+    @property
+    def num_weights(self) -> int:
         return self._n_dims * self._basis.n_basis
+
+    @property
+    def num_parameters(self) -> int:
+        return self.num_weights + (self._n_dims if self._learn_goal else 0)
 
     # -- changing state -----------------------------------------------------------------------
     @property
@@ -154,29 +180,36 @@ class DMP:
         self._goal = _as_vector(value, self._n_dims, 'goal')
 
     def get_theta(self) -> np.ndarray:
-        """Flat weights, shape (n_dims * n_basis,), row-major over (n_dims, n_basis)."""
-        return self._theta.reshape(-1).copy()
+        """Flat weights, shape (n_dims * n_basis,), row-major over (n_dims, n_basis), then
+        the goal (n_dims,) when the goal is learned."""
+        weights = self._theta.reshape(-1)
+        return np.concatenate([weights, self._goal]) if self._learn_goal else weights.copy()
 
     def set_theta(self, theta) -> None:
-        """Set the flat weights (row-major over (n_dims, n_basis)).
+        """Set the flat weights (row-major over (n_dims, n_basis)), then the goal when the
+        goal is learned.
 
         Raises:
             ValueError: wrong size or non-finite entries.
         """
-        theta = np.asarray(theta, dtype=float)
+        theta = np.asarray(theta, dtype=float).reshape(-1)
         if theta.size != self.num_parameters:
-            raise ValueError(f'theta must have {self.num_parameters} = n_dims * n_basis = '
-                             f'{self._n_dims} * {self.n_basis} entries, got {theta.size}')
+            goal = f' + {self._n_dims} (goal)' if self._learn_goal else ''
+            raise ValueError(f'theta must have {self.num_parameters} = n_dims * n_basis{goal} '
+                             f'= {self._n_dims} * {self.n_basis}{goal} entries, got '
+                             f'{theta.size}')
         if not np.all(np.isfinite(theta)):
             raise ValueError('theta must be finite (found NaN or inf)')
-        self._theta = theta.reshape(self._n_dims, self.n_basis).copy()
+        self._theta = theta[:self.num_weights].reshape(self._n_dims, self.n_basis).copy()
+        if self._learn_goal:
+            self._goal = theta[self.num_weights:].copy()
 
     # -- evaluation ---------------------------------------------------------------------------
     def forcing(self, t: np.ndarray) -> np.ndarray:
         """Forcing term f(t, theta) of eq. 2.24 (gated), shape (T, n_dims) for t of shape (T,)."""
         t = np.atleast_1d(np.asarray(t, dtype=float)).reshape(-1)  # (T,)
         phi = self._basis.activations(self._canonical.phase(t))  # (T, K)
-        return self._canonical.gate(t)[:, None] * (phi @ self._theta.T)
+        return self._b[VEL] * self._canonical.gate(t)[:, None] * (phi @ self._theta.T)
 
     def point_attractor_solution(self, t: np.ndarray) -> DMPTrajectory:
         """Analytical solution of eq. 2.23 with theta = 0 and zero start velocity.
@@ -192,7 +225,7 @@ class DMP:
         offset = self._y0 - self._goal  # (n_dims,)
         y = self._goal + transition[:, POS, POS, None] * offset  # (T, n_dims)
         yd = transition[:, VEL, POS, None] * offset  # (T, n_dims)
-        ydd = self._k_s * (self._goal - y) - self._k_d * yd
+        ydd = self._ks_eff * (self._goal - y) - self._kd_eff * yd
         return DMPTrajectory(t=t, y=y, yd=yd, ydd=ydd)
 
     def integrate(self, dt: float, t_end: float | None = None) -> DMPTrajectory:
@@ -210,8 +243,8 @@ class DMP:
         theta_t = self._theta.T  # (K, n_dims)
         y = self._goal + grid.free[:, POS, None] * offset + grid.gain[:, POS, :] @ theta_t
         yd = grid.free[:, VEL, None] * offset + grid.gain[:, VEL, :] @ theta_t
-        ydd = (self._k_s * (self._goal - y) - self._k_d * yd
-               + grid.forcing_basis @ theta_t)  # (N+1, n_dims)
+        ydd = (self._ks_eff * (self._goal - y) - self._kd_eff * yd
+               + self._b[VEL] * (grid.forcing_basis @ theta_t))  # (N+1, n_dims)
         return DMPTrajectory(t=grid.t.copy(), y=y, yd=yd, ydd=ydd)
 
     def fit(self, t: np.ndarray, y: np.ndarray, dt: float,
@@ -265,7 +298,9 @@ class DMP:
         design = np.vstack([gain, np.sqrt(regularization) * np.eye(k)])  # (N+1+K, K)
         rhs = np.vstack([target - y_free, np.zeros((k, self._n_dims))])  # (N+1+K, n_dims)
         theta_t, *_ = np.linalg.lstsq(design, rhs, rcond=None)  # (K, n_dims)
-        self.set_theta(theta_t.T)
+        if not np.all(np.isfinite(theta_t)):
+            raise ValueError('the fit to the demonstration is not finite')
+        self._theta = theta_t.T.copy()          # the weights; the goal was set above
         return self
 
     # -- cached discretisation ----------------------------------------------------------------

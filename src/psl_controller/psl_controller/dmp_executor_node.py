@@ -106,7 +106,7 @@ class DMPExecutor(Node):
         goal = goal_handle.request
         task = load_task(goal.task)
         task.validate_tau(np.asarray(goal.tau))
-        reference = policy_for(task).reference(np.asarray(goal.theta))
+        reference = policy_for(task).reference(np.asarray(goal.theta), np.asarray(goal.tau))
         if not self.reset_client.wait_for_service(timeout_sec=5.0):
             raise RuntimeError('the simulator service sim/reset is not available')
         deadline = time.monotonic() + 5.0

@@ -10,8 +10,19 @@ as one flat vector (get_theta / set_theta) and ``integrate(dt, t_end)``.
 With ``policy.feedforward: true`` theta is one flat vector
 ``[theta_K, theta_D]``: theta_K as above, theta_D the weights of the feed-forward torque
 u_ffwd(t) on the DMP's basis (`psl_controller.feedforward`, same size),
-default theta_D = 0. Without the option theta = theta_K and u_ffwd is zero. Imports no ROS;
-the DMP executor node and batch rollouts both call `TaskPolicy.reference`.
+default theta_D = 0. Without the option theta = theta_K and u_ffwd is zero.
+
+Task variability the DMP carries (``kind: dmp`` only):
+- ``policy.learn_goal: true``: theta_K = [weights, goal], the DMP goal is learned per instance
+  (default: the demonstration's end);
+- a ``duration`` task parameter: the same theta stretched in time to the instance's duration
+  (the DMP's temporal scaling, `DMP` ``time_scale``); the control grid stays, the episode
+  follows the duration;
+- ``policy.space: end_effector``: the DMP runs over the end-effector position (3-D, start and
+  default goal from the demonstration's end-effector path) and the joint reference is its
+  differential inverse kinematics on the task's model (`psl_sim.inverse_kinematics`), computed
+  from theta before the rollout, the same in graph and batch mode.
+Imports no ROS; the DMP executor node and batch rollouts both call `TaskPolicy.reference`.
 """
 from __future__ import annotations
 
@@ -41,20 +52,28 @@ class Reference:
 
 
 class TaskPolicy:
-    """theta (flat vector) -> Reference, for one task."""
+    """theta (flat vector) -> Reference, for one task (and its instances tau)."""
 
     def __init__(self, task: TaskDefinition):
         spec = task.policy
         if spec.kind not in KINDS:
             raise ValueError(f'task {task.name!r}: unknown policy kind {spec.kind!r}; known: '
                              f'{", ".join(KINDS)}')
+        varies_duration = any(p.binds['kind'] == 'duration' for p in task.parameters)
+        if spec.kind != 'dmp' and (spec.learn_goal or spec.space != 'joint' or varies_duration):
+            raise ValueError(f'task {task.name!r}: learn_goal, space end_effector and a duration '
+                             'task parameter need policy kind dmp')
         self.task = task
-        # the DMP's phase and basis also carry the feed-forward, whatever encodes theta_K
-        self.dmp = DMP(n_dims=task.n_joints, n_basis=spec.n_basis, duration=task.duration,
-                       y0=task.start_posture, goal=task.goal_posture, k_s=spec.k_s,
-                       canonical=spec.canonical)
         dt = task.control_period
         t, y = demonstration_from_waypoints(task.demo_times, task.demo_positions, dt)
+        self.ik = None
+        if spec.space == 'end_effector':
+            self.ik = end_effector_ik(task)
+            y = np.array([self.ik.forward(q) for q in y])     # the demonstration's hand path
+        # the DMP's phase and basis also carry the feed-forward, whatever encodes theta_K
+        self.dmp = DMP(n_dims=y.shape[1], n_basis=spec.n_basis, duration=task.duration,
+                       y0=y[0], goal=y[-1], k_s=spec.k_s, canonical=spec.canonical,
+                       learn_goal=spec.learn_goal)
         self.dmp.fit(t, y, dt)
         if spec.kind == 'gmr':
             self.movement = GMRTrajectory(task.n_joints, spec.n_components, task.duration)
@@ -63,10 +82,14 @@ class TaskPolicy:
             self.movement = self.dmp
         self.feedforward = (FeedForward(self.dmp.canonical, self.dmp.basis, task.n_joints)
                             if spec.feedforward else None)
+        self._stretched: dict[float, tuple] = {}      # duration -> (movement, feedforward)
         n_kin = self.movement.num_parameters
         n_dyn = self.feedforward.num_parameters if spec.feedforward else 0
         self.kinematics = slice(0, n_kin)               # theta_K in theta
         self.dynamics = slice(n_kin, n_kin + n_dyn)     # theta_D in theta (empty without)
+        # the learned goal in theta (empty without learn_goal)
+        n_goal = self.dmp.n_dims if spec.learn_goal else 0
+        self.goal = slice(n_kin - n_goal, n_kin)
         self.default_theta = np.concatenate([self.movement.get_theta(), np.zeros(n_dyn)])
         # range policy of a rollout: an entry this far from the default is an absurd magnitude
         self.theta_bound = THETA_SPREADS * max(1.0, float(np.max(np.abs(self.default_theta))))
@@ -93,9 +116,33 @@ class TaskPolicy:
         theta[self.dynamics] = theta_d
         return theta
 
-    def reference(self, theta: np.ndarray) -> Reference:
-        """The commanded trajectory for theta over one episode. Raises ValueError for a
-        theta of the wrong size or with NaN/inf."""
+    def _for_duration(self, duration: float):
+        """(movement, feed-forward) of the instance's duration: the task's own, or the DMP
+        stretched in time (same theta, same shape, `DMP` time_scale)."""
+        if duration == self.task.duration:
+            return self.movement, self.feedforward
+        if duration not in self._stretched:
+            if len(self._stretched) >= 64:
+                self._stretched.pop(next(iter(self._stretched)))
+            spec, base = self.task.policy, self.dmp
+            dmp = DMP(n_dims=base.n_dims, n_basis=base.n_basis, duration=duration,
+                      y0=base.y0, goal=base.goal, k_s=spec.k_s, canonical=spec.canonical,
+                      learn_goal=spec.learn_goal, time_scale=duration / self.task.duration)
+            feedforward = (FeedForward(dmp.canonical, dmp.basis, self.task.n_joints)
+                           if self.feedforward is not None else None)
+            self._stretched[duration] = (dmp, feedforward)
+        return self._stretched[duration]
+
+    def feedforward_for(self, tau: np.ndarray | None = None) -> FeedForward:
+        """The feed-forward signal on the instance's phase (its duration): what theta_D
+        means on task instance tau. ValueError for a task without feed-forward."""
+        if self.feedforward is None:
+            raise ValueError(f'task {self.task.name!r} has no feed-forward (policy.feedforward)')
+        return self._for_duration(self.task.duration_of(tau))[1]
+
+    def check_theta(self, theta: np.ndarray) -> np.ndarray:
+        """theta as a float array, or ValueError for the wrong size, NaN/inf or an absurd
+        magnitude (the range policy of a rollout)."""
         theta = np.asarray(theta, dtype=float)
         if theta.shape != self.default_theta.shape:
             raise ValueError(f'task {self.task.name!r} takes theta with '
@@ -108,14 +155,44 @@ class TaskPolicy:
             raise ValueError(f'theta[{i}] = {theta[i]:g} lies more than {self.theta_bound:g} '
                              f'from the default policy ({self.default_theta[i]:g}) of task '
                              f'{self.task.name!r}: a units or scaling error')
-        self.movement.set_theta(theta[self.kinematics])
+        return theta
+
+    def reference(self, theta: np.ndarray, tau: np.ndarray | None = None) -> Reference:
+        """The commanded trajectory for theta over one episode of the task instance tau
+        (default: the task's default instance; only a duration task parameter changes the
+        reference). Raises ValueError for a theta of the wrong size, with NaN/inf or absurd
+        magnitudes, or (end-effector space) a path the arm cannot follow."""
+        theta = self.check_theta(theta)
+        duration = self.task.duration_of(tau)
+        movement, feedforward = self._for_duration(duration)
+        movement.set_theta(theta[self.kinematics])
         dt = self.task.control_period
-        traj = self.movement.integrate(dt, self.task.num_steps * dt)
-        u_ffwd = (self.feedforward.signal(theta[self.dynamics], traj.t)
-                  if self.feedforward is not None else np.zeros_like(traj.y))
-        return Reference(t=traj.t, q=traj.y, qd=traj.yd, u_ffwd=u_ffwd)
+        traj = movement.integrate(dt, self.task.num_steps_of(tau) * dt)
+        q, qd = traj.y, traj.yd
+        if self.ik is not None:
+            q, qd = self._joint_path(traj.y, traj.yd, dt)
+        u_ffwd = (feedforward.signal(theta[self.dynamics], traj.t)
+                  if feedforward is not None else np.zeros_like(q))
+        return Reference(t=traj.t, q=q, qd=qd, u_ffwd=u_ffwd)
+
+    def _joint_path(self, x: np.ndarray, xd: np.ndarray, dt: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """Joint angles and velocities that follow the hand path x, xd (T, 3)."""
+        solution = self.ik.solve(x, xd, self.task.start_posture, dt)
+        return solution.q, solution.qd
 
 
 @functools.lru_cache(maxsize=16)
 def policy_for(task: TaskDefinition) -> TaskPolicy:
     return TaskPolicy(task)
+
+
+def end_effector_ik(task: TaskDefinition):
+    """Differential inverse kinematics (`psl_sim.inverse_kinematics.DifferentialIK`) of the
+    task's end-effector site on its own model, pulled toward the start posture in the null
+    space."""
+    from psl_sim.arm_model import ArmModel
+    from psl_sim.inverse_kinematics import DifferentialIK
+    arm = ArmModel(task)
+    return DifferentialIK(arm.model, task.end_effector_site, arm.qpos_adr, arm.dof_adr,
+                          q_rest=task.start_posture)

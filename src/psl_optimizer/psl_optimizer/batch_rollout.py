@@ -104,7 +104,20 @@ class BatchRollouts(Rollouts):
     def run(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
         """Roll out thetas (B, F) on task instances taus (B, E) or one tau (E,)."""
         thetas, taus = self._inputs(thetas, taus)
-        references = [self.policy.reference(theta) for theta in thetas]
+        steps = np.array([self.task.num_steps_of(tau) for tau in taus])
+        if np.all(steps == steps[0]):
+            return self._run(thetas, taus)
+        # instances of different durations: one mujoco.rollout per episode length
+        results: list[RolloutResult | None] = [None] * len(thetas)
+        for n in np.unique(steps):
+            index = np.flatnonzero(steps == n)
+            for i, result in zip(index, self._run(thetas[index], taus[index])):
+                results[i] = result
+        return results
+
+    def _run(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
+        """`run` on validated inputs whose episodes have the same length."""
+        references = [self.policy.reference(theta, tau) for theta, tau in zip(thetas, taus)]
         control = self.controls(references, taus)
         # N+1 steps: the sensors of step k see state k, so step N gives state N's sensors;
         # the state after that extra step is not used.
@@ -123,6 +136,6 @@ class BatchRollouts(Rollouts):
         # torque applied in step k: the law on state k (the actuator's force, clipped alike)
         u = self.law.torque(q, qd, q_ref, qd_ref, u_ffwd)
         torque = np.concatenate([np.zeros((len(thetas), 1, n)), u[:, :-1]], axis=1)
-        evaluations = self.reward.evaluate(q, torque, q_ref, self.geometry.read(sensors))
+        evaluations = self.reward.evaluate(q, torque, q_ref, self.geometry.read(sensors), taus)
         return [RolloutResult(evaluation=evaluations[b], q=q[b], torque=torque[b],
                               reference=references[b]) for b in range(len(thetas))]

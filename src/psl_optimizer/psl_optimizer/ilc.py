@@ -49,15 +49,16 @@ def feedback_torque(result: RolloutResult) -> np.ndarray:
 
 
 def ilc_step(policy: TaskPolicy, theta: np.ndarray, result: RolloutResult,
-             settings: ILCSettings) -> np.ndarray:
-    """theta with theta_D updated from one rollout's feedback torque (see the module doc)."""
+             settings: ILCSettings, tau: np.ndarray | None = None) -> np.ndarray:
+    """theta with theta_D updated from one rollout's feedback torque on task instance tau
+    (see the module doc)."""
     feedback = feedback_torque(result)
     dt = policy.task.control_period
     shift = int(round(settings.lead / dt))
     ahead = np.vstack([feedback[shift:], np.repeat(feedback[-1:], min(shift, len(feedback)),
                                                    axis=0)])[:len(feedback)]
     t = np.arange(len(feedback)) * dt
-    update = policy.feedforward.fit(t, ahead)
+    update = policy.feedforward_for(tau).fit(t, ahead)
     return policy.with_feedforward(theta, theta[policy.dynamics] + settings.gain * update)
 
 
@@ -87,7 +88,7 @@ def ilc_search(rollouts: Rollouts, tau: np.ndarray, start: np.ndarray,
             break
         if idle >= settings.patience or not result.has_trajectory:
             break
-        theta = ilc_step(policy, theta, result, settings)
+        theta = ilc_step(policy, theta, result, settings, tau)
     return SearchResult(theta=best_theta.copy(), reward=float(best_reward), fulfilled=fulfilled,
                         rollouts=len(rewards), start_theta=np.asarray(start, dtype=float),
                         rewards=rewards)

@@ -54,9 +54,9 @@ def oracle_theta_d(task: TaskDefinition, tau: np.ndarray, theta: np.ndarray,
     policy = policy or policy_for(task)
     if not policy.has_feedforward:
         raise ValueError(f'task {task.name!r} has no feed-forward (policy.feedforward)')
-    reference = policy.reference(theta)
+    reference = policy.reference(theta, tau)
     torque = inverse_dynamics_torque(task, tau, reference)
-    return policy.feedforward.fit(reference.t, torque)
+    return policy.feedforward_for(tau).fit(reference.t, torque)
 
 
 def oracle_theta(task: TaskDefinition, tau: np.ndarray, theta: np.ndarray,

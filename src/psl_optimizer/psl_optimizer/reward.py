@@ -18,7 +18,7 @@ from psl_sim.reward_geometry import Measurements, RewardGeometry
 from psl_sim.task import TaskDefinition
 
 COMPONENTS = ('goal_error', 'penetration', 'clearance', 'smoothness', 'effort',
-              'tracking_error')
+              'tracking_error', 'orientation_error')
 
 
 def _finite(name: str, array: np.ndarray, ndim: int) -> np.ndarray:
@@ -39,6 +39,26 @@ def goal_error(ee_final: np.ndarray, ee_goal: np.ndarray) -> np.ndarray:
         raise ValueError(f'ee_final {ee_final.shape} and ee_goal {ee_goal.shape} must both be '
                          '(B, 3)')
     return np.linalg.norm(ee_final - ee_goal, axis=1)
+
+
+def orientation_error(quat_final: np.ndarray, rotation_goal: np.ndarray) -> np.ndarray:
+    """Angle [rad] of the rotation between each rollout's final end-effector frame and its
+    target frame: quat_final (B, 4) unit quaternions (w, x, y, z), rotation_goal (B, 3, 3)
+    rotation matrices -> (B,) in [0, pi]."""
+    quat_final = _finite('quat_final', quat_final, 2)
+    rotation_goal = _finite('rotation_goal', rotation_goal, 3)
+    if quat_final.shape[1] != 4 or rotation_goal.shape != (len(quat_final), 3, 3):
+        raise ValueError(f'quat_final {quat_final.shape} must be (B, 4) and rotation_goal '
+                         f'{rotation_goal.shape} (B, 3, 3)')
+    w, x, y, z = (quat_final / np.linalg.norm(quat_final, axis=1, keepdims=True)).T
+    rotation = np.stack([                                  # the frame's rotation matrix
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)],
+        axis=1)
+    # trace(R_goal^T R) = 1 + 2 cos(angle)
+    cos = 0.5 * (np.einsum('bij,bij->b', rotation_goal, rotation) - 1.0)
+    return np.arccos(np.clip(cos, -1.0, 1.0))
 
 
 def penetration(distance: np.ndarray) -> np.ndarray:
@@ -117,7 +137,9 @@ def score(components: dict[str, float], weights: dict[str, float],
 
 class Reward:
     """A task's reward: the components above with the weights, threshold and clearance margin
-    of its ``reward`` section, the goal and the distances from its `RewardGeometry`.
+    of its ``reward`` section, the goal and the distances from its `RewardGeometry`. The goal
+    is the instance's target (`TaskDefinition.target_of`) for a task with a ``target``
+    section, else the end effector at the goal posture; ``orientation_error`` needs a target.
 
     Raises:
         ValueError: a weight of an unknown component.
@@ -128,9 +150,21 @@ class Reward:
         self.task, self.geometry = task, geometry
         self.spec = task.reward
         self.ee_goal = geometry.end_effector_at(task.goal_posture)      # (3,)
+        if task.target is None and self.spec.weights.get('orientation_error', 0.0):
+            raise ValueError(f'task {task.name!r}: the orientation_error component needs a '
+                             'target section (target: {position: ..., orientation: ...})')
+
+    def goals(self, taus: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The goal position (B, 3) and orientation (B, 3, 3) of each task instance of taus
+        (B, E)."""
+        if self.task.target is None:
+            return (np.broadcast_to(self.ee_goal, (len(taus), 3)),
+                    np.broadcast_to(np.eye(3), (len(taus), 3, 3)))
+        targets = [self.task.target_of(tau) for tau in taus]
+        return np.array([p for p, _ in targets]), np.array([r for _, r in targets])
 
     def evaluate(self, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,
-                 measured: Measurements) -> list[RewardResult]:
+                 measured: Measurements, taus: np.ndarray) -> list[RewardResult]:
         """Score a population of rollouts.
 
         Args:
@@ -138,6 +172,7 @@ class Reward:
             torque: torque applied in the step before each state (B, T, n).
             q_ref: commanded joint angles (B, T, n) the controller tracked.
             measured: the geometry along the rollouts (`RewardGeometry.read` or `replay`).
+            taus: the rollouts' task instances (B, E) (their targets).
         Returns:
             One RewardResult per rollout, with every component of COMPONENTS.
         Raises:
@@ -148,15 +183,21 @@ class Reward:
         if q.shape[2] != n or torque.shape != q.shape:
             raise ValueError(f'q {q.shape} and torque {torque.shape} must both be (B, T, {n})')
         distance = measured.distance
+        taus = np.atleast_2d(np.asarray(taus, dtype=float))
+        if len(taus) != len(q):
+            raise ValueError(f'{len(q)} rollouts but {len(taus)} task instances')
+        goal_position, goal_rotation = self.goals(taus)
         columns = {
-            'goal_error': goal_error(measured.end_effector[:, -1],
-                                     np.broadcast_to(self.ee_goal, (len(q), 3))),
+            'goal_error': goal_error(measured.end_effector[:, -1], goal_position),
             'penetration': penetration(distance) if distance is not None else np.zeros(len(q)),
             'clearance': (clearance(distance, self.spec.clearance_margin)
                           if distance is not None else np.zeros(len(q))),
             'smoothness': smoothness(q, self.task.control_period),
             'effort': effort(torque),
             'tracking_error': tracking_error(q, q_ref),
+            'orientation_error': (orientation_error(measured.end_effector_quat[:, -1],
+                                                    goal_rotation)
+                                  if self.task.target is not None else np.zeros(len(q))),
         }
         return [score({name: float(values[b]) for name, values in columns.items()},
                       self.spec.weights, self.spec.success_threshold) for b in range(len(q))]
@@ -165,4 +206,4 @@ class Reward:
                           taus: np.ndarray) -> list[RewardResult]:
         """`evaluate` with the geometry from a kinematic replay of q on the task instances
         taus (B, E): graph mode, where only joint states were measured."""
-        return self.evaluate(q, torque, q_ref, self.geometry.replay(q, taus))
+        return self.evaluate(q, torque, q_ref, self.geometry.replay(q, taus), taus)

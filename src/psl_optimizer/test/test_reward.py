@@ -188,11 +188,13 @@ def test_tracking_error_rejects_empty():
 
 # -- score ------------------------------------------------------------------------------------
 COMPONENTS_EXAMPLE = {'goal_error': 0.01, 'penetration': 0.002, 'clearance': 0.001,
-                      'smoothness': 500.0, 'effort': 100.0, 'tracking_error': 0.03}
+                      'smoothness': 500.0, 'effort': 100.0, 'tracking_error': 0.03,
+                      'orientation_error': 0.05}
 WEIGHTS_EXAMPLE = {'goal_error': 10.0, 'penetration': 100.0, 'clearance': 20.0,
-                   'smoothness': 1e-5, 'effort': 1e-5, 'tracking_error': 1.0}
-# 0.1 + 0.2 + 0.02 + 0.005 + 0.001 + 0.03 = 0.356
-REWARD_EXAMPLE = -0.356
+                   'smoothness': 1e-5, 'effort': 1e-5, 'tracking_error': 1.0,
+                   'orientation_error': 2.0}
+# 0.1 + 0.2 + 0.02 + 0.005 + 0.001 + 0.03 + 0.1 = 0.456
+REWARD_EXAMPLE = -0.456
 
 
 def test_score_is_minus_weighted_sum():
@@ -314,7 +316,7 @@ def test_evaluate_rollout_holding_start_posture(task, reward):
     assert c['penetration'] == pytest.approx(max(0.0, -signed), abs=1e-9)
     assert c['clearance'] == pytest.approx(max(0.0, margin - signed), abs=1e-9)
     weights = task.reward.weights
-    assert result.reward == pytest.approx(-sum(weights[k] * c[k] for k in c), abs=TOL)
+    assert result.reward == pytest.approx(-sum(weights.get(k, 0.0) * c[k] for k in c), abs=TOL)
     assert result.fulfilled == (result.reward >= task.reward.success_threshold)
     assert result.fulfilled is False        # standing still does not reach the goal
 

@@ -11,7 +11,7 @@ import functools
 import mujoco
 import numpy as np
 
-from psl_sim.task import TaskDefinition, TaskError
+from psl_sim.task import TASK_BINDINGS, TaskDefinition, TaskError
 
 
 class ArmModel:
@@ -60,7 +60,11 @@ class ArmModel:
         self._bindings = [self._binding(p.binds) for p in task.parameters]
         # bindings that move things (data-level); a kinematic replay applies only these, so it
         # never changes the dynamics (e.g. a payload mass) of the live simulation
-        self._kinematic = [p.binds['kind'] == 'mocap_position' for p in task.parameters]
+        self._kinematic = [p.binds['kind'] != 'body_mass' for p in task.parameters]
+        # the target's display body follows the instance's target (a mocap body, no dynamics)
+        self._target_mocap = -1
+        if task.target is not None and task.target.body:
+            self._target_mocap = self._mocap(task.target.body)
         self.tau = task.tau_default.copy()
 
     # -- set-up -------------------------------------------------------------------------
@@ -91,13 +95,20 @@ class ArmModel:
             raise TaskError(f'{self.task.model_path}: no {kind.name[6:].lower()} named {name!r}')
         return idx
 
+    def _mocap(self, name: str) -> int:
+        mocap = self.model.body_mocapid[self._id(mujoco.mjtObj.mjOBJ_BODY, name)]
+        if mocap < 0:
+            raise TaskError(f'{self.task.model_path}: body {name!r} is not mocap (a task '
+                            'parameter moves it: <body name=... mocap="true">)')
+        return int(mocap)
+
     def _binding(self, binds: dict):
+        if binds['kind'] in TASK_BINDINGS:     # the target, the duration: no body of the model
+            return lambda model, data, value: None
         body = self._id(mujoco.mjtObj.mjOBJ_BODY, binds['body'])
         offset = float(binds.get('offset', 0.0))
         if binds['kind'] == 'mocap_position':
-            mocap = self.model.body_mocapid[body]
-            if mocap < 0:
-                raise TaskError(f'{self.task.model_path}: body {binds["body"]!r} is not mocap')
+            mocap = self._mocap(binds['body'])
             axis = int(binds['axis'])
 
             def apply(model, data, value):
@@ -123,6 +134,7 @@ class ArmModel:
         for apply, value in zip(self._bindings, tau):
             apply(self.model if model is None else model, self.data if data is None else data,
                   value)
+        self._place_target(tau, self.data if data is None else data)
         if data is None and model is None:
             self.tau = tau
         return tau
@@ -134,6 +146,14 @@ class ArmModel:
         for apply, kinematic, value in zip(self._bindings, self._kinematic, tau):
             if kinematic:
                 apply(self.model, data, value)
+        self._place_target(tau, data)
+
+    def _place_target(self, tau: np.ndarray, data: mujoco.MjData) -> None:
+        """The target's display body (``target.body``) at the instance's target."""
+        if self._target_mocap >= 0:
+            position, rotation = self.task.target_of(tau)
+            data.mocap_pos[self._target_mocap] = position
+            mujoco.mju_mat2Quat(data.mocap_quat[self._target_mocap], rotation.reshape(-1))
 
     # -- simulation ---------------------------------------------------------------------
     def reset(self, tau: np.ndarray) -> np.ndarray:

@@ -2,9 +2,10 @@
 
 The geometric reward components need, per state of a rollout, the end-effector position and
 the smallest signed distance between the arm's geoms and the obstacles' (``reward.arm_geoms``,
-``reward.obstacle_geoms`` of the task). `RewardGeometry` defines them as sensors, appended
-after any sensors of the task's own model: one ``geomdist`` per (arm geom, obstacle geom) pair
-and one ``framepos`` of the end-effector site. Batch mode adds them to its rollout model
+``reward.obstacle_geoms`` of the task), and the end-effector frame's orientation.
+`RewardGeometry` defines them as sensors, appended after any sensors of the task's own model:
+one ``geomdist`` per (arm geom, obstacle geom) pair, one ``framepos`` and one ``framequat`` of
+the end-effector site. Batch mode adds them to its rollout model
 (`add_sensors`) and `read`s what ``mujoco.rollout`` recorded; graph mode gets the same sensors
 evaluated on a kinematic replay of the measured joint angles (`replay`). Either way the
 numbers come from the same sensors of the same model at the same joint angles.
@@ -27,6 +28,7 @@ class Measurements:
     """The reward's geometry along a population of rollouts."""
 
     end_effector: np.ndarray        # (B, T, 3) end-effector position per state
+    end_effector_quat: np.ndarray   # (B, T, 4) its orientation (w, x, y, z) per state
     distance: np.ndarray | None     # (B, T) smallest arm-obstacle signed distance; None when
                                     # the task names no obstacle
 
@@ -54,16 +56,19 @@ class RewardGeometry:
             sensor.objtype = sensor.reftype = mujoco.mjtObj.mjOBJ_GEOM
             sensor.objname, sensor.refname = model.geom(g1).name, model.geom(g2).name
             sensor.cutoff = CUTOFF
-        sensor = spec.add_sensor()
-        sensor.type = mujoco.mjtSensor.mjSENS_FRAMEPOS
-        sensor.objtype = mujoco.mjtObj.mjOBJ_SITE
-        sensor.objname = self.arm.task.end_effector_site
+        for kind in (mujoco.mjtSensor.mjSENS_FRAMEPOS, mujoco.mjtSensor.mjSENS_FRAMEQUAT):
+            sensor = spec.add_sensor()
+            sensor.type = kind
+            sensor.objtype = mujoco.mjtObj.mjOBJ_SITE
+            sensor.objname = self.arm.task.end_effector_site
 
     def read(self, sensordata: np.ndarray) -> Measurements:
         """The measurements in sensor data (B, T, nsensordata) of a model with the sensors."""
         first, n_pairs = self.first, len(self.pairs)
         distance = sensordata[:, :, first:first + n_pairs].min(axis=2) if n_pairs else None
-        return Measurements(end_effector=sensordata[:, :, first + n_pairs:first + n_pairs + 3],
+        ee = first + n_pairs
+        return Measurements(end_effector=sensordata[:, :, ee:ee + 3],
+                            end_effector_quat=sensordata[:, :, ee + 3:ee + 7],
                             distance=distance)
 
     def replay(self, q: np.ndarray, taus: np.ndarray) -> Measurements:

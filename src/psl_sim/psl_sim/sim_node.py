@@ -183,7 +183,7 @@ class SimNode(Node):
                 self.get_logger().warning(f'reset refused: {exc}')
                 return response
             num_steps = (int(round(duration * arm.task.control_rate)) if duration > 0
-                         else arm.task.num_steps)
+                         else arm.task.num_steps_of(tau))
             self.arm = arm
             self.applied = np.zeros(len(arm.joint_names))
             self.pending = None

@@ -23,7 +23,12 @@ import numpy as np
 import yaml
 
 EMBEDDED_TASKS = Path(__file__).resolve().parent / 'tasks'
-BINDING_KINDS = ('mocap_position', 'body_mass')
+BINDING_KINDS = ('mocap_position', 'body_mass', 'target_position', 'target_orientation',
+                 'duration')
+# bindings that change what the episode looks like (the target, the movement's duration)
+# rather than the model: they bind no body
+TASK_BINDINGS = ('target_position', 'target_orientation', 'duration')
+SPACES = ('joint', 'end_effector')     # where the DMP runs (policy.space)
 
 
 class TaskError(ValueError):
@@ -40,6 +45,17 @@ class TaskParameter:
     default: float
     binds: dict[str, Any]
     unit: str = ''
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class TargetSpec:
+    """The ``target`` section: the point (and orientation) the end effector must reach, at
+    the end of the movement, by default; ``target_position`` / ``target_orientation`` task
+    parameters replace single coordinates of it per instance."""
+
+    position: np.ndarray            # (3,) m, world frame
+    orientation: np.ndarray         # (3,) rad, extrinsic x-y-z rotation angles of the frame
+    body: str = ''                  # a mocap body moved to the instance's target (display)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -63,6 +79,8 @@ class PolicySpec:
     feedforward: bool = False       # theta = [theta_K, theta_D]: feed-forward torque on the basis
     n_components: int = 6           # gmr: Gaussians of the mixture
     fit_seed: int = 0               # gmr: seed of the EM fit to the demonstration
+    learn_goal: bool = False        # theta_K = [weights, goal]: the DMP goal is learned too
+    space: str = 'joint'            # joint | end_effector: the DMP's output (SPACES)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,6 +115,7 @@ class TaskDefinition:
     demo_times: np.ndarray          # (n_waypoints,)
     demo_positions: np.ndarray      # (n_waypoints, n_joints)
     reward: RewardSpec
+    target: TargetSpec | None = None
 
     @property
     def tau_names(self) -> list[str]:
@@ -131,6 +150,37 @@ class TaskDefinition:
         """Control periods in one episode (motion plus settling)."""
         return int(round((self.duration + self.settle_time) * self.control_rate))
 
+    def _bound(self, tau: np.ndarray | None, kind: str):
+        """(value, binding) of each task parameter of this kind in tau (default instance
+        for None)."""
+        tau = self.tau_default if tau is None else tau
+        return [(float(v) + float(p.binds.get('offset', 0.0)), p.binds)
+                for v, p in zip(tau, self.parameters) if p.binds['kind'] == kind]
+
+    def duration_of(self, tau: np.ndarray | None = None) -> float:
+        """The movement's duration [s] on the task instance tau: its ``duration`` task
+        parameter, else the task's ``duration``."""
+        bound = self._bound(tau, 'duration')
+        return bound[0][0] if bound else self.duration
+
+    def num_steps_of(self, tau: np.ndarray | None = None) -> int:
+        """Control periods in the episode of instance tau (its motion plus settling)."""
+        return int(round((self.duration_of(tau) + self.settle_time) * self.control_rate))
+
+    def target_of(self, tau: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The instance's target: position (3,) [m] and orientation as a rotation matrix
+        (3, 3), the ``target`` section with the ``target_position`` and
+        ``target_orientation`` task parameters applied. TaskError for a task without
+        target."""
+        if self.target is None:
+            raise TaskError(f'task {self.name!r} has no target section')
+        position, angles = self.target.position.copy(), self.target.orientation.copy()
+        for value, binds in self._bound(tau, 'target_position'):
+            position[int(binds['axis'])] = value
+        for value, binds in self._bound(tau, 'target_orientation'):
+            angles[int(binds['axis'])] = value
+        return position, rotation_xyz(angles)
+
     def validate_tau(self, tau: Any) -> np.ndarray:
         """Return tau as a float array, or raise TaskError saying what is wrong with it."""
         tau = np.asarray(tau, dtype=float)
@@ -150,6 +200,17 @@ class TaskDefinition:
     def sample_tau(self, rng: np.random.Generator) -> np.ndarray:
         """A task instance drawn uniformly from the parameter ranges."""
         return rng.uniform(self.tau_low, self.tau_high)
+
+
+def rotation_xyz(angles: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of extrinsic rotations about x, then y, then z by the angles
+    (3,) [rad]: R = Rz Ry Rx."""
+    cx, cy, cz = np.cos(angles)
+    sx, sy, sz = np.sin(angles)
+    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return rz @ ry @ rx
 
 
 def task_search_path() -> list[Path]:
@@ -249,10 +310,18 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         low, high = float(entry['low']), float(entry['high'])
         if not low < high:
             raise TaskError(f'{path}: task parameter {entry["name"]!r} needs low < high')
+        _check_binding(binds, str(entry['name']), low + float(binds.get('offset', 0.0)), path)
         params.append(TaskParameter(
             name=str(entry['name']), low=low, high=high,
             default=float(entry.get('default', 0.5 * (low + high))),
             binds=binds, unit=str(entry.get('unit', ''))))
+    kinds = [p.binds['kind'] for p in params]
+    if kinds.count('duration') > 1:
+        raise TaskError(f'{path}: at most one task parameter binds the duration')
+    target = _target(data['target'], path) if 'target' in data else None
+    if target is None and {'target_position', 'target_orientation'} & set(kinds):
+        raise TaskError(f'{path}: target_position / target_orientation task parameters need a '
+                        'target section (target: {position: [x, y, z]})')
     controller = _section(data, 'controller', path)
     demo = _require(data, 'demonstration', path)
     demo_positions = np.asarray(demo['positions'], dtype=float)
@@ -278,7 +347,33 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         demo_times=demo_times,
         demo_positions=demo_positions,
         reward=_reward(_section(data, 'reward', path), path),
+        target=target,
     )
+
+
+def _check_binding(binds: dict, name: str, lowest: float, path: Path) -> None:
+    """The keys each binding kind needs."""
+    kind = binds['kind']
+    if kind in ('mocap_position', 'body_mass') and 'body' not in binds:
+        raise TaskError(f'{path}: task parameter {name!r} ({kind}) needs a body')
+    if kind in ('mocap_position', 'target_position', 'target_orientation'):
+        if binds.get('axis') not in (0, 1, 2):
+            raise TaskError(f'{path}: task parameter {name!r} ({kind}) needs axis 0, 1 or 2, '
+                            f'got {binds.get("axis")!r}')
+    if kind == 'duration' and not lowest > 0.0:
+        raise TaskError(f'{path}: task parameter {name!r} binds the duration: its range must '
+                        f'stay above 0 s, lowest {lowest:g}')
+
+
+def _target(section: Any, path: Path) -> TargetSpec:
+    if not isinstance(section, dict):
+        raise TaskError(f'{path}: target must be a mapping of keys')
+    _known_keys(section, TargetSpec, 'target', path)
+    return TargetSpec(
+        position=_vector(_require(section, 'position', path), 'target.position', 3, path),
+        orientation=_vector(section.get('orientation', [0.0, 0.0, 0.0]), 'target.orientation',
+                            3, path),
+        body=str(section.get('body', '')))
 
 
 def _section(data: dict, key: str, path: Path) -> dict:
@@ -301,6 +396,13 @@ def _policy(section: dict, path: Path) -> PolicySpec:
     if not isinstance(feedforward, bool):
         raise TaskError(f'{path}: policy.feedforward must be true or false, got '
                         f'{feedforward!r}')
+    learn_goal = section.get('learn_goal', PolicySpec.learn_goal)
+    if not isinstance(learn_goal, bool):
+        raise TaskError(f'{path}: policy.learn_goal must be true or false, got {learn_goal!r}')
+    space = str(section.get('space', PolicySpec.space))
+    if space not in SPACES:
+        raise TaskError(f'{path}: policy.space must be one of {", ".join(SPACES)}, got '
+                        f'{space!r}')
     n_basis = int(_require(section, 'n_basis', path))
     if n_basis < 1:
         raise TaskError(f'{path}: policy.n_basis must be at least 1, got {n_basis}')
@@ -310,7 +412,8 @@ def _policy(section: dict, path: Path) -> PolicySpec:
                       canonical=str(section.get('canonical', PolicySpec.canonical)),
                       feedforward=feedforward,
                       n_components=int(section.get('n_components', PolicySpec.n_components)),
-                      fit_seed=int(section.get('fit_seed', PolicySpec.fit_seed)))
+                      fit_seed=int(section.get('fit_seed', PolicySpec.fit_seed)),
+                      learn_goal=learn_goal, space=space)
 
 
 def _reward(section: dict, path: Path) -> RewardSpec:
