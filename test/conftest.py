@@ -96,7 +96,8 @@ def graph_matches_batch(client):
             assert result.success, result.message
             stamp = result.evaluation.stamp
             t0 = stamp.sec * 10**9 + stamp.nanosec
-            episode = [t0 + k * task.control_period_ns for k in range(task.num_steps + 1)]
+            steps = task.num_steps_of(tau)
+            episode = [t0 + k * task.control_period_ns for k in range(steps + 1)]
             # the evaluator has scored every state; this subscription may still be receiving
             assert poll_until(lambda: all(t in states for t in episode), DELIVERY_TIMEOUT), \
                 f'{sum(t in states for t in episode)} of {len(episode)} joint_states recorded'
@@ -104,7 +105,7 @@ def graph_matches_batch(client):
             client.node.destroy_subscription(sub)
         q_graph = np.array([states[t].position for t in episode])
         batch = BatchRollouts(task, law=law).run(np.asarray(theta)[None], tau)[0]
-        assert q_graph.shape == batch.q.shape == (task.num_steps + 1, task.n_joints)
+        assert q_graph.shape == batch.q.shape == (steps + 1, task.n_joints)
         assert np.abs(q_graph - batch.q).max() < Q_TOLERANCE
         assert result.evaluation.reward == pytest.approx(batch.evaluation.reward,
                                                          abs=REWARD_TOLERANCE)

@@ -170,15 +170,15 @@ class TaskPolicy:
         traj = movement.integrate(dt, self.task.num_steps_of(tau) * dt)
         q, qd = traj.y, traj.yd
         if self.ik is not None:
-            q, qd = self._joint_path(traj.y, traj.yd, dt)
+            q, qd = self._joint_path(traj.y, dt)
         u_ffwd = (feedforward.signal(theta[self.dynamics], traj.t)
                   if feedforward is not None else np.zeros_like(q))
         return Reference(t=traj.t, q=q, qd=qd, u_ffwd=u_ffwd)
 
-    def _joint_path(self, x: np.ndarray, xd: np.ndarray, dt: float
-                    ) -> tuple[np.ndarray, np.ndarray]:
-        """Joint angles and velocities that follow the hand path x, xd (T, 3)."""
-        solution = self.ik.solve(x, xd, self.task.start_posture, dt)
+    def _joint_path(self, x: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """Joint angles and velocities (T, n) that follow the hand path x (T, 3) from the
+        start posture (differential inverse kinematics; qd its finite difference)."""
+        solution = self.ik.solve(x, self.task.start_posture, dt)
         return solution.q, solution.qd
 
 

@@ -212,3 +212,43 @@ def test_orientation_error_without_a_target_is_refused(tmp_path):
     task = write(tmp_path, data)
     with pytest.raises(ValueError, match='needs a target'):
         Reward(task, RewardGeometry(ArmModel(task)))
+
+
+# -- end-effector space ---------------------------------------------------------------------
+@pytest.fixture(scope='module')
+def hand_space_task(tmp_path_factory):
+    data = planar_data()
+    data['policy'].update(space='end_effector')
+    return write(tmp_path_factory.mktemp('hand_space'), data, 'hand_space')
+
+
+def test_the_hand_follows_the_dmp_path_through_inverse_kinematics(hand_space_task):
+    """The joint reference's hand (closed-form FK) is the DMP's hand path; the path starts at
+    the start posture's hand and ends at the learned goal point."""
+    policy = TaskPolicy(hand_space_task)
+    theta = policy.default_theta.copy()
+    theta[policy.goal] = [0.6, 0.35, 0.0]
+    reference = policy.reference(theta)
+    policy.dmp.set_theta(theta[policy.kinematics])
+    dt = hand_space_task.control_period
+    path = policy.dmp.integrate(dt, hand_space_task.num_steps * dt).y
+    hands = np.array([planar_hand(q) for q in reference.q])
+    np.testing.assert_allclose(hands[:, :2], path[:, :2], atol=1e-4)
+    np.testing.assert_allclose(hands[0], planar_hand(hand_space_task.start_posture), atol=1e-12)
+    np.testing.assert_allclose(hands[-1, :2], [0.6, 0.35], atol=1e-4)
+    np.testing.assert_allclose(reference.q[0], hand_space_task.start_posture, atol=1e-12)
+
+
+def test_an_unreachable_goal_point_is_penalised_not_nan(hand_space_task):
+    """A goal point 3 m away from a 1 m arm: a finite reference, the arm stretched toward it
+    (the hand about 1 m from the base); the rollout scores the miss of the target."""
+    batch = BatchRollouts(hand_space_task, n_threads=1)
+    theta = batch.policy.default_theta.copy()
+    theta[batch.policy.goal] = [3.0, 0.0, 0.0]
+    result = batch.run(theta[None], hand_space_task.tau_default)[0]
+    assert np.all(np.isfinite(result.reference.q)) and np.all(np.isfinite(result.q))
+    hand = planar_hand(result.q[-1])
+    assert np.linalg.norm(hand) > 0.97 and hand[0] > 0.9
+    assert result.evaluation.components['goal_error'] == pytest.approx(
+        np.linalg.norm(hand[:2] - hand_space_task.tau_default), abs=1e-6)
+    assert not result.evaluation.fulfilled

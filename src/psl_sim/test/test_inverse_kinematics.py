@@ -1,0 +1,506 @@
+"""Tests of DifferentialIK against independent references: closed-form planar kinematics and
+two-link inverse kinematics, forward kinematics on a separate MjData, the geometric bound
+|x| - reach for targets out of reach; plus properties (joint limits hold, the null-space
+pull keeps the rest posture, finite output at singular postures, determinism)."""
+
+import mujoco
+import numpy as np
+import pytest
+
+from psl_sim.inverse_kinematics import DifferentialIK, IKError, IKResult
+
+DT = 1e-3                   # s, control grid
+T_PATH = 800                # samples of a path (0.8 s)
+
+TOL_FK = 1e-12              # m, MuJoCo kinematics vs closed form
+TOL_CLOSED_FORM_Q = 1e-4    # rad, IK vs closed-form two-link IK
+TOL_CLOSED_FORM_QD = 1e-2   # rad/s, finite-difference qd vs closed-form J^-1 xd (peaks ~3)
+TOL_TRACK = 1e-4            # m, tracking of a reachable path (planar arms)
+TOL_TRACK_3D = 1e-3         # m, tracking of a reachable path (7-DOF arm)
+TOL_REACH = 1e-3            # m, error vs the distance beyond reach, once settled
+TOL_LIMIT = 1e-12           # rad, q vs the margin-narrowed joint range
+
+TWO_LINK = (0.5, 0.4)       # m
+TEN_LINK = (0.1,) * 10      # m, reach 1 m
+
+
+# -- models ---------------------------------------------------------------------------------------
+def planar_arm(lengths, joint_range=None):
+    """An arm of hinges about +z in the x-y plane, links along the body x axes, site 'tip' at
+    the end; joint_range (low, high) for every joint, or None (unlimited)."""
+    limits = '' if joint_range is None else f' range="{joint_range[0]} {joint_range[1]}"'
+    opened, closed, pos = '', '', '0 0 0'
+    for i, length in enumerate(lengths):
+        opened += (f'<body name="link{i}" pos="{pos}"><joint name="j{i}"{limits}/>'
+                   f'<geom fromto="0 0 0 {length} 0 0"/>')
+        closed += '</body>'
+        pos = f'{length} 0 0'
+    return mujoco.MjModel.from_xml_string(f"""
+<mujoco>
+  <compiler angle="radian" autolimits="true"/>
+  <option gravity="0 0 0"/>
+  <default><joint type="hinge" axis="0 0 1"/><geom type="capsule" size="0.01" mass="0.1"/>
+  </default>
+  <worldbody>{opened}<site name="tip" pos="{pos}"/>{closed}</worldbody>
+</mujoco>""")
+
+
+ARM7_RANGES = {'sh_yaw': (-2.5, 2.5), 'sh_pitch': (-2.0, 2.0), 'sh_roll': (-2.5, 2.5),
+               'elbow': (0.0, 2.6), 'wr_roll': (-1.5, 1.5), 'wr_pitch': (-1.2, 1.2),
+               'wr_yaw': (-0.8, 0.8)}
+ARM7_Q0 = np.array([0.3, -0.4, 0.2, 1.2, 0.1, 0.2, -0.1])
+RAIL_REF = 0.15             # m, qpos0 of the passive rail the 7-DOF arm stands on
+
+
+def seven_dof_arm(**ranges):
+    """A human-like 3-D arm: shoulder yaw/pitch/roll, elbow, wrist roll/pitch/yaw, with gravity
+    on. Ahead of its joints in qpos/qvel: a free-floating ball (7 qpos, 6 dofs), a mocap body
+    (no qpos) and the passive slide 'rail' (ref RAIL_REF) the arm stands on, so that the arm's
+    addresses neither start at 0 nor cover all dofs. ranges: joint name -> (low, high)."""
+    r = {**ARM7_RANGES, **ranges}
+
+    def joint(name, axis):
+        return f'<joint name="{name}" axis="{axis}" range="{r[name][0]} {r[name][1]}"/>'
+    return mujoco.MjModel.from_xml_string(f"""
+<mujoco>
+  <compiler angle="radian" autolimits="true"/>
+  <default><joint type="hinge" damping="0.1"/><geom type="capsule" size="0.02" mass="0.5"/>
+  </default>
+  <worldbody>
+    <body name="ball" pos="1 1 1"><freejoint/><geom type="sphere" size="0.05"/></body>
+    <body name="target" mocap="true" pos="0.3 0.2 0.1">
+      <geom type="sphere" size="0.02" contype="0" conaffinity="0"/></body>
+    <body name="base" pos="0 0 0.5">
+      <joint name="rail" type="slide" axis="1 0 0" ref="{RAIL_REF}"/>
+      <geom type="box" size="0.05 0.05 0.05"/>
+      <body name="upper">
+        {joint('sh_yaw', '0 0 1')}{joint('sh_pitch', '0 1 0')}{joint('sh_roll', '1 0 0')}
+        <geom fromto="0 0 0 0.30 0 0"/>
+        <body name="fore" pos="0.30 0 0">
+          {joint('elbow', '0 1 0')}
+          <geom fromto="0 0 0 0.25 0 0"/>
+          <body name="hand" pos="0.25 0 0">
+            {joint('wr_roll', '1 0 0')}{joint('wr_pitch', '0 1 0')}{joint('wr_yaw', '0 0 1')}
+            <geom fromto="0 0 0 0.08 0 0"/>
+            <site name="tip" pos="0.08 0 0"/>
+          </body>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>""")
+
+
+def arm_addresses(model):
+    """qpos and dof addresses of the model's hinge joints, in joint order."""
+    hinges = np.flatnonzero(model.jnt_type == mujoco.mjtJoint.mjJNT_HINGE)
+    return model.jnt_qposadr[hinges], model.jnt_dofadr[hinges]
+
+
+def solver(model, q_rest, **settings):
+    qpos_adr, dof_adr = arm_addresses(model)
+    return DifferentialIK(model, 'tip', qpos_adr, dof_adr, q_rest, **settings)
+
+
+def hinge_bounds(model, margin=0.01):
+    hinges = np.flatnonzero(model.jnt_type == mujoco.mjtJoint.mjJNT_HINGE)
+    return model.jnt_range[hinges, 0] + margin, model.jnt_range[hinges, 1] - margin
+
+
+# -- independent references -----------------------------------------------------------------------
+def planar_fk(q, lengths):
+    """Tip (3,) of a planar arm: with phi_i = q_1 + ... + q_i, x = sum l_i cos phi_i,
+    y = sum l_i sin phi_i, z = 0."""
+    phi = np.cumsum(q)
+    return np.array([np.dot(lengths, np.cos(phi)), np.dot(lengths, np.sin(phi)), 0.0])
+
+
+def planar_jacobian(q, lengths):
+    """d tip / d q_i = sum_{j >= i} l_j (-sin phi_j, cos phi_j, 0)."""
+    phi = np.cumsum(q)
+    tail_x = np.cumsum((-np.asarray(lengths) * np.sin(phi))[::-1])[::-1]
+    tail_y = np.cumsum((np.asarray(lengths) * np.cos(phi))[::-1])[::-1]
+    return np.vstack([tail_x, tail_y, np.zeros(len(q))])
+
+
+def two_link_ik(p, elbow, lengths=TWO_LINK):
+    """Closed-form IK of the two-link planar arm at p (T, 3), elbow branch sign(q2) = elbow:
+    cos q2 = (r^2 - l1^2 - l2^2) / (2 l1 l2), q1 = atan2(y, x) - atan2(l2 sin q2,
+    l1 + l2 cos q2)."""
+    l1, l2 = lengths
+    x, y = p[:, 0], p[:, 1]
+    q2 = elbow * np.arccos((x ** 2 + y ** 2 - l1 ** 2 - l2 ** 2) / (2 * l1 * l2))
+    q1 = np.arctan2(y, x) - np.arctan2(l2 * np.sin(q2), l1 + l2 * np.cos(q2))
+    return np.column_stack([q1, q2])
+
+
+def independent_fk(model, qpos_adr, q):
+    """Site 'tip' along q (T, n) on a fresh MjData (qpos0 elsewhere)."""
+    data = mujoco.MjData(model)
+    site = model.site('tip').id
+    out = np.empty((len(q), 3))
+    for k, qk in enumerate(q):
+        data.qpos[qpos_adr] = qk
+        mujoco.mj_kinematics(model, data)
+        out[k] = data.site_xpos[site]
+    return out
+
+
+# -- paths: positions (T, 3) and velocities (T, 3), minimum-jerk timing ---------------------------
+def timing(n=T_PATH, dt=DT):
+    """s(t) = 10 u^3 - 15 u^4 + 6 u^5, u = t / D, and ds/dt."""
+    duration = (n - 1) * dt
+    u = np.arange(n) * dt / duration
+    s = 10 * u ** 3 - 15 * u ** 4 + 6 * u ** 5
+    return s, (30 * u ** 2 - 60 * u ** 3 + 30 * u ** 4) / duration
+
+
+def line(a, b, n=T_PATH):
+    s, sd = timing(n)
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return a + s[:, None] * (b - a), sd[:, None] * (b - a)
+
+
+def circle(start, radius, u, w, turns=1.0, n=T_PATH):
+    """A circle through start in the plane of the unit vectors u, w (centre start - r u)."""
+    s, sd = timing(n)
+    angle, rate = 2 * np.pi * turns * s, 2 * np.pi * turns * sd
+    u, w = np.asarray(u, float), np.asarray(w, float)
+    centre = np.asarray(start, float) - radius * u
+    x = centre + radius * (np.cos(angle)[:, None] * u + np.sin(angle)[:, None] * w)
+    xd = radius * rate[:, None] * (-np.sin(angle)[:, None] * u + np.cos(angle)[:, None] * w)
+    return x, xd
+
+
+def hold(x, n):
+    """x (T, 3) followed by n samples at its last point."""
+    return np.vstack([x, np.repeat(x[-1:], n, axis=0)])
+
+
+EX, EY = np.array([1.0, 0, 0]), np.array([0, 1.0, 0])
+
+
+# -- kinematics -----------------------------------------------------------------------------------
+def test_forward_and_jacobian_match_closed_form():
+    model = planar_arm(TEN_LINK)
+    ik = solver(model, np.zeros(10))
+    rng = np.random.default_rng(0)
+    for q in rng.uniform(-np.pi, np.pi, size=(20, 10)):
+        np.testing.assert_allclose(ik.forward(q), planar_fk(q, TEN_LINK), rtol=0, atol=TOL_FK)
+        jac = ik.jacobian(q)
+        np.testing.assert_allclose(jac, planar_jacobian(q, TEN_LINK), rtol=0, atol=TOL_FK)
+        assert np.all(jac[2] == 0.0)        # the planar arm's z row
+
+
+def test_forward_keeps_other_qpos_at_qpos0():
+    """The rail the arm stands on stays at its qpos0 (= ref): a solver that zeroed it would
+    move the tip by RAIL_REF."""
+    model = seven_dof_arm()
+    qpos_adr, _ = arm_addresses(model)
+    ik = solver(model, ARM7_Q0)
+    q = ARM7_Q0 + 0.1
+    np.testing.assert_allclose(ik.forward(q), independent_fk(model, qpos_adr, q[None])[0],
+                               rtol=0, atol=TOL_FK)
+
+
+# -- tracking -------------------------------------------------------------------------------------
+TWO_LINK_PATHS = {
+    'line': lambda x0: line(x0, x0 + [-0.25, 0.2, 0.0]),
+    'circle': lambda x0: circle(x0, 0.12, EX, EY),
+}
+
+
+@pytest.mark.parametrize('elbow', [1.0, -1.0])
+@pytest.mark.parametrize('path', sorted(TWO_LINK_PATHS))
+def test_two_link_matches_closed_form_ik(elbow, path):
+    """The elbow branch is the start posture's; q and qd follow the closed form."""
+    model = planar_arm(TWO_LINK)
+    start = np.array([[0.55, 0.35, 0.0]])
+    q0 = two_link_ik(start, elbow)[0]
+    x_ref, xd_ref = TWO_LINK_PATHS[path](start[0])
+    ik = solver(model, q0)
+    result = ik.solve(x_ref, q0, DT)
+
+    expected = two_link_ik(x_ref, elbow)
+    assert np.abs(result.q - expected).max() < TOL_CLOSED_FORM_Q
+    assert result.max_error < TOL_TRACK
+    # qd against the closed-form joint velocity J(q)^-1 xd
+    expected_qd = np.array([np.linalg.solve(planar_jacobian(q, TWO_LINK)[:2], xd[:2])
+                            for q, xd in zip(expected, xd_ref)])
+    assert np.abs(expected_qd).max() > 1.0          # the path moves
+    assert np.abs(result.qd - expected_qd).max() < TOL_CLOSED_FORM_QD
+
+
+def test_error_is_the_distance_to_the_reference():
+    model = planar_arm(TWO_LINK)
+    q0 = two_link_ik(np.array([[0.55, 0.35, 0.0]]), 1.0)[0]
+    x_ref, _ = circle([0.55, 0.35, 0.0], 0.12, EX, EY)
+    result = solver(model, q0).solve(x_ref, q0, DT)
+    reached = np.array([planar_fk(q, TWO_LINK) for q in result.q])
+    np.testing.assert_allclose(result.error, np.linalg.norm(reached - x_ref, axis=1),
+                               rtol=0, atol=TOL_FK)
+
+
+def test_seven_dof_tracks_a_3d_path_within_limits():
+    model = seven_dof_arm()
+    qpos_adr, _ = arm_addresses(model)
+    ik = solver(model, ARM7_Q0)
+    x0 = ik.forward(ARM7_Q0)
+    tilt = np.array([0.0, 0.6, 0.8])
+    ring, _ = circle(x0, 0.1, EY, tilt)
+    out, _ = line(x0, x0 + [-0.1, 0.05, 0.12])
+    x_ref = np.vstack([ring, out])
+    result = ik.solve(x_ref, ARM7_Q0, DT)
+
+    reached = independent_fk(model, qpos_adr, result.q)
+    assert np.linalg.norm(reached - x_ref, axis=1).max() < TOL_TRACK_3D
+    np.testing.assert_allclose(result.error, np.linalg.norm(reached - x_ref, axis=1),
+                               rtol=0, atol=TOL_FK)
+    low, high = hinge_bounds(model)
+    assert np.all(result.q >= low - TOL_LIMIT) and np.all(result.q <= high + TOL_LIMIT)
+    assert np.all(np.isfinite(result.qd))
+    np.testing.assert_allclose(result.qd, np.gradient(result.q, DT, axis=0), rtol=0, atol=0)
+
+
+def test_a_joint_limit_holds_and_the_others_take_over():
+    """The path turns the shoulder yaw far beyond +-0.05 rad when it is free; with its range
+    narrowed to q0 +- 0.05 rad it stays inside (minus the margin) and the arm still tracks."""
+    x_ref_of = {}
+
+    def run(**ranges):
+        model = seven_dof_arm(**ranges)
+        ik = solver(model, ARM7_Q0)
+        x0 = ik.forward(ARM7_Q0)
+        x_ref_of['path'], _ = line(x0, x0 + [-0.05, 0.15, 0.05])
+        return model, ik.solve(x_ref_of['path'], ARM7_Q0, DT)
+
+    yaw = list(ARM7_RANGES).index('sh_yaw')
+    _, free = run()
+    assert np.abs(free.q[:, yaw] - ARM7_Q0[yaw]).max() > 0.1      # the limit will bind
+    model, limited = run(sh_yaw=(ARM7_Q0[yaw] - 0.05, ARM7_Q0[yaw] + 0.05))
+    low, high = hinge_bounds(model)
+    assert np.all(limited.q >= low - TOL_LIMIT) and np.all(limited.q <= high + TOL_LIMIT)
+    assert np.isclose(limited.q[:, yaw], high[yaw], atol=1e-9).any()   # it did reach it
+    # within a step: clipping alone, leaving the rest to the next steps, lags ~6e-4 m
+    assert limited.max_error < TOL_TRACK
+
+
+def test_tight_limits_on_every_joint_hold():
+    """Every joint within q0 +- 0.1 rad and a path that needs more: the joints that take over
+    from a locked one hit their own bounds too; none is crossed, the error says how far the
+    path was missed."""
+    tight = {name: (q - 0.1, q + 0.1) for name, q in zip(ARM7_RANGES, ARM7_Q0)}
+    model = seven_dof_arm(**tight)
+    ik = solver(model, ARM7_Q0)
+    x0 = ik.forward(ARM7_Q0)
+    result = ik.solve(circle(x0, 0.15, EY, [0.0, 0.6, 0.8])[0], ARM7_Q0, DT)
+    low, high = hinge_bounds(model)
+    assert np.all(result.q >= low - TOL_LIMIT) and np.all(result.q <= high + TOL_LIMIT)
+    assert np.all(np.isfinite(result.qd))
+    assert result.max_error > 0.01                      # the limits cost reach
+
+
+def test_nullspace_pull_returns_to_the_rest_posture():
+    """Two turns of a circle and back at the start, then a hold: the self-motion the turns
+    leave behind is pulled back toward q_rest; without the pull it stays."""
+    model = seven_dof_arm()
+    ik = solver(model, ARM7_Q0)
+    x0 = ik.forward(ARM7_Q0)
+    x_ref = hold(circle(x0, 0.12, EY, [0.0, 0.6, 0.8], turns=2.0)[0], 500)
+    drift = {}
+    for gain in (0.0, 5.0):
+        result = solver(model, ARM7_Q0, nullspace_gain=gain).solve(x_ref, ARM7_Q0, DT)
+        assert result.max_error < TOL_TRACK_3D
+        distance = np.linalg.norm(result.q - ARM7_Q0, axis=1)
+        drift[gain] = distance.mean(), distance[-1]
+    assert drift[0.0][1] > 0.05                         # there is self-motion to undo
+    assert drift[5.0][1] < 0.1 * drift[0.0][1]
+    assert drift[5.0][0] < drift[0.0][0]
+
+
+def test_ten_joint_planar_arm_tracks_with_a_zero_z_row():
+    model = planar_arm(TEN_LINK, joint_range=(-2.0, 2.0))
+    q0 = np.full(10, 0.25)
+    ik = solver(model, q0)
+    x0 = ik.forward(q0)
+    ring, _ = circle(x0, 0.15, EX, EY)
+    x_ref = np.vstack([ring, line(x0, x0 + [0.1, -0.3, 0.0])[0]])
+    result = ik.solve(x_ref, q0, DT)
+
+    assert np.all(np.isfinite(result.q)) and np.all(np.isfinite(result.qd))
+    reached = np.array([planar_fk(q, TEN_LINK) for q in result.q])
+    assert np.linalg.norm(reached - x_ref, axis=1).max() < TOL_TRACK
+    assert np.all(ik.jacobian(result.q[-1])[2] == 0.0)
+    assert np.all(np.abs(result.q) <= 2.0 - 0.01 + TOL_LIMIT)
+
+
+# -- out of reach, singular -----------------------------------------------------------------------
+@pytest.mark.parametrize('lengths,q0', [((0.5, 0.5), [0.4, 1.0]),
+                                        (TEN_LINK, [0.3] + [0.15] * 9)])
+def test_target_out_of_reach_reports_the_distance_beyond_reach(lengths, q0):
+    """A target 2 m from the base of a 1 m arm: q finite and within the limits; the error
+    is never below |x_ref| - reach (geometry) and settles at it (the arm points at it)."""
+    model = planar_arm(lengths, joint_range=(-2.5, 2.5))
+    q0 = np.array(q0)
+    ik = solver(model, q0)
+    x0 = ik.forward(q0)
+    far = 2.0 * np.array([np.cos(0.9), np.sin(0.9), 0.0])
+    x_ref = hold(line(x0, far)[0], 400)
+    result = ik.solve(x_ref, q0, DT)
+
+    assert np.all(np.isfinite(result.q)) and np.all(np.isfinite(result.qd))
+    assert np.all(np.abs(result.q) <= 2.5 - 0.01 + TOL_LIMIT)
+    beyond = np.linalg.norm(x_ref, axis=1) - sum(lengths)
+    assert np.all(result.error >= beyond - 1e-9)
+    assert abs(result.error[-1] - 1.0) < TOL_REACH
+    assert not result.reachable(0.01)
+
+
+@pytest.mark.parametrize('gain', [0.0, 5.0])
+def test_back_from_out_of_reach_tracks_again(gain):
+    """Out to 2 m, held there (the arm stretches straight: singular), and back: the arm
+    follows the path once it is reachable again (no chatter across the stretched posture,
+    no getting stuck in it)."""
+    model = planar_arm(TWO_LINK)
+    q0 = np.array([0.3, 1.2])
+    ik = solver(model, q0, nullspace_gain=gain)
+    x0 = ik.forward(q0)
+    far = 2.0 * x0 / np.linalg.norm(x0)
+    x_ref = np.vstack([hold(line(x0, far)[0], 300), line(far, x0)[0]])
+    result = ik.solve(x_ref, q0, DT)
+    beyond = np.maximum(np.linalg.norm(x_ref, axis=1) - sum(TWO_LINK), 0.0)
+    assert np.all(np.isfinite(result.qd))
+    # worst where the path re-enters the reach: there the exact q2 grows like a square root
+    assert np.abs(result.error - beyond).max() < TOL_REACH
+    assert result.error[-1] < TOL_TRACK
+
+
+@pytest.mark.parametrize('direction', [0.0, 0.05, 0.5])
+def test_stretched_start_is_finite(direction):
+    """Start exactly stretched (a singular posture) and move inward at an angle to the arm.
+    Any angle: finite output. Not exactly along the arm: the arm bends and tracks. (Exactly
+    along it, with a straight q_rest, a first-order method has no direction to bend in: the
+    error reports it.)"""
+    model = planar_arm((0.5, 0.5))
+    q0 = np.zeros(2)
+    ik = solver(model, q0)
+    goal = np.array([1.0 - 0.4 * np.cos(direction), 0.4 * np.sin(direction), 0.0])
+    x_ref = line([1.0, 0.0, 0.0], goal)[0]
+    result = ik.solve(x_ref, q0, DT)
+    assert np.all(np.isfinite(result.q)) and np.all(np.isfinite(result.qd))
+    assert np.all(np.isfinite(result.error))
+    if direction:
+        assert result.max_error < TOL_TRACK
+
+
+@pytest.mark.parametrize('elbow', [1.0, -1.0])
+def test_stretched_start_bends_toward_a_bent_rest_posture(elbow):
+    """Exactly along the arm from exactly straight, but a bent q_rest: at the singular posture
+    bending is null-space motion, so the pull bends the arm into q_rest's elbow branch (at
+    first ahead of the closed form, which bends like the square root of the distance moved)."""
+    model = planar_arm((0.5, 0.5))
+    ik = solver(model, np.array([0.0, 0.5 * elbow]))
+    x_ref = line([1.0, 0.0, 0.0], [0.6, 0.0, 0.0])[0]
+    result = ik.solve(x_ref, np.zeros(2), DT)
+    assert result.max_error < TOL_TRACK
+    assert np.all(np.sign(result.q[1:, 1]) == elbow)
+    np.testing.assert_allclose(result.q[T_PATH // 4:],
+                               two_link_ik(x_ref, elbow, (0.5, 0.5))[T_PATH // 4:],
+                               rtol=0, atol=TOL_CLOSED_FORM_Q)
+
+
+def test_stretched_seven_dof_start_is_finite():
+    model = seven_dof_arm(elbow=(-2.6, 2.6))
+    q0 = np.zeros(7)
+    ik = solver(model, q0)
+    x0 = ik.forward(q0)
+    result = ik.solve(line(x0, x0 + [-0.2, 0.05, 0.1])[0], q0, DT)
+    assert np.all(np.isfinite(result.q)) and np.all(np.isfinite(result.qd))
+    assert result.max_error < TOL_TRACK_3D
+
+
+# -- input ----------------------------------------------------------------------------------------
+@pytest.fixture(scope='module')
+def two_link():
+    return solver(planar_arm(TWO_LINK), np.array([0.3, 1.2]))
+
+
+def _nan_at_7(x):
+    x = x.copy()
+    x[7, 1] = np.nan
+    return x
+
+
+@pytest.mark.parametrize('change,message', [
+    (lambda a: {**a, 'x_ref': _nan_at_7(a['x_ref'])}, r'x_ref must be finite.*index 7'),
+    (lambda a: {**a, 'x_ref': np.full((10, 3), np.inf)}, r'x_ref must be finite'),
+    (lambda a: {**a, 'x_ref': a['x_ref'][:, :2]}, r'x_ref must have shape \(T, 3\)'),
+    (lambda a: {**a, 'x_ref': a['x_ref'][0]}, r'x_ref must have shape \(T, 3\)'),
+    (lambda a: {**a, 'x_ref': np.empty((0, 3))}, r'T >= 1'),
+    (lambda a: {**a, 'q0': np.zeros(3)}, r'q0 must have shape \(2,\)'),
+    (lambda a: {**a, 'q0': np.array([0.0, np.nan])}, r'q0 must be finite'),
+    (lambda a: {**a, 'dt': 0.0}, r'dt must be finite and > 0'),
+    (lambda a: {**a, 'dt': np.nan}, r'dt must be finite and > 0'),
+])
+def test_bad_input_is_refused(two_link, change, message):
+    good = {'x_ref': np.tile(two_link.forward(np.array([0.3, 1.2])), (10, 1)),
+            'q0': np.array([0.3, 1.2]), 'dt': DT}
+    two_link.solve(**good)
+    with pytest.raises(IKError, match=message):
+        two_link.solve(**change(good))
+
+
+@pytest.mark.parametrize('settings,message', [
+    ({'site': 'hand'}, r"no site 'hand'"),
+    ({'site': 5}, r'site id 5 out of range'),
+    ({'qpos_adr': np.array([0]), 'dof_adr': np.array([0])}, r'not a hinge or slide'),
+    ({'dof_adr': np.array([7, 8, 9, 10, 11, 12, 6])}, r'not a hinge or slide'),
+    ({'qpos_adr': np.array([8, 8, 9, 10, 11, 12, 13])}, r'names a joint twice'),
+    ({'qpos_adr': np.array([8.0, 9, 10, 11, 12, 13, 14])}, r'integer arrays'),
+    ({'q_rest': np.zeros(6)}, r'q_rest must have shape \(7,\)'),
+    ({'damping': 0.0}, r'damping must be finite and > 0'),
+    ({'tolerance': np.nan}, r'tolerance must be finite and >= 0'),
+    ({'nullspace_gain': -1.0}, r'nullspace_gain must be finite and >= 0'),
+    ({'iterations': 0}, r'iterations must be an integer >= 1'),
+    ({'limit_margin': 1.5}, r"no range for joints \['elbow', 'wr_pitch', 'wr_yaw'\]"),
+])
+def test_bad_settings_are_refused(settings, message):
+    model = seven_dof_arm()
+    qpos_adr, dof_adr = arm_addresses(model)
+    arguments = {'model': model, 'site': 'tip', 'qpos_adr': qpos_adr, 'dof_adr': dof_adr,
+                 'q_rest': ARM7_Q0, **settings}
+    with pytest.raises(IKError, match=message):
+        DifferentialIK(**arguments)
+
+
+# -- determinism, result --------------------------------------------------------------------------
+def test_solves_are_bit_identical():
+    model = seven_dof_arm()
+    ik = solver(model, ARM7_Q0)
+    x0 = ik.forward(ARM7_Q0)
+    x_ref, _ = circle(x0, 0.1, EY, [0.0, 0.6, 0.8])
+    first = ik.solve(x_ref, ARM7_Q0, DT)
+    ik.solve(x_ref[::-1] + 0.05, ARM7_Q0, DT)            # a different solve in between
+    again = ik.solve(x_ref, ARM7_Q0, DT)
+    fresh = solver(model, ARM7_Q0).solve(x_ref, ARM7_Q0, DT)
+    for other in (again, fresh):
+        assert np.array_equal(first.q, other.q)
+        assert np.array_equal(first.qd, other.qd)
+        assert np.array_equal(first.error, other.error)
+
+
+def test_result_is_read_only_and_summarises_the_error():
+    result = IKResult(q=np.zeros((3, 2)), qd=np.zeros((3, 2)), error=np.array([0.0, 2e-3, 1e-4]))
+    assert result.max_error == 2e-3
+    assert result.reachable(2e-3) and not result.reachable(1e-3)
+    with pytest.raises(ValueError):
+        result.q[0, 0] = 1.0
+
+
+def test_a_single_sample():
+    model = planar_arm(TWO_LINK)
+    q0 = np.array([0.3, 1.2])
+    ik = solver(model, q0)
+    result = ik.solve(ik.forward(q0)[None], q0, DT)
+    assert result.q.shape == (1, 2) and np.array_equal(result.qd, np.zeros((1, 2)))
+    assert result.max_error < TOL_FK
