@@ -4,16 +4,21 @@ Method, per seed:
 - one training sequence (`task_sequence`) and one held-out set (`held_out_tasks`), both drawn
   from the seed by the `Learner` itself, so every strategy of a seed sees the same instances in
   the same order; the bench checks that from the runs' metrics files;
-- per strategy one `Learner` session (batch mode, in-process skill) in its own folder
-  ``OUT/<task>-<strategy>[-<readout>]-seed<k>/`` holding ``metrics.json`` (per-task rollouts,
-  the zero-shot test on the held-out set), the checkpoint and the memory file.
+- per strategy and skill map one `Learner` session (batch mode, in-process skill) in its own
+  folder ``OUT/<task>-<strategy>[-<readout>][-<map>]-seed<k>/`` holding ``metrics.json``
+  (per-task rollouts, the zero-shot test on the held-out set), the checkpoint and the memory
+  file. The skill map (`LearnSettings.skill_map`) is the skill memory ('elm', no suffix) or a
+  baseline in its place: 'library' (the k nearest solved instances, inverse-distance
+  weighted), 'gp' (Gaussian-process regression).
 Every number of the report is read back from those metrics files, never from the running
 session: a run that was done before (same settings, complete) is reused, not repeated.
 
-Per strategy, over seeds (mean, sample standard deviation, min, max):
+Per row, a strategy with a skill map (named `row_name`), over seeds (mean, sample standard
+deviation, min, max):
 - ``total_rollouts``: rollouts over all training tasks;
 - ``late_rollouts``: mean rollouts per new task after ``after`` tasks (tasks after+1 .. N);
-- ``speedup``: scratch's ``late_rollouts`` / this strategy's, per seed (scratch in the run);
+- ``speedup``: scratch's ``late_rollouts`` / this row's, per seed (scratch in the run, with
+  the same skill map);
 - ``zero_shot_success`` and ``zero_shot_reward``: PS(tau) executed once on each held-out
   instance after the last training task;
 - ``train_seconds``: wall time of the training tasks (sum of the per-task seconds).
@@ -37,9 +42,20 @@ METRICS = ('total_rollouts', 'late_rollouts', 'speedup', 'zero_shot_success',
            'zero_shot_reward', 'train_seconds')
 
 
-def run_folder(out: Path, task: str, strategy: str, seed: int, readout: str | None) -> Path:
+def run_folder(out: Path, task: str, strategy: str, seed: int, readout: str | None,
+               skill_map: str = 'elm') -> Path:
     readout_part = f'-{readout}' if readout else ''
-    return Path(out) / f'{task}-{strategy}{readout_part}-seed{seed}'
+    return Path(out) / f'{task}-{strategy}{readout_part}{_map_part(skill_map)}-seed{seed}'
+
+
+def row_name(strategy: str, skill_map: str = 'elm') -> str:
+    """The report's key of a strategy with a skill map: the strategy for the skill memory
+    ('elm'), ``<strategy>-<map>`` for a baseline."""
+    return f'{strategy}{_map_part(skill_map)}'
+
+
+def _map_part(skill_map: str) -> str:
+    return '' if skill_map == 'elm' else f'-{skill_map}'
 
 
 def read_run(folder: Path, after: int) -> dict:
@@ -59,6 +75,7 @@ def read_run(folder: Path, after: int) -> dict:
         'folder': str(folder),
         'seed': metrics.seed,
         'strategy': metrics.strategy,
+        'skill_map': metrics.settings.get('skill_map', 'elm'),
         'taus': [t.tau for t in metrics.tasks],
         'test_taus': summary.test_taus,
         'rollouts_per_task': rollouts,
@@ -78,7 +95,7 @@ def _settings_json(settings) -> dict:
 def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None = None,
         seeds: Sequence[int] = (0, 1, 2, 3, 4), num_tasks: int = 30, budget: int = 300,
         num_test: int = 20, after: int = 20, out: str | Path | None = None,
-        readout: str | None = None,
+        readout: str | None = None, skill_maps: Sequence[str] = ('elm',),
         progress: Callable[[str], None] | None = None) -> dict:
     """Learn `task_name` with each strategy for each seed and compare them.
 
@@ -91,19 +108,22 @@ def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None
         after: late tasks are those after this many (0 <= after < num_tasks).
         out: folder that keeps every run's folder; None: a temporary folder, removed after.
         readout: the skill's readout (`SkillConfig.readout`); None: `LearnSettings`' default.
+        skill_maps: what fills the skill slot (`LearnSettings.skill_map`), each a session per
+            strategy and seed: 'elm' (the skill memory) and/or the baselines 'library', 'gp'.
         progress: called with one line of text per finished run.
 
     Returns:
-        JSON-able dict: ``settings``, ``runs`` (per seed and strategy, see `read_run`),
-        ``strategies`` (per strategy: each metric of `METRICS` as mean/sd/min/max/values),
-        ``targets`` (the targets and whether they are met).
+        JSON-able dict: ``settings``, ``rows`` (per row name, `row_name`: its strategy and
+        skill map), ``runs`` (per seed and row, see `read_run`), ``strategies`` (per row:
+        each metric of `METRICS` as mean/sd/min/max/values), ``targets`` (the targets and
+        whether they are met).
 
     Raises:
         ValueError: bad settings, or a run folder holding another session.
         RuntimeError: strategies of one seed saw different task instances.
     """
     from psl_optimizer.batch_rollout import BatchRollouts
-    from psl_optimizer.learning import Learner, LearnSettings
+    from psl_optimizer.learning import SKILL_MAPS, Learner, LearnSettings
     from psl_optimizer.policy_search import STRATEGIES, SearchSettings
     from psl_sim.task import load_task
 
@@ -111,8 +131,13 @@ def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None
     unknown = [s for s in strategies if s not in STRATEGIES]
     if unknown or not strategies:
         raise ValueError(f'unknown strategies {unknown}; known: {", ".join(STRATEGIES)}')
-    if len(set(strategies)) != len(strategies) or len(set(seeds)) != len(seeds) or not seeds:
-        raise ValueError('give at least one seed, and each strategy and seed once')
+    skill_maps = tuple(skill_maps)
+    unknown = [m for m in skill_maps if m not in SKILL_MAPS]
+    if unknown or not skill_maps:
+        raise ValueError(f'unknown skill maps {unknown}; known: {", ".join(SKILL_MAPS)}')
+    if (len(set(strategies)) != len(strategies) or len(set(seeds)) != len(seeds) or not seeds
+            or len(set(skill_maps)) != len(skill_maps)):
+        raise ValueError('give at least one seed, and each strategy, seed and skill map once')
     if not 0 <= after < num_tasks or budget < 1 or num_test < 1:
         raise ValueError(f'need 0 <= after < num_tasks, budget >= 1 and num_test >= 1; got '
                          f'after={after}, num_tasks={num_tasks}, budget={budget}, '
@@ -123,23 +148,28 @@ def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None
     rollouts = BatchRollouts(task)
     temporary = tempfile.TemporaryDirectory(prefix='psl-bench-learn-') if out is None else None
     root = Path(temporary.name if temporary else out)
+    rows = {row_name(strategy, skill_map): {'strategy': strategy, 'skill_map': skill_map}
+            for strategy in strategies for skill_map in skill_maps}
     runs: dict[int, dict[str, dict]] = {}
     try:
         for seed in seeds:
             runs[seed] = {}
-            for strategy in strategies:
-                settings = LearnSettings(strategy=strategy, num_tasks=num_tasks, seed=seed,
-                                         num_test=num_test, skill=skill,
-                                         search=SearchSettings(max_rollouts=budget))
-                folder = run_folder(root, task.name, strategy, seed, readout)
+            for name, row in rows.items():
+                settings = LearnSettings(strategy=row['strategy'], num_tasks=num_tasks,
+                                         seed=seed, num_test=num_test, skill=skill,
+                                         search=SearchSettings(max_rollouts=budget),
+                                         skill_map=row['skill_map'])
+                folder = run_folder(root, task.name, row['strategy'], seed, readout,
+                                    row['skill_map'])
                 reused = _reusable(folder, settings)
                 if not reused:
                     Learner(task, settings, folder, rollouts=rollouts).run()
                 record = read_run(folder, after)
                 record['reused'] = reused
-                runs[seed][strategy] = record
+                runs[seed][name] = record
                 if progress is not None:
-                    progress(f"seed {seed} {strategy}: {record['total_rollouts']} rollouts, "
+                    progress(f"seed {seed} {row['strategy']} ({row['skill_map']}): "
+                             f"{record['total_rollouts']} rollouts, "
                              f"zero-shot {100 * record['zero_shot_success']:.0f} %, "
                              f"{record['train_seconds']:.1f} s"
                              f"{' (reused)' if reused else ''}")
@@ -150,9 +180,11 @@ def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None
     report = {'settings': {'task': task.name, 'strategies': list(strategies),
                            'seeds': list(seeds), 'num_tasks': num_tasks, 'budget': budget,
                            'num_test': num_test, 'after': after,
-                           'readout': skill.readout, 'out': None if out is None else str(out)},
-              'runs': {str(seed): by_strategy for seed, by_strategy in runs.items()}}
-    report['strategies'] = _aggregate(runs, strategies)
+                           'readout': skill.readout, 'skill_maps': list(skill_maps),
+                           'out': None if out is None else str(out)},
+              'rows': rows,
+              'runs': {str(seed): by_row for seed, by_row in runs.items()}}
+    report['strategies'] = _aggregate(runs, rows)
     report['targets'] = _targets(report['strategies'])
     return report
 
@@ -165,31 +197,33 @@ def _reusable(folder: Path, settings) -> bool:
         return False
     if metrics_path.is_file():
         metrics = read_metrics(folder)
-        if metrics.complete and metrics.settings == _settings_json(settings):
+        stored = {'skill_map': 'elm', **metrics.settings}     # runs from before the option
+        if metrics.complete and stored == _settings_json(settings):
             return True
     raise ValueError(f'{folder} holds another or an unfinished learning session; remove it or '
                      f'give another --out')
 
 
-def _check_same_instances(seed: int, by_strategy: dict[str, dict]) -> None:
-    first = next(iter(by_strategy.values()))
-    for strategy, record in by_strategy.items():
+def _check_same_instances(seed: int, by_row: dict[str, dict]) -> None:
+    first_name, first = next(iter(by_row.items()))
+    for name, record in by_row.items():
         if record['taus'] != first['taus'] or record['test_taus'] != first['test_taus']:
-            raise RuntimeError(f'seed {seed}: {strategy} saw other task instances than '
-                               f"{first['strategy']}")
+            raise RuntimeError(f'seed {seed}: {name} saw other task instances than '
+                               f'{first_name}')
 
 
-def _aggregate(runs: dict[int, dict[str, dict]], strategies: Sequence[str]) -> dict:
+def _aggregate(runs: dict[int, dict[str, dict]], rows: dict[str, dict]) -> dict:
     result = {}
-    for strategy in strategies:
-        records = [runs[seed][strategy] for seed in runs]
+    for name, spec in rows.items():
+        records = [runs[seed][name] for seed in runs]
         row = {key: over_seeds([r[key] for r in records]) for key in METRICS
                if key != 'speedup'}
-        if 'scratch' in strategies:
-            row['speedup'] = over_seeds([runs[seed]['scratch']['late_rollouts'] /
-                                     runs[seed][strategy]['late_rollouts'] for seed in runs])
+        scratch = row_name('scratch', spec['skill_map'])
+        if scratch in rows:
+            row['speedup'] = over_seeds([runs[seed][scratch]['late_rollouts'] /
+                                         runs[seed][name]['late_rollouts'] for seed in runs])
         row['fulfilled_tasks'] = over_seeds([r['fulfilled_tasks'] for r in records])
-        result[strategy] = row
+        result[name] = row
     return result
 
 
@@ -210,10 +244,12 @@ def format_table(report: dict) -> str:
     late = f"tasks {s['after'] + 1}–{s['num_tasks']}"
     lines = [f"{s['task']}: {s['num_tasks']} training tasks, budget {s['budget']} rollouts "
              f"per task, readout {s['readout']}, seeds {' '.join(map(str, s['seeds']))}, "
-             f"{s['num_test']} held-out tasks per seed; mean ± SD over seeds", '',
-             f'| strategy | total rollouts | rollouts per task, {late} | scratch / strategy, '
-             f'{late} | zero-shot success | zero-shot reward | training wall time [s] |',
-             '|---|---|---|---|---|---|---|']
+             f"{s['num_test']} held-out tasks per seed; mean ± SD over seeds", '']
+    # the skill-map column only when a baseline ran (the skill memory's table stays as it was)
+    maps = s.get('skill_maps', ['elm']) != ['elm']
+    lines += [f"| strategy |{' skill map |' if maps else ''} total rollouts | rollouts per "
+              f'task, {late} | scratch / strategy, {late} | zero-shot success | zero-shot '
+              'reward | training wall time [s] |', '|---|' + '---|' * (6 + int(maps))]
 
     def cell(row, key, digits, factor=1.0, unit=''):
         if key not in row:
@@ -221,8 +257,10 @@ def format_table(report: dict) -> str:
         stat = row[key]
         return f"{factor * stat['mean']:.{digits}f} ± {factor * stat['sd']:.{digits}f}{unit}"
 
-    for strategy, row in report['strategies'].items():
-        lines.append(f"| {strategy} | {cell(row, 'total_rollouts', 1)} | "
+    for name, row in report['strategies'].items():
+        spec = report.get('rows', {}).get(name, {'strategy': name, 'skill_map': 'elm'})
+        label = f"{spec['strategy']} | {spec['skill_map']}" if maps else name
+        lines.append(f"| {label} | {cell(row, 'total_rollouts', 1)} | "
                      f"{cell(row, 'late_rollouts', 2)} | {cell(row, 'speedup', 1, unit='×')} | "
                      f"{cell(row, 'zero_shot_success', 0, 100.0, ' %')} | "
                      f"{cell(row, 'zero_shot_reward', 3)} | {cell(row, 'train_seconds', 1)} |")

@@ -87,3 +87,59 @@ def test_strategies_of_a_seed_saw_the_same_instances(bench_run):
 def test_bad_settings(override, tmp_path):
     with pytest.raises(ValueError):
         bench_learn.run(out=tmp_path, **{**TINY, **override})
+
+
+def test_baselines_in_the_skill_slot_get_their_own_folders_and_rows(bench_run):
+    """--skill-maps elm,library: a row per (strategy, map); the elm run is the default's
+    folder (reused), the library's is its own; every number from its metrics file."""
+    out, _ = bench_run
+    report = bench_learn.run(out=out, **{**TINY, 'strategies': ('scratch', 'bootstrap'),
+                                         'skill_maps': ('elm', 'library')})
+    names = ['scratch', 'scratch-library', 'bootstrap', 'bootstrap-library']
+    assert sorted(report['strategies']) == sorted(names)
+    assert report['rows']['bootstrap-library'] == {'strategy': 'bootstrap',
+                                                   'skill_map': 'library'}
+    for seed in SEEDS:
+        runs = report['runs'][str(seed)]
+        assert runs['bootstrap']['reused'] and not runs['bootstrap-library']['reused']
+        folder = bench_learn.run_folder(out, TASK, 'bootstrap', seed, None, 'library')
+        assert folder.name == f'{TASK}-bootstrap-library-seed{seed}'
+        metrics = json.loads((folder / 'metrics.json').read_text())
+        assert metrics['settings']['skill_map'] == 'library'
+        assert runs['bootstrap-library']['skill_map'] == 'library'
+        assert runs['bootstrap-library']['total_rollouts'] == sum(
+            t['rollouts'] for t in metrics['tasks'])
+        assert (runs['bootstrap-library']['zero_shot_success']
+                == metrics['summary']['zero_shot_success_rate'])
+        # scratch's searches never start from the skill: the same rollouts with either map
+        assert (runs['scratch-library']['rollouts_per_task']
+                == runs['scratch']['rollouts_per_task'])
+    row = report['strategies']['bootstrap-library']
+    assert row['total_rollouts']['values'] == [report['runs'][str(s)]['bootstrap-library'][
+        'total_rollouts'] for s in SEEDS]
+    assert 'speedup' in row                     # against scratch with the same map
+    table = bench_learn.format_table(report)
+    mean, sd = (row['total_rollouts'][k] for k in ('mean', 'sd'))
+    assert f'| bootstrap | library | {mean:.1f} ± {sd:.1f} |' in table
+    assert '| bootstrap | elm |' in table and '| skill map |' in table
+
+
+def test_runs_from_before_the_skill_map_option_are_reused(bench_run, tmp_path):
+    import shutil
+    out, _ = bench_run
+    old = tmp_path / 'old'
+    shutil.copytree(out, old)
+    for seed in SEEDS:
+        path = bench_learn.run_folder(old, TASK, 'bootstrap', seed, None) / 'metrics.json'
+        metrics = json.loads(path.read_text())
+        del metrics['settings']['skill_map']
+        path.write_text(json.dumps(metrics))
+    report = bench_learn.run(out=old, **{**TINY, 'strategies': ('bootstrap',)})
+    assert all(report['runs'][str(s)]['bootstrap']['reused'] for s in SEEDS)
+    assert '| skill map |' not in bench_learn.format_table(report)     # the table as it was
+
+
+@pytest.mark.parametrize('skill_maps', [(), ('magic',), ('elm', 'elm')])
+def test_bad_skill_maps(skill_maps, tmp_path):
+    with pytest.raises(ValueError, match='skill map'):
+        bench_learn.run(out=tmp_path, **{**TINY, 'skill_maps': skill_maps})

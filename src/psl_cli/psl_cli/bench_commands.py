@@ -92,6 +92,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sessions(p, seeds=5, tasks=30, test_tasks=20)
     p.add_argument('--readout', choices=READOUTS,
                    help="the skill's readout (default: the learner's)")
+    p.add_argument('--skill-maps', nargs='+', default=['elm'], metavar='MAP',
+                   help='what fills the skill slot, each a session per strategy and seed '
+                   '(space- or comma-separated): elm (the skill memory, the default) and the '
+                   'baselines library (k nearest solved instances) and gp (Gaussian-process '
+                   'regression)')
     options.add_out(p, RUN_FOLDERS)
     p = bench('dynamics', 'learned feed-forward on held-out payloads: tracking error of PD '
               'only, learned and the inverse-dynamics oracle', task='payload_transport')
@@ -183,6 +188,8 @@ def _learn(args) -> tuple[dict, str]:
     report = learn.run(task_name=args.task, strategies=args.strategies, seeds=args.seeds,
                        num_tasks=args.tasks, budget=args.budget, num_test=args.test_tasks,
                        after=args.after, out=_folder(args.out), readout=args.readout,
+                       skill_maps=[name for arg in args.skill_maps
+                                   for name in arg.split(',') if name],
                        progress=_progress)
     return report, learn.format_table(report)
 

@@ -250,8 +250,10 @@ def cmd_learn(args) -> int:
 
     try:
         task = load_task(args.task)
-        out = options.output_folder(args.out or
-                                    f'runs/{task.name}-{args.strategy}-seed{args.seed}')
+        _check_skill_map(args)
+        map_part = '' if args.skill_map == 'elm' else f'-{args.skill_map}'
+        out = options.output_folder(args.out or f'runs/{task.name}-{args.strategy}{map_part}'
+                                    f'-seed{args.seed}')
     except ValueError as exc:          # TaskError too
         return fail('psl learn', exc, 2)
     stop = threading.Event()
@@ -263,6 +265,19 @@ def cmd_learn(args) -> int:
     finally:
         progress.close()
         signal.signal(signal.SIGINT, previous)
+
+
+def _check_skill_map(args) -> None:
+    """--skill-map: elm, or a known baseline in batch mode (ValueError otherwise), checked
+    before the output folder is made."""
+    if args.skill_map == 'elm':
+        return
+    if args.mode == 'graph':
+        raise ValueError(f'--skill-map {args.skill_map}: graph mode learns with the skill '
+                         'memory (elm) only; the baselines run in batch mode')
+    from psl_optimizer.learning import SKILL_MAPS
+    if args.skill_map not in SKILL_MAPS:
+        raise ValueError(f'unknown skill map {args.skill_map!r}; known: {", ".join(SKILL_MAPS)}')
 
 
 def _print_summary(args, metrics, out: Path) -> None:
@@ -281,13 +296,14 @@ def _learn_in_process(args, task, out: Path, stop: threading.Event, progress) ->
     from psl_optimizer.learning import Learner, LearnSettings
     from psl_optimizer.policy_search import SearchSettings
 
-    # --budget 0 is the default budget, as max_rollouts_per_task = 0 in a learn_skill goal
-    settings = LearnSettings(strategy=args.strategy, num_tasks=args.tasks, seed=args.seed,
-                             num_test=args.test_tasks, task_selection=args.task_selection,
-                             search=SearchSettings(max_rollouts=args.budget
-                                                   or SearchSettings.max_rollouts),
-                             continue_from=args.continue_from or '')
     try:
+        # --budget 0 is the default budget, as max_rollouts_per_task = 0 in a learn_skill goal
+        settings = LearnSettings(strategy=args.strategy, num_tasks=args.tasks, seed=args.seed,
+                                 num_test=args.test_tasks, task_selection=args.task_selection,
+                                 search=SearchSettings(max_rollouts=args.budget
+                                                       or SearchSettings.max_rollouts),
+                                 continue_from=args.continue_from or '',
+                                 skill_map=args.skill_map)
         learner = Learner(task, settings, out)
 
         def finished(record) -> None:
@@ -363,14 +379,18 @@ def _learn_options(p: argparse.ArgumentParser) -> None:
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--test-tasks', type=options.positive_int, default=20,
                    help='held-out instances tested zero-shot at the end (default 20)')
-    options.add_out(p, 'output folder (default runs/TASK-STRATEGY-seedK); the same folder '
-                    'resumes the session')
+    options.add_out(p, 'output folder (default runs/TASK-STRATEGY[-MAP]-seedK); the same '
+                    'folder resumes the session')
     p.add_argument('--mode', choices=MODES, default=MODES[0],
                    help='batch: rollouts in this process with mujoco.rollout (fast); graph: '
                    "the running graph's learner node, rollouts through execute_rollout")
     p.add_argument('--task-selection', choices=TASK_SELECTIONS, default=TASK_SELECTIONS[0],
                    help='next instance: random, or the most uncertain of 20 candidates '
                    "(the skill's predictive variance)")
+    p.add_argument('--skill-map', default='elm', metavar='MAP',
+                   help='the skill slot (batch mode): elm, the skill memory (default), or a '
+                   'baseline in its place: library (k nearest solved instances, '
+                   'inverse-distance weighted) or gp (Gaussian-process regression)')
     p.add_argument('--continue-from', metavar='FILE',
                    help='start from the skill this memory file holds instead of an empty one '
                    "(graph mode: a file of the memory node's memory folder); a resumed session "

@@ -34,3 +34,18 @@ def test_the_rollout_bench_prints_its_ratio(capsys):
     assert main(['bench', 'rollout', '--population', '4', '--repeats', '1']) == 0
     out = capsys.readouterr().out
     assert 'raw mujoco.rollout' in out and 'ratio' in out
+
+
+def test_learn_runs_the_baselines_named_by_skill_maps(tmp_path, capsys):
+    argv = ['bench', 'learn', '--strategies', 'bootstrap', '--seeds', '0', '--tasks', '2',
+            '--budget', '20', '--test-tasks', '2', '--after', '1', '--out', str(tmp_path),
+            '--skill-maps', 'elm,library', 'gp']
+    assert main(argv + ['--json']) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report['settings']['skill_maps'] == ['elm', 'library', 'gp']
+    assert list(report['strategies']) == ['bootstrap', 'bootstrap-library', 'bootstrap-gp']
+    assert main(argv) == 0                              # reused, printed as a table
+    out = capsys.readouterr().out
+    assert '| bootstrap | gp |' in out and '| bootstrap | library |' in out
+    assert main(argv[:-2] + ['magic']) == 2
+    assert 'unknown skill maps' in capsys.readouterr().err

@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import tempfile
 import time
 from pathlib import Path
 from typing import Callable
@@ -30,9 +31,11 @@ import numpy as np
 
 from psl_controller.pd_law import law_for
 from psl_controller.policy import policy_for
+from psl_memory.gaussian_process_map import GaussianProcessMap
+from psl_memory.nearest_neighbour_library import NearestNeighbourLibrary
 from psl_memory.parameterized_skill import scaler_around
 from psl_memory.skill_config import SkillConfig
-from psl_memory.skill_memory import SkillMemory
+from psl_memory.skill_memory import MAX_FILE_BYTES, SkillMemory
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.ilc import ILCSettings, ilc_search
 from psl_optimizer.inverse_dynamics import oracle_theta
@@ -44,6 +47,20 @@ from psl_optimizer.task_selection import (TASK_SELECTIONS, held_out_tasks, most_
 from psl_sim.task import TaskDefinition
 
 FEEDFORWARD_SCALE = 0.5          # theta_D's CMA-ES unit: this share of the joint's torque limit
+GOAL_SCALE = {'joint': 0.3,      # a learned goal's CMA-ES unit: rad (joint space) ...
+              'end_effector': 0.1}    # ... or m (end-effector space)
+# with a learned goal the goal carries where to go and the weights only shape the way: their
+# CMA-ES unit shrinks to this share of the common spread (docs/benchmarks.md, psl bench learn
+# on planar_10dof_reach: with the full spread bootstrap needed 75 rollouts per late task, 2
+# with this share)
+GOAL_WEIGHT_SHARE = 0.3
+
+# the baselines that can take the skill memory's place in the skill slot (batch mode), by the
+# name `LearnSettings.skill_map` gives them: each is built from the task's tau ranges and the
+# default theta, and is a function of its samples (docs/benchmarks.md, psl bench learn)
+BASELINE_MAPS = {cls.name: cls for cls in (NearestNeighbourLibrary, GaussianProcessMap)}
+SKILL_MAPS = ('elm', *BASELINE_MAPS)     # 'elm': the skill memory (`LearnSettings.skill`)
+BASELINE_FORMAT = 'psl-baseline-samples'     # the memory file of a baseline's session
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,6 +83,11 @@ class LearnSettings:
     # node's memory_dir); resuming from the session's own checkpoint does not look at it
     continue_from: str = ''
     selection_candidates: int = 20
+    # the tau -> theta map in the skill slot (`in_process_skill`): 'elm', the skill memory of
+    # `skill`; or a baseline of BASELINE_MAPS, 'library' (the k nearest solved instances,
+    # inverse-distance weighted) or 'gp' (Gaussian-process regression). Baselines: batch mode,
+    # no continue_from
+    skill_map: str = 'elm'
 
     def __post_init__(self):
         if self.num_tasks < 1 or self.num_test < 1:
@@ -76,6 +98,16 @@ class LearnSettings:
                              f'{", ".join(TASK_SELECTIONS)}')
         if self.selection_candidates < 1:
             raise ValueError('selection_candidates must be at least 1')
+        if self.skill_map not in SKILL_MAPS:
+            raise ValueError(f'unknown skill map {self.skill_map!r}; known: '
+                             f'{", ".join(SKILL_MAPS)}')
+        if self.skill_map != 'elm' and self.continue_from:
+            raise ValueError(f'continue_from needs the elm skill map; the {self.skill_map!r} '
+                             'baseline starts empty')
+        if (self.task_selection == 'variance' and self.skill_map != 'elm'
+                and not BASELINE_MAPS[self.skill_map].has_variance):
+            raise ValueError(f'task selection by variance needs a predictive variance, which '
+                             f'the {self.skill_map!r} skill map does not have')
 
 
 class InProcessSkill:
@@ -112,18 +144,124 @@ class InProcessSkill:
         self.memory.save(path)
 
 
+class InProcessBaseline:
+    """A baseline tau -> theta map of `BASELINE_MAPS` in the skill slot, in this process.
+
+    Its state is its samples: the memory file (an npz of the format `BASELINE_FORMAT` with
+    the map's and the task's name, taus (N, E) and thetas (N, F)) holds them, written
+    atomically, and `restore` rebuilds the map from them (the same map: each is a function of
+    its samples in their order).
+    """
+
+    def __init__(self, task: TaskDefinition, skill_map: str, default_theta: np.ndarray):
+        if skill_map not in BASELINE_MAPS:
+            raise ValueError(f'unknown baseline {skill_map!r}; known: '
+                             f'{", ".join(BASELINE_MAPS)}')
+        self.task, self.skill_map = task, skill_map
+        self.default_theta = np.asarray(default_theta, dtype=float)
+        self.start('')
+
+    def _empty(self):
+        return BASELINE_MAPS[self.skill_map](self.task.tau_low, self.task.tau_high,
+                                             self.default_theta)
+
+    def start(self, continue_from: str) -> None:
+        """A new session: an empty map (a baseline cannot continue from a memory file)."""
+        if continue_from:
+            raise ValueError(f'continue_from needs the elm skill map; the {self.skill_map!r} '
+                             'baseline starts empty')
+        self.map = self._empty()
+
+    def restore(self, path: Path) -> None:
+        """A resumed session: the map rebuilt from the samples of its checkpoint's file.
+
+        Raises:
+            ValueError: the file is missing, too big, not a baseline's samples file, or of
+                another map, task or size (another session's folder).
+        """
+        path = Path(path)
+        if path.is_symlink() or not path.is_file():
+            raise ValueError(f'{path}: no memory file to resume from (not a regular file)')
+        if path.stat().st_size > MAX_FILE_BYTES:
+            raise ValueError(f'{path}: more than {MAX_FILE_BYTES} bytes; not read')
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {key: data[key] for key in data.files}
+        except Exception as exc:  # noqa: BLE001 - numpy/zipfile raise many kinds
+            raise ValueError(f'{path}: not readable as an npz file ({exc})') from exc
+        kind = (str(arrays['format']) if 'format' in arrays else
+                'an elm skill memory' if '__meta__' in arrays else 'no known format')
+        if kind != BASELINE_FORMAT:
+            raise ValueError(f'{path}: holds {kind}, not the samples of a baseline skill map '
+                             f'({self.skill_map!r}): the folder holds another session')
+        found = (str(arrays.get('skill_map')), str(arrays.get('task')))
+        if found != (self.skill_map, self.task.name):
+            raise ValueError(f'{path}: samples of skill map {found[0]!r} on task {found[1]!r}, '
+                             f'not {self.skill_map!r} on {self.task.name!r}')
+        fresh = self._empty()
+        taus, thetas = arrays.get('taus'), arrays.get('thetas')
+        if (taus is None or thetas is None or taus.ndim != 2 or thetas.ndim != 2
+                or taus.shape[1] != fresh.tau_dim or thetas.shape[1] != fresh.theta_dim):
+            raise ValueError(f'{path}: taus and thetas missing or not of this task\'s sizes')
+        if len(taus):
+            fresh.extend(taus, thetas)       # ValueError: other counts, NaN or inf
+        self.map = fresh
+
+    def query(self, tau: np.ndarray) -> np.ndarray:
+        return self.map.query(tau)
+
+    def variance(self, tau: np.ndarray) -> np.ndarray | None:
+        """Predictive variance per theta dimension (None: the map has none)."""
+        return self.map.variance(tau)
+
+    def add(self, tau: np.ndarray, theta: np.ndarray) -> None:
+        self.map.add(tau, theta)
+
+    def save(self, path: Path) -> None:
+        """Write the samples atomically (temporary file in the same folder + rename)."""
+        path = Path(path)
+        fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.tmp', dir=path.parent)
+        try:
+            with os.fdopen(fd, 'wb') as f:
+                np.savez(f, format=np.array(BASELINE_FORMAT), skill_map=np.array(self.skill_map),
+                         task=np.array(self.task.name), taus=self.map.taus,
+                         thetas=self.map.thetas)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+
+
+def in_process_skill(task: TaskDefinition, settings: LearnSettings,
+                     default_theta: np.ndarray) -> InProcessSkill | InProcessBaseline:
+    """The skill slot of batch mode for `settings.skill_map`: the skill memory
+    (`InProcessSkill` with `settings.skill`) or a baseline (`InProcessBaseline`): the
+    `Learner`'s default skill."""
+    if settings.skill_map == 'elm':
+        return InProcessSkill(task, settings.skill, default_theta)
+    return InProcessBaseline(task, settings.skill_map, default_theta)
+
+
 def search_normalisation(task: TaskDefinition, default_theta: np.ndarray
                          ) -> tuple[np.ndarray, np.ndarray]:
     """CMA-ES coordinates theta = centre + scale * z: around the default theta with the
     skill's common spread (`scaler_around`); for a task with feed-forward the theta_D block
     gets its own scale, a share (`FEEDFORWARD_SCALE`) of each joint's torque limit, since
-    torques and DMP weights differ in units and size by orders of magnitude."""
+    torques and DMP weights differ in units and size by orders of magnitude; a learned goal
+    (``policy.learn_goal``) is centred on its default with a scale in its own units
+    (`GOAL_SCALE`: rad or m), and the weights' scale shrinks to `GOAL_WEIGHT_SHARE`."""
     policy = policy_for(task)
     default_theta = np.asarray(default_theta, dtype=float)
     scaler = scaler_around(default_theta[policy.kinematics])
     centre, scale = default_theta.copy(), np.empty(default_theta.shape)
     centre[policy.kinematics] = 0.5 * (scaler.high + scaler.low)
     scale[policy.kinematics] = 0.5 * (scaler.high - scaler.low)
+    if task.policy.learn_goal:
+        scale[policy.kinematics] *= GOAL_WEIGHT_SHARE
+        centre[policy.goal] = default_theta[policy.goal]
+        scale[policy.goal] = GOAL_SCALE[task.policy.space]
     if policy.has_feedforward:
         law = law_for(task)
         limit = np.maximum(np.abs(law.torque_low), np.abs(law.torque_high))   # (n_joints,)
@@ -148,7 +286,7 @@ class Learner:
         self.policy = policy_for(task)
         self.default_theta = self.policy.default_theta
         self.rollouts = rollouts or BatchRollouts(task)
-        self.skill = skill or InProcessSkill(task, settings.skill, self.default_theta)
+        self.skill = skill or in_process_skill(task, settings, self.default_theta)
         self.done: list[TaskRecord] = []    # finished tasks (from the checkpoint, then run)
 
     # -- checkpoints --------------------------------------------------------------------------
