@@ -7,7 +7,13 @@ and projected onto the feed-forward basis, a share ``gain`` of it is added to th
 
     theta_D <- theta_D + gain * fit(u_fb(t + lead))
 
-One rollout per iteration; the commanded path (theta_K) is left as it is. It stops at the first
+A task whose DMP runs over the hand position with a learned goal point (``policy.space:
+end_effector``, ``learn_goal``) and has a target also gets the goal corrected by the hand's
+measured miss at the end of the rollout (the same iteration in task space)::
+
+    g <- g - goal_gain * (x_hand(T) - x_target)
+
+Otherwise the commanded path (theta_K) is left as it is. It stops at the first
 rollout that fulfils the task instance, when the budget is spent, or after ``patience``
 iterations in a row without a better reward. It needs the applied torque of each rollout: it
 asks the results (`RolloutResult.has_trajectory`) and ends after the first rollout whose
@@ -29,15 +35,16 @@ from psl_optimizer.rollouts import RolloutResult, Rollouts
 class ILCSettings:
     iterations: int = 30           # rollouts at most
     gain: float = 0.5              # share of the projected feedback torque added per iteration
+    goal_gain: float = 1.0         # share of the hand's final miss taken off a learned goal point
     lead: float = 0.1              # s, how far ahead the feedback torque is taken
     patience: int = 10             # iterations in a row without a better reward before stopping
 
     def __post_init__(self):
         if self.iterations < 0 or self.patience < 1:
             raise ValueError('iterations must be >= 0 and patience >= 1')
-        if not 0.0 < self.gain <= 1.0 or self.lead < 0.0:
-            raise ValueError(f'gain must be in (0, 1] and lead >= 0, got {self.gain}, '
-                             f'{self.lead}')
+        if not 0.0 < self.gain <= 1.0 or self.lead < 0.0 or not 0.0 <= self.goal_gain <= 1.0:
+            raise ValueError(f'gain must be in (0, 1], goal_gain in [0, 1] and lead >= 0, got '
+                             f'{self.gain}, {self.goal_gain}, {self.lead}')
 
 
 def feedback_torque(result: RolloutResult) -> np.ndarray:
@@ -59,7 +66,17 @@ def ilc_step(policy: TaskPolicy, theta: np.ndarray, result: RolloutResult,
                                                    axis=0)])[:len(feedback)]
     t = np.arange(len(feedback)) * dt
     update = policy.feedforward_for(tau).fit(t, ahead)
-    return policy.with_feedforward(theta, theta[policy.dynamics] + settings.gain * update)
+    theta = policy.with_feedforward(theta, theta[policy.dynamics] + settings.gain * update)
+    if corrects_goal(policy):
+        miss = policy.ik.forward(result.q[-1]) - policy.task.target_of(tau)[0]
+        theta[policy.goal] -= settings.goal_gain * miss
+    return theta
+
+
+def corrects_goal(policy: TaskPolicy) -> bool:
+    """True when ILC also corrects the goal: a learned hand goal point and a target."""
+    return (policy.ik is not None and policy.task.policy.learn_goal
+            and policy.task.target is not None)
 
 
 def ilc_search(rollouts: Rollouts, tau: np.ndarray, start: np.ndarray,

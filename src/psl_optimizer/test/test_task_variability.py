@@ -252,3 +252,44 @@ def test_an_unreachable_goal_point_is_penalised_not_nan(hand_space_task):
     assert result.evaluation.components['goal_error'] == pytest.approx(
         np.linalg.norm(hand[:2] - hand_space_task.tau_default), abs=1e-6)
     assert not result.evaluation.fulfilled
+
+
+# -- ILC of a learned hand goal -------------------------------------------------------------
+def hand_by_mujoco(task, q):
+    """The palm position at joint angles q, by MuJoCo's own forward kinematics."""
+    import mujoco
+    from psl_sim.arm_model import ArmModel
+    arm = ArmModel(task)
+    arm.data.qpos[arm.qpos_adr] = q
+    mujoco.mj_forward(arm.model, arm.data)
+    return arm.data.site_xpos[arm.ee_site].copy()
+
+
+def test_an_ilc_step_takes_the_hands_miss_off_the_goal_point():
+    from psl_optimizer.ilc import ILCSettings, ilc_step
+    task = load_task('point_reach_3d')
+    batch = BatchRollouts(task, n_threads=1)
+    policy = batch.policy
+    tau = np.array([0.37, 0.1, -0.02])
+    theta = policy.default_theta
+    result = batch.run(theta[None], tau)[0]
+    miss = hand_by_mujoco(task, result.q[-1]) - tau
+    assert np.linalg.norm(miss) > 0.05                    # the default goal is far from it
+    stepped = ilc_step(policy, theta, result, ILCSettings(goal_gain=0.5), tau)
+    np.testing.assert_allclose(stepped[policy.goal], theta[policy.goal] - 0.5 * miss, atol=1e-12)
+    assert np.any(stepped[policy.dynamics] != theta[policy.dynamics])   # theta_D learned too
+
+
+def test_ilc_reaches_a_new_target_in_a_few_rollouts():
+    """From the default theta, ILC alone (goal point and feed-forward) fulfils an instance the
+    default misses by centimetres."""
+    from psl_optimizer.ilc import ILCSettings, ilc_search
+    task = load_task('point_reach_3d')
+    batch = BatchRollouts(task, n_threads=1)
+    tau = np.array([0.48, -0.1, -0.18])
+    start = batch.run(batch.policy.default_theta[None], tau)[0]
+    assert not start.evaluation.fulfilled
+    found = ilc_search(batch, tau, batch.policy.default_theta, ILCSettings(iterations=10))
+    assert found.fulfilled and found.rollouts <= 5
+    final = batch.run(found.theta[None], tau)[0]
+    assert np.linalg.norm(hand_by_mujoco(task, final.q[-1]) - tau) < 0.015
