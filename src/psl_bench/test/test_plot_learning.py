@@ -217,3 +217,16 @@ def test_psl_plot_command(runs, tmp_path):
     failed = psl_plot(first, tmp_path / 'missing')
     assert failed.returncode == 2
     assert 'psl plot:' in failed.stderr and str(tmp_path / 'missing') in failed.stderr
+
+
+@pytest.mark.parametrize('name', ['point_reach_3d', 'payload_transport_timed'])
+def test_the_task_variability_tasks_plot(name, tmp_path):
+    """A target in 3-D (tau[2:] not drawn) and a duration beside a mass, learned for real."""
+    target_task = load_task(name)
+    out = tmp_path / 'run'
+    Learner(target_task, settings('bootstrap', 0, num_tasks=4, skill=BAYES), out).run()
+    skill = SkillMemory.read(out / 'memory.npz').get(target_task.name)
+    grid = variance_grid(skill, GRID)
+    assert len(grid.axes) == 2 and grid.values.shape == (GRID, GRID)
+    assert np.all(grid.values > 0)
+    assert_png(plot_runs([out], out / 'learning.png', grid_points=GRID))
