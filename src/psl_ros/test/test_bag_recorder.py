@@ -42,8 +42,12 @@ EXPECTED_TYPES = {'/joint_states': 'sensor_msgs/msg/JointState',
 
 
 def _private_domain(monkeypatch) -> None:
-    """A domain of this test process only (set before rclpy.init), discovery on this machine."""
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(100 + os.getpid() % 100))
+    """A domain of this test process only (set before rclpy.init), discovery on this machine:
+    the session's domain shifted by 101 (of 233), so never the session's own, whatever
+    PSL_TEST_DOMAIN_ID chose (a run with 154 once met its own graph's topics at 100 + pid %
+    100 = 154)."""
+    session = int(os.environ.get('ROS_DOMAIN_ID', str(1 + os.getpid() % 100)))
+    monkeypatch.setenv('ROS_DOMAIN_ID', str((session + 101) % 233))
     monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 
