@@ -109,6 +109,10 @@ def _up_options(p: argparse.ArgumentParser) -> None:
 def format_evaluation(ev: dict) -> str:
     lines = [f"reward {ev['reward']:.4f}  fulfilled {ev['fulfilled']}  "
              f"steps {ev['num_steps']}  tracking error {ev['tracking_error']:.4f} rad"]
+    goal = ' '.join(f'{x:.4f}' for x in ev['goal_position'])
+    changed = ev['goal_change_time']
+    lines.append(f'  goal at [{goal}] m' + ('' if changed is None
+                                            else f', changed at {changed:g} s'))
     lines += [f'  {name:15s} {value:.6g}' for name, value in ev['components'].items()]
     return '\n'.join(lines)
 
@@ -124,12 +128,20 @@ def cmd_rollout(args) -> int:
         tau = task.tau_default if args.tau is None else task.validate_tau(args.tau)
         theta = (policy_for(task).default_theta if args.theta_file is None
                  else load_vector(args.theta_file))
+        if (args.new_goal is None) != (args.new_goal_at is None):
+            raise ValueError('--new-goal and --new-goal-at go together')
+        if args.new_goal is not None:      # refused here as the executor would refuse it
+            policy_for(task).reference_with_new_goal(theta, tau, args.new_goal_at,
+                                                     args.new_goal)
     except ValueError as exc:          # TaskError too
         return fail('psl rollout', exc, 2)
     with RosClient(args.namespace) as client:
         try:
             # by name, or by absolute path: the graph's processes have their own working dir
-            result = client.rollout(task_id(task), tau, theta, timeout=args.timeout)
+            result = client.rollout(task_id(task), tau, theta, timeout=args.timeout,
+                                    new_goal=args.new_goal,
+                                    new_goal_time=(-1.0 if args.new_goal_at is None
+                                                   else args.new_goal_at))
         except (TimeoutError, RuntimeError) as exc:
             return fail('psl rollout', exc, 1)
     if not result.success:
@@ -143,6 +155,13 @@ def _rollout_options(p: argparse.ArgumentParser) -> None:
     options.add_task(p)
     options.add_tau(p)
     options.add_theta_file(p)
+    p.add_argument('--new-goal-at', type=float, metavar='T',
+                   help='with --new-goal: the goal starts moving T s after the episode start '
+                   '(the first control period at or after T)')
+    p.add_argument('--new-goal', type=float, nargs='+', metavar='V',
+                   help="the DMP's new goal: one joint angle [rad] per joint, or the hand "
+                   'point x y z [m] of an end-effector-space task; the evaluation scores '
+                   'against it')
     options.add_graph(p, timeout=120.0, waits_for='the rollout worker and its result')
     p.add_argument('--json', action='store_true', help='the evaluation as JSON')
 

@@ -12,6 +12,10 @@ zero-order-hold discretisation from the matrix exponential. Because the system i
 integrated positions are affine in theta, ``y = y_free + G theta``; ``G`` depends only on
 (dt, number of steps) and is cached, so :meth:`DMP.integrate` is a few small matrix products.
 
+A goal may change during the motion (:meth:`DMP.integrate_goal_change`): from the switch on,
+the attractor follows a first-order goal filter toward the new goal (Ijspeert et al. 2013), an
+input of the same linear system, so the path stays continuous up to its acceleration.
+
 The ungated basis on the phase, ``basis.activations(canonical.phase(t))``, is exposed through
 the ``canonical`` and ``basis`` properties so that a feed-forward torque signal can later be
 encoded on the same basis. Pure numpy/scipy; no ROS.
@@ -29,6 +33,7 @@ from psl_controller.canonical_system import CanonicalSystem
 # Named slices of the per-dimension state [y, yd] of the transformation system.
 POS = 0
 VEL = 1
+_GOAL = 2  # the moving goal, in the state [y, yd, g] of a goal change
 
 _MAX_CACHE_ENTRIES = 8
 
@@ -80,6 +85,11 @@ class DMP:
             ``tau_s^2 ydd = k_s (g - y) - k_d tau_s yd + f``; the same theta then gives the
             same path ``tau_s`` times slower. A DMP of duration T0 stretched to duration T
             has ``duration=T, time_scale=T / T0``.
+        alpha_goal: rate [1/s] of the goal filter of a goal change (> 0; Ijspeert et al.'s
+            alpha_g): ``tau_s gdot = alpha_goal (g_new - g)`` from the switch on (see
+            :meth:`integrate_goal_change`). The default 10/s brings g within 1 % of g_new in
+            0.46 s, slower than the transformation system (sqrt(k_s) = 20/s by default), so the
+            filter, not the spring, sets how gently the path turns to the new goal.
 
     Raises:
         ValueError: invalid sizes, gains or canonical kind.
@@ -88,7 +98,7 @@ class DMP:
     def __init__(self, n_dims: int, n_basis: int, duration: float, y0, goal,
                  k_s: float = 400.0, k_d: float | None = None,
                  canonical: str = 'linear', learn_goal: bool = False,
-                 time_scale: float = 1.0) -> None:
+                 time_scale: float = 1.0, alpha_goal: float = 10.0) -> None:
         if isinstance(n_dims, bool) or int(n_dims) != n_dims or n_dims < 1:
             raise ValueError(f'n_dims must be an integer >= 1, got {n_dims!r}')
         if k_d is None:
@@ -99,11 +109,14 @@ class DMP:
             raise ValueError(f'k_d must be finite and >= 0, got {k_d!r}')
         if not (np.isfinite(time_scale) and time_scale > 0.0):
             raise ValueError(f'time_scale must be finite and > 0, got {time_scale!r}')
+        if not (np.isfinite(alpha_goal) and alpha_goal > 0.0):
+            raise ValueError(f'alpha_goal must be finite and > 0, got {alpha_goal!r}')
         self._n_dims = int(n_dims)
         self._k_s = float(k_s)
         self._k_d = float(k_d)
         self._learn_goal = bool(learn_goal)
         self._time_scale = float(time_scale)
+        self._alpha_goal = float(alpha_goal)
         self._canonical = CanonicalSystem(duration, kind=canonical)
         self._basis = NormalizedGaussianBasis(n_basis)
         # Transformation system in error coordinates e = [y - g, yd]: edot = A e + B f, the
@@ -153,6 +166,10 @@ class DMP:
     @property
     def time_scale(self) -> float:
         return self._time_scale
+
+    @property
+    def alpha_goal(self) -> float:
+        return self._alpha_goal
 
     @property
     def num_weights(self) -> int:
@@ -247,6 +264,62 @@ class DMP:
                + self._b[VEL] * (grid.forcing_basis @ theta_t))  # (N+1, n_dims)
         return DMPTrajectory(t=grid.t.copy(), y=y, yd=yd, ydd=ydd)
 
+    def integrate_goal_change(self, dt: float, t_switch: float, new_goal,
+                              t_end: float | None = None) -> DMPTrajectory:
+        """`integrate` with the goal moving smoothly to ``new_goal`` from ``t_switch`` on.
+
+        From the switch time ``t_s = k_s dt``, the first grid time at or after ``t_switch``, the
+        attractor of eq. 2.23 is no longer constant but the output of a first-order goal
+        filter (Ijspeert et al. 2013, the goal change of a DMP; dmpbbo's delayed goal)::
+
+            tau_s^2 ydd = k_s (g - y) - k_d tau_s yd + f,    tau_s gdot = alpha_goal (g_new - g),
+            g(t_s) = goal
+
+        so g is continuous, and with it y, yd and ydd (only the jerk changes at t_s). The goal
+        is one more input of the same linear system; since the system is linear, the path is
+        the unchanged path plus ``(g_new - goal) r(t - t_s)``, where r is the response of
+        ``[y, yd, g]`` to a unit step of the filter's target from rest, discretised exactly
+        (matrix exponential; the target is constant, the forcing is held as in `integrate`).
+        Up to and including ``t_s`` the result is bit for bit that of `integrate`.
+
+        Args:
+            dt: step in seconds (> 0).
+            t_switch: when the goal starts moving, seconds from the start, in [0, t_end].
+            new_goal: the goal the attractor moves to, shape (n_dims,).
+            t_end: end time in seconds (>= 0); default ``duration``.
+
+        Returns:
+            The trajectory on the grid of `integrate` (its ``ydd`` uses the moving goal).
+
+        Raises:
+            ValueError: a new goal of the wrong shape or not finite, a switch time that is not
+            finite or outside [0, t_end], or the errors of `integrate`.
+
+        References
+        ----------
+        Ijspeert, A. J., Nakanishi, J., Hoffmann, H., Pastor, P., Schaal, S. (2013). Dynamical
+        movement primitives: learning attractor models for motor behaviors. Neural
+        Computation 25(2), 328-373. doi:10.1162/NECO_a_00393
+        """
+        new_goal = _as_vector(new_goal, self._n_dims, 'new_goal')
+        base = self.integrate(dt, t_end)
+        n_steps = len(base.t) - 1
+        if not (np.isfinite(t_switch) and 0.0 <= t_switch <= n_steps * dt * (1.0 + 1e-12)):
+            raise ValueError(f't_switch must lie in [0, {n_steps * dt:g}] s (the integrated '
+                             f'span), got {t_switch!r}')
+        k_s = min(n_steps, int(np.ceil(t_switch / dt - 1e-9)))
+        response = self._goal_step_response(dt, n_steps - k_s)  # (N+1-k_s, 3)
+        change = new_goal - self._goal  # (n_dims,)
+        # [y, yd, ydd] of the unit response; its g column only enters ydd
+        r_acc = (self._ks_eff * (response[:, _GOAL] - response[:, POS])
+                 - self._kd_eff * response[:, VEL])
+        y, yd, ydd = base.y.copy(), base.yd.copy(), base.ydd.copy()
+        after = slice(k_s + 1, None)  # rows up to t_s stay as integrated
+        y[after] += response[1:, POS, None] * change
+        yd[after] += response[1:, VEL, None] * change
+        ydd[after] += r_acc[1:, None] * change
+        return DMPTrajectory(t=base.t, y=y, yd=yd, ydd=ydd)
+
     def fit(self, t: np.ndarray, y: np.ndarray, dt: float,
             regularization: float = 1e-9) -> 'DMP':
         """Fit theta to a demonstration so that ``integrate(dt)`` reproduces its positions.
@@ -317,6 +390,25 @@ class DMP:
                 self._cache.pop(next(iter(self._cache)))
             self._cache[key] = self._compute_grid_response(*key)
         return self._cache[key]
+
+    def _goal_step_response(self, dt: float, n_steps: int) -> np.ndarray:
+        """[y, yd, g] (n_steps+1, 3) on the grid k dt of the transformation system with the
+        goal filter, from rest (y = yd = g = 0) after a unit step of the filter's target:
+        ``sdot = A_g s + b_g`` with ``A_g = [[0, 1, 0], [-k_s, -k_d, k_s], [0, 0, -a_g]]`` and
+        ``b_g = [0, 0, a_g]`` (time-scaled gains, ``a_g = alpha_goal / tau_s``), advanced with
+        the exact discretisation ``expm([[A_g, b_g], [0, 0]] dt)``."""
+        a_g = self._alpha_goal / self._time_scale
+        augmented = np.zeros((4, 4))
+        augmented[:2, :2] = self._a
+        augmented[VEL, _GOAL] = self._ks_eff
+        augmented[_GOAL, _GOAL] = -a_g
+        augmented[_GOAL, 3] = a_g
+        discrete = expm(augmented * dt)
+        a_d, b_d = discrete[:3, :3], discrete[:3, 3]  # (3, 3), (3,)
+        state = np.zeros((n_steps + 1, 3))
+        for n in range(n_steps):
+            state[n + 1] = a_d @ state[n] + b_d
+        return state
 
     def _compute_grid_response(self, dt: float, n_steps: int) -> _GridResponse:
         # Zero-order hold: expm([[A, B], [0, 0]] dt) = [[Ad, Bd], [0, 1]].

@@ -5,9 +5,35 @@ commanded trajectory to the controller (``joint_trajectory``, stamped zero = "st
 next state"), start an episode of the task instance with the simulator's ``sim/reset``
 service, then wait for the reward evaluator's ``rollout_evaluation`` of that episode and
 return it. Rollouts run one at a time; a bad goal gets ``success=false`` and a message.
+
+Goal changes (`TaskPolicy.reference_with_new_goal`: the DMP's attractor moves smoothly to a new
+goal from a switch time on):
+
+- known before the start (the action goal's ``new_goal``, ``new_goal_time``): the reference is
+  computed with the change, and the change is announced to the evaluator before the reset
+  (service ``reward_evaluator/goal_change``, psl_msgs/GoalChange stamped zero = the next
+  episode), so the episode is scored against the new goal. Deterministic: the same as a batch
+  recomputation.
+- live (psl_msgs/GoalUpdate on ``goal_update`` while a rollout runs): the switch is moved to
+  ``max(time_from_start, the episode's step + a lead)``. The step is bounded from the
+  simulator's progress reports on /diagnostics (steps done, steps per second) and the wall
+  time since, at `RATE_MARGIN` times the measured rate; the lead covers `LOAD_FACTOR` times
+  the wall time this rollout's first trajectory took to compute, build and publish (in
+  lockstep, where the loop runs faster than real time on every core, the change comes a
+  second or more after the request). The executor announces the change (stamped with the
+  episode, with the changed trajectory's last point) to the evaluator and has its answer,
+  checks that the episode is still short of the switch, and sends the
+  controller the trajectory with the part from the switch on replaced, stamped with the
+  episode's start: the controller takes it from its next state on, and refuses it if it would
+  leave the reference already served; the evaluator then sees that the controller's last
+  reference is not the announced one and keeps the episode's goal, so the evaluation always
+  agrees with what was executed. One goal change per rollout; an update that comes too late,
+  names another episode or holds a bad goal changes nothing, and the result message says why.
 """
 from __future__ import annotations
 
+import dataclasses
+import math
 import threading
 import time
 
@@ -20,17 +46,25 @@ from rclpy.node import Node
 from diagnostic_msgs.msg import DiagnosticArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from psl_controller.policy import Reference, policy_for
+from psl_controller.policy import Reference, TaskPolicy, policy_for
 from psl_msgs.action import ExecuteRollout
-from psl_msgs.msg import RolloutEvaluation
-from psl_msgs.srv import ResetTask
+from psl_msgs.msg import GoalUpdate, RolloutEvaluation
+from psl_msgs.srv import GoalChange, ResetTask
 from psl_ros import names
 from psl_ros.futures import wait_for
 from psl_ros.node_main import run_node
 from psl_ros.qos import RELIABLE, SERVICES
-from psl_ros.stamps import duration_msg, to_ns
+from psl_ros.stamps import duration_msg, time_msg, to_ns
 from psl_sim.arm_model import joint_names_of
-from psl_sim.task import TaskError, load_task
+from psl_sim.task import TaskDefinition, TaskError, load_task
+
+LEAD_STEPS = 5          # control periods of lead at the least
+RATE_MARGIN = 1.5       # the loop may run this many times faster than last measured
+LOAD_FACTOR = 3.0       # computing and publishing a trajectory during an episode (the loop
+                        # busy on every core) may take this many times longer than before it
+LIVE_ATTEMPTS = 4       # switch times tried, each later, before a live change gives up
+DEFAULT_RATE = 5000.0   # steps/s assumed before the simulator has reported any
+ACK_TIMEOUT = 5.0       # s for a subscriber or service to appear, a message to be acknowledged
 
 
 def trajectory_msg(joint_names: list[str], ref: Reference) -> JointTrajectory:
@@ -42,6 +76,32 @@ def trajectory_msg(joint_names: list[str], ref: Reference) -> JointTrajectory:
             positions=ref.q[k].tolist(), velocities=ref.qd[k].tolist(),
             effort=ref.u_ffwd[k].tolist(), time_from_start=duration_msg(k * dt_ns)))
     return msg
+
+
+@dataclasses.dataclass
+class _Rollout:
+    """The rollout that runs, as far as a live goal change needs it."""
+
+    goal: ExecuteRollout.Goal
+    task: TaskDefinition
+    policy: TaskPolicy
+    joint_names: list[str]
+    reference: Reference            # what the controller tracks
+    prepare_cost: float = 0.0       # [s] wall time to compute, build and publish the first one
+    publish_cost: float = 0.0       # [s] ... of which to publish it
+    reset_sent: float = 0.0         # monotonic time of the reset request
+    t0: int | None = None           # the episode's first state [ns], once the reset answered
+    num_steps: int = 0
+    change_time: float | None = None    # [s] the goal change made, if any
+    pending: GoalUpdate | None = None   # a live update that came before the reset answered
+    notes: list[str] = dataclasses.field(default_factory=list)   # for the result message
+
+
+def splice(old: Reference, new: Reference, k: int) -> Reference:
+    """old's points before index k, new's from k on."""
+    return Reference(*(np.concatenate([a[:k], b[k:]])
+                       for a, b in zip((old.t, old.q, old.qd, old.u_ffwd),
+                                       (new.t, new.q, new.qd, new.u_ffwd))))
 
 
 class DMPExecutor(Node):
@@ -59,10 +119,19 @@ class DMPExecutor(Node):
                                  RELIABLE, callback_group=group)
         self.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self.on_diagnostics, 10,
                                  callback_group=group)
+        self.goal_change_client = self.create_client(GoalChange, names.GOAL_CHANGE,
+                                                     callback_group=group, qos_profile=SERVICES)
+        self.create_subscription(GoalUpdate, names.GOAL_UPDATE, self.on_goal_update, 10,
+                                 callback_group=group)
         self._rollout_lock = threading.Lock()
         self._cv = threading.Condition()
         self._evaluations: dict[int, RolloutEvaluation] = {}   # by episode start [ns]
         self._progress: dict[int, float] = {}   # episode start [ns] -> fraction done
+        # episode start [ns] -> (steps done, steps per second, monotonic time of the report)
+        self._reports: dict[int, tuple[int, float, float]] = {}
+        self._last_rate = DEFAULT_RATE          # steps/s of the last report
+        self._live_lock = threading.Lock()      # guards _running and live changes
+        self._running: _Rollout | None = None
         self._server = ActionServer(
             self, ExecuteRollout, names.EXECUTE_ROLLOUT, execute_callback=self.execute,
             goal_callback=lambda goal: GoalResponse.ACCEPT,
@@ -83,15 +152,19 @@ class DMPExecutor(Node):
                 continue
             values = {kv.key: kv.value for kv in status.values}
             if 'steps_done' in values and 'episode_start_ns' in values:
-                self._progress[int(values['episode_start_ns'])] = (
-                    int(values['steps_done']) / max(1, int(values['steps'])))
+                t0, done = int(values['episode_start_ns']), int(values['steps_done'])
+                self._progress[t0] = done / max(1, int(values['steps']))
+                rate = float(values.get('steps_per_second', 0.0))
+                if rate > 0.0:
+                    self._last_rate = rate
+                self._reports[t0] = (done, rate, time.monotonic())
 
     def execute(self, goal_handle) -> ExecuteRollout.Result:
         with self._rollout_lock:
             result = ExecuteRollout.Result()
             try:
-                result.evaluation = self._rollout(goal_handle)
-                result.success, result.message = True, 'rollout done'
+                result.evaluation, notes = self._rollout(goal_handle)
+                result.success, result.message = True, '; '.join(['rollout done'] + notes)
                 goal_handle.succeed()
             except (TaskError, ValueError, RuntimeError) as exc:
                 result.success, result.message = False, str(exc)
@@ -102,26 +175,76 @@ class DMPExecutor(Node):
                     goal_handle.abort()
             return result
 
-    def _rollout(self, goal_handle) -> RolloutEvaluation:
+    def _rollout(self, goal_handle) -> tuple[RolloutEvaluation, list[str]]:
         goal = goal_handle.request
         task = load_task(goal.task)
-        task.validate_tau(np.asarray(goal.tau))
-        reference = policy_for(task).reference(np.asarray(goal.theta), np.asarray(goal.tau))
+        tau, theta = np.asarray(goal.tau), np.asarray(goal.theta)
+        task.validate_tau(tau)
+        policy = policy_for(task)
+        started = time.monotonic()
+        changes = len(goal.new_goal) > 0
+        if changes:
+            reference = policy.reference_with_new_goal(theta, tau, goal.new_goal_time,
+                                                       np.asarray(goal.new_goal))
+        else:
+            reference = policy.reference(theta, tau)
+        compute_cost = time.monotonic() - started
         if not self.reset_client.wait_for_service(timeout_sec=5.0):
             raise RuntimeError('the simulator service sim/reset is not available')
-        deadline = time.monotonic() + 5.0
-        while self.pub_trajectory.get_subscription_count() == 0:
-            if time.monotonic() > deadline:
-                raise RuntimeError('no controller subscribes to joint_trajectory')
-            time.sleep(0.01)
         # joint order of the simulator, which the controller maps by name
-        joint_names = joint_names_of(task)
-        self.pub_trajectory.publish(trajectory_msg(joint_names, reference))
-        if not self.pub_trajectory.wait_for_all_acked(rclpy.duration.Duration(seconds=5.0)):
-            raise RuntimeError('the controller did not receive the trajectory')
-        response = self._call(self.reset_client, ResetTask.Request(task=goal.task, tau=goal.tau))
-        if not response.success:
-            raise ValueError(response.message)
+        run = _Rollout(goal=goal, task=task, policy=policy, joint_names=joint_names_of(task),
+                       reference=reference,
+                       change_time=goal.new_goal_time if changes else None)
+        with self._live_lock:
+            self._running = run
+        try:
+            response = self._start_episode(run, changes, compute_cost)
+            with self._live_lock:
+                run.t0, run.num_steps = to_ns(response.stamp), response.num_steps
+                if run.pending is not None:
+                    self._change_live(run, run.pending)
+            evaluation = self._await_evaluation(goal_handle, task, response)
+            with self._live_lock:
+                if run.change_time is not None and evaluation.goal_change_time < 0:
+                    run.notes.append('the controller refused the changed trajectory (it came '
+                                     'too late): the episode kept its goal')
+                return evaluation, run.notes
+        finally:
+            with self._live_lock:
+                self._running = None
+
+    def _start_episode(self, run: _Rollout, changes: bool,
+                       compute_cost: float) -> ResetTask.Response:
+        """Announce a goal change to the evaluator (if any), send the controller the
+        trajectory, start the episode; the reset's response. `compute_cost`: the wall time
+        the reference took to compute [s]."""
+        goal = run.goal
+        self._wait_for_subscriber(self.pub_trajectory, 'controller')
+        if changes:
+            self._announce(GoalUpdate(time_from_start=goal.new_goal_time,
+                                      goal=list(goal.new_goal),
+                                      last_reference=run.reference.q[-1].tolist()))
+        try:
+            building = time.monotonic()
+            trajectory = trajectory_msg(run.joint_names, run.reference)
+            publishing = time.monotonic()
+            self.pub_trajectory.publish(trajectory)
+            run.publish_cost = time.monotonic() - publishing
+            run.prepare_cost = compute_cost + (publishing - building) + run.publish_cost
+            self._acked(self.pub_trajectory, 'the controller did not receive the trajectory')
+            run.reset_sent = time.monotonic()     # no step of the episode before this
+            response = self._call(self.reset_client,
+                                  ResetTask.Request(task=goal.task, tau=goal.tau))
+            if not response.success:
+                raise ValueError(response.message)
+        except BaseException:
+            if changes:        # no episode: the evaluator's next one has no goal change
+                self._withdraw(GoalUpdate())
+            raise
+        return response
+
+    def _await_evaluation(self, goal_handle, task: TaskDefinition,
+                          response: ResetTask.Response) -> RolloutEvaluation:
         t0 = to_ns(response.stamp)
         timeout = response.num_steps * task.control_period + self.get_parameter(
             'timeout_margin').value
@@ -146,7 +269,132 @@ class DMPExecutor(Node):
             evaluation = self._evaluations.pop(t0)
             self._evaluations.clear()
             self._progress.clear()
+            self._reports.clear()
         return evaluation
+
+    # -- live goal changes ---------------------------------------------------------------
+    def on_goal_update(self, msg: GoalUpdate) -> None:
+        with self._live_lock:
+            run = self._running
+            if run is None:
+                self.get_logger().warning('goal update ignored: no rollout runs')
+            elif run.t0 is None:
+                run.pending = msg               # applied once the episode has started
+            else:
+                self._change_live(run, msg)
+
+    def _change_live(self, run: _Rollout, msg: GoalUpdate) -> None:
+        """Apply a live goal update to the running episode (under _live_lock), or note why
+        not in the rollout's result message."""
+        try:
+            self._try_change_live(run, msg)
+        except RuntimeError as exc:     # a node of the loop did not take its message
+            run.notes.append(f'goal update failed: {exc}')
+            self.get_logger().error(run.notes[-1])
+
+    def _try_change_live(self, run: _Rollout, msg: GoalUpdate) -> None:
+        def ignore(reason: str) -> None:
+            run.notes.append(f'goal update ignored: {reason}')
+            self.get_logger().warning(run.notes[-1])
+        stamp = to_ns(msg.stamp)
+        if stamp not in (0, run.t0):
+            return ignore(f'it names the episode at {stamp} ns, the one that runs started at '
+                          f'{run.t0} ns')
+        if run.change_time is not None:
+            return ignore(f'the goal changed already at {run.change_time:g} s (one change '
+                          'per rollout)')
+        dt = run.task.control_period
+        if not math.isfinite(msg.time_from_start):
+            return ignore(f'time_from_start {msg.time_from_start} is not finite')
+        wanted = max(0, math.ceil(msg.time_from_start / dt - 1e-9))
+        cost = LOAD_FACTOR * run.prepare_cost       # [s] to compute, build and publish it
+        announced = False
+
+        def give_up(reason: str) -> None:
+            if announced:          # the evaluator keeps the episode's goal
+                self._withdraw(GoalUpdate(stamp=time_msg(run.t0)))
+            ignore(reason)
+        for _ in range(LIVE_ATTEMPTS):
+            started = time.monotonic()
+            k = max(wanted, self._step_bound(run) + self._steps_in(run, cost))
+            if k >= run.num_steps:
+                return give_up(f'the episode ends at {run.num_steps * dt:g} s, before the goal '
+                               f'could change (at {k * dt:g} s at the earliest)')
+            try:
+                new = run.policy.reference_with_new_goal(
+                    np.asarray(run.goal.theta), np.asarray(run.goal.tau), k * dt,
+                    np.asarray(msg.goal))
+            except ValueError as exc:
+                return give_up(str(exc))
+            reference = splice(run.reference, new, k)
+            trajectory = trajectory_msg(run.joint_names, reference)
+            trajectory.header.stamp = time_msg(run.t0)     # a replacement for this episode
+            # the evaluator first: the episode cannot end before the controller has it
+            self._announce(GoalUpdate(stamp=time_msg(run.t0), time_from_start=k * dt,
+                                      goal=list(msg.goal),
+                                      last_reference=reference.q[-1].tolist()))
+            announced = True
+            if self._step_bound(run) + self._steps_in(run, LOAD_FACTOR * run.publish_cost) < k:
+                break                                   # still ahead of the loop: send it
+            cost = LOAD_FACTOR * (time.monotonic() - started)
+        else:
+            return give_up('the episode ran ahead of every switch time tried')
+        self.pub_trajectory.publish(trajectory)
+        run.reference, run.change_time = reference, k * dt
+        run.notes.append(f'goal changed at {k * dt:g} s (live)')
+        self._acked(self.pub_trajectory, 'the controller did not receive the changed trajectory')
+
+    def _step_bound(self, run: _Rollout) -> int:
+        """An upper bound of the step the episode has reached: the last progress report's,
+        or 0 at the reset, plus RATE_MARGIN times the measured rate over the time since."""
+        report = self._reports.get(run.t0)
+        if report is None:
+            done, since = 0, run.reset_sent
+        else:
+            done, _, since = report
+        return done + math.ceil(self._rate(run) * (time.monotonic() - since))
+
+    def _steps_in(self, run: _Rollout, seconds: float) -> int:
+        """The steps the loop may make in `seconds` of wall time (at least LEAD_STEPS)."""
+        return LEAD_STEPS + math.ceil(self._rate(run) * seconds)
+
+    def _rate(self, run: _Rollout) -> float:
+        report = self._reports.get(run.t0)
+        rate = report[1] if report is not None and report[1] > 0 else self._last_rate
+        return RATE_MARGIN * rate
+
+    # -- plumbing ------------------------------------------------------------------------
+    def _wait_for_subscriber(self, publisher, who: str) -> None:
+        deadline = time.monotonic() + ACK_TIMEOUT
+        while publisher.get_subscription_count() == 0:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f'no {who} subscribes to {publisher.topic_name}')
+            time.sleep(0.01)
+
+    def _acked(self, publisher, failure: str) -> None:
+        if not publisher.wait_for_all_acked(rclpy.duration.Duration(seconds=ACK_TIMEOUT)):
+            raise RuntimeError(failure)
+
+    def _announce(self, change: GoalUpdate) -> None:
+        """Tell the reward evaluator of a goal change and have its answer (RuntimeError
+        otherwise)."""
+        client = self.goal_change_client
+        if not client.wait_for_service(timeout_sec=ACK_TIMEOUT):
+            raise RuntimeError(f'the reward_evaluator service {client.srv_name} is not '
+                               'available')
+        response = self._call(client, GoalChange.Request(change=change))
+        if not response.success:
+            raise RuntimeError(f'the reward_evaluator refused the goal change: '
+                               f'{response.message}')
+
+    def _withdraw(self, change: GoalUpdate) -> None:
+        """Withdraw an announced goal change (`change` without a goal); a failure is only
+        logged: the evaluator keeps a change the controller never got only if the
+        controller's last reference happens to be the announced one."""
+        try:
+            self._announce(change)
+        except RuntimeError as exc:
+            self.get_logger().error(f'could not withdraw a goal change: {exc}')
 
     def _call(self, client, request):
         try:

@@ -5,7 +5,10 @@ Answers every ``joint_states`` message with one ``effort_command``
 ``u = Kp (q_ref - q) + Kd (qd_ref - qd) + u_ffwd``, clipped to the torque limits.
 The reference comes from ``joint_trajectory`` (trajectory_msgs/JointTrajectory; effort field =
 feed-forward, the ros2_control convention) sampled at the state's time stamp. A trajectory
-stamped zero starts at the first state received after it; otherwise at its stamp. With no
+stamped zero starts at the first state received after it; otherwise at its stamp. A
+trajectory stamped with the start of the one that runs replaces it from the next state on (a
+goal change): it is refused, with an error, unless it passes exactly through the reference of
+the last state served, so the reference the controller tracks never jumps. With no
 trajectory the controller holds the position of the first state it saw; after the end it
 holds the last point. Each command's reference is published on ``reference``
 (sensor_msgs/JointState: position = q_ref, velocity = qd_ref, effort = u_ffwd) with the
@@ -81,6 +84,7 @@ class PDController(Node):
         self.trajectory: SampledTrajectory | None = None
         self.trajectory_msg: JointTrajectory | None = None
         self.start_ns: int | None = None
+        self.served_ns: int | None = None     # time of the last state served, from start_ns
         self.hold: np.ndarray | None = None
 
         self.pub_command = self.create_publisher(Float64MultiArray, names.EFFORT_COMMAND, RELIABLE)
@@ -134,11 +138,22 @@ class PDController(Node):
     def _load_trajectory(self) -> None:
         msg, self.trajectory_msg = self.trajectory_msg, None
         try:
-            self.trajectory = trajectory_from_msg(msg, self.joint_names)
+            trajectory = trajectory_from_msg(msg, self.joint_names)
         except ValueError as exc:
             self.get_logger().error(f'refused trajectory: {exc}')
             return
         start = to_ns(msg.header.stamp)
+        if start > 0 and start == self.start_ns and self.served_ns is not None:
+            # a replacement of the running trajectory: the steps served stay as they were
+            old, new = self.trajectory.sample(self.served_ns), trajectory.sample(self.served_ns)
+            if not all(np.array_equal(a, b) for a, b in zip(old, new)):
+                self.get_logger().error(
+                    'refused a replacement trajectory: it leaves the reference served at '
+                    f'{self.served_ns * 1e-9:.3f} s of the episode (it would jump)')
+                return
+        else:
+            self.served_ns = None
+        self.trajectory = trajectory
         self.start_ns = start if start > 0 else None   # None: the next state starts it
 
     def on_state(self, msg: JointState) -> None:
@@ -160,7 +175,8 @@ class PDController(Node):
         if self.trajectory is not None:
             if self.start_ns is None:
                 self.start_ns = t
-            q_ref, qd_ref, u_ffwd = self.trajectory.sample(t - self.start_ns)
+            self.served_ns = t - self.start_ns
+            q_ref, qd_ref, u_ffwd = self.trajectory.sample(self.served_ns)
         else:
             if self.hold is None:
                 self.hold = q.copy()

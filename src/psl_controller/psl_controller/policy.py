@@ -175,6 +175,44 @@ class TaskPolicy:
                   if feedforward is not None else np.zeros_like(q))
         return Reference(t=traj.t, q=q, qd=qd, u_ffwd=u_ffwd)
 
+    def reference_with_new_goal(self, theta: np.ndarray, tau: np.ndarray | None,
+                                t_switch: float, new_goal) -> Reference:
+        """`reference` with a goal change: the same trajectory up to ``t_switch`` (seconds
+        from the episode start; the first control period at or after it), then the DMP's
+        attractor moving smoothly to ``new_goal`` (`DMP.integrate_goal_change`, no jump in
+        q, qd). ``new_goal`` is in the DMP's space: joint angles (n_joints,) [rad], or for
+        ``policy.space: end_effector`` the hand point (3,) [m], whose path is then followed
+        by inverse kinematics (q is then the same up to the switch, qd, a central
+        difference of q, up to the period before). Raises ValueError for a policy kind other
+        than dmp, a new goal of the wrong size or not finite, a switch time outside the
+        episode, and whatever `reference` refuses."""
+        if self.task.policy.kind != 'dmp':
+            raise ValueError(f'task {self.task.name!r}: a goal change needs policy kind dmp, '
+                             f'not {self.task.policy.kind!r}')
+        new_goal = np.atleast_1d(np.asarray(new_goal, dtype=float))
+        space = ('the hand point [m]' if self.ik is not None
+                 else f'the joint angles [rad] of the {self.task.n_joints} joints')
+        if new_goal.shape != (self.dmp.n_dims,):
+            raise ValueError(f'task {self.task.name!r}: the new goal needs {self.dmp.n_dims} '
+                             f'values ({space}), got {new_goal.size}')
+        if not np.all(np.isfinite(new_goal)):
+            raise ValueError(f'the new goal must be finite, got {new_goal.tolist()}')
+        theta = self.check_theta(theta)
+        dt = self.task.control_period
+        t_end = self.task.num_steps_of(tau) * dt
+        if not (np.isfinite(t_switch) and 0.0 <= t_switch < t_end):
+            raise ValueError(f'the goal change time must lie in [0, {t_end:g}) s, the episode, '
+                             f'got {t_switch!r}')
+        movement, feedforward = self._for_duration(self.task.duration_of(tau))
+        movement.set_theta(theta[self.kinematics])
+        traj = movement.integrate_goal_change(dt, t_switch, new_goal, t_end)
+        q, qd = traj.y, traj.yd
+        if self.ik is not None:
+            q, qd = self._joint_path(traj.y, dt)
+        u_ffwd = (feedforward.signal(theta[self.dynamics], traj.t)
+                  if feedforward is not None else np.zeros_like(q))
+        return Reference(t=traj.t, q=q, qd=qd, u_ffwd=u_ffwd)
+
     def _joint_path(self, x: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Joint angles and velocities (T, n) that follow the hand path x (T, 3) from the
         start posture (differential inverse kinematics; qd its finite difference)."""

@@ -139,7 +139,9 @@ class Reward:
     """A task's reward: the components above with the weights, threshold and clearance margin
     of its ``reward`` section, the goal and the distances from its `RewardGeometry`. The goal
     is the instance's target (`TaskDefinition.target_of`) for a task with a ``target``
-    section, else the end effector at the goal posture; ``orientation_error`` needs a target.
+    section, else the end effector at the goal posture; after a goal change during a rollout,
+    the new goal's (`goal_position_of`, passed to `evaluate`). ``orientation_error`` needs a
+    target.
 
     Raises:
         ValueError: a weight of an unknown component.
@@ -163,8 +165,25 @@ class Reward:
         targets = [self.task.target_of(tau) for tau in taus]
         return np.array([p for p, _ in targets]), np.array([r for _, r in targets])
 
+    def goal_position_of(self, dmp_goal) -> np.ndarray:
+        """The goal position (3,) [m] of a DMP goal (a goal changed during a rollout): the hand
+        point itself when the task's DMP runs in end-effector space (``policy.space``), else
+        the end effector at the joint goal posture (n_joints,).
+
+        Raises:
+            ValueError: a goal of the wrong size or not finite.
+        """
+        in_hand_space = self.task.policy.space == 'end_effector'
+        n = 3 if in_hand_space else self.task.n_joints
+        goal = np.atleast_1d(np.asarray(dmp_goal, dtype=float))
+        if goal.shape != (n,) or not np.all(np.isfinite(goal)):
+            raise ValueError(f'task {self.task.name!r}: a DMP goal is {n} finite values, got '
+                             f'{goal.tolist()}')
+        return goal.copy() if in_hand_space else self.geometry.end_effector_at(goal)
+
     def evaluate(self, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,
-                 measured: Measurements, taus: np.ndarray) -> list[RewardResult]:
+                 measured: Measurements, taus: np.ndarray,
+                 goal_positions: np.ndarray | None = None) -> list[RewardResult]:
         """Score a population of rollouts.
 
         Args:
@@ -173,6 +192,9 @@ class Reward:
             q_ref: commanded joint angles (B, T, n) the controller tracked.
             measured: the geometry along the rollouts (`RewardGeometry.read` or `replay`).
             taus: the rollouts' task instances (B, E) (their targets).
+            goal_positions: (B, 3) [m] goal positions that replace those of `goals` for
+                ``goal_error`` (the final goals of rollouts whose goal changed,
+                `goal_position_of`); default: `goals`.
         Returns:
             One RewardResult per rollout, with every component of COMPONENTS.
         Raises:
@@ -187,6 +209,8 @@ class Reward:
         if len(taus) != len(q):
             raise ValueError(f'{len(q)} rollouts but {len(taus)} task instances')
         goal_position, goal_rotation = self.goals(taus)
+        if goal_positions is not None:
+            goal_position = _finite('goal_positions', goal_positions, 2)
         columns = {
             'goal_error': goal_error(measured.end_effector[:, -1], goal_position),
             'penetration': penetration(distance) if distance is not None else np.zeros(len(q)),
@@ -203,7 +227,9 @@ class Reward:
                       self.spec.weights, self.spec.success_threshold) for b in range(len(q))]
 
     def evaluate_replayed(self, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,
-                          taus: np.ndarray) -> list[RewardResult]:
+                          taus: np.ndarray, goal_positions: np.ndarray | None = None
+                          ) -> list[RewardResult]:
         """`evaluate` with the geometry from a kinematic replay of q on the task instances
         taus (B, E): graph mode, where only joint states were measured."""
-        return self.evaluate(q, torque, q_ref, self.geometry.replay(q, taus), taus)
+        return self.evaluate(q, torque, q_ref, self.geometry.replay(q, taus), taus,
+                             goal_positions)

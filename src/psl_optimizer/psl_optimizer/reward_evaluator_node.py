@@ -6,19 +6,32 @@ controller's ``reference`` for each of them (matched by time stamp, so arrival o
 matter), scores the rollout with the task's reward (`psl_optimizer.reward.Reward`, the
 geometry from a kinematic replay of the measured joint angles) and publishes a
 psl_msgs/RolloutEvaluation stamped with the episode's first state.
+
+A goal change the executor made (``~/goal_change``, psl_msgs/GoalChange: stamped with the
+episode's start, or zero for the next episode) makes the episode's goal the new goal's
+position (`Reward.goal_position_of`) if the controller tracked it: its reference of the
+episode's last state is the changed trajectory's (``last_reference``, compared exactly; the
+controller refuses a live change that came too late, and the episode keeps its goal). The
+evaluation says which goal it scored against (``goal_position``) and when the goal started to
+move (``goal_change_time``, -1 for none). A service, so that the executor knows the change is
+in place before the episode can use it (a reset for one made before the start).
 """
 from __future__ import annotations
+
+import threading
 
 import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from psl_msgs.msg import RolloutEvaluation, TaskInstance
+from psl_msgs.msg import GoalUpdate, RolloutEvaluation, TaskInstance
+from psl_msgs.srv import GoalChange
 from psl_optimizer.reward import Reward
 from psl_ros import names
 from psl_ros.hot_path import HotPath
 from psl_ros.node_main import run_node
 from psl_ros.qos import LATCHED, RELIABLE, WHOLE_EPISODE
+from psl_ros.service import create_service
 from psl_ros.stamps import to_ns
 from psl_sim.arm_model import ArmModel
 from psl_sim.reward_geometry import RewardGeometry
@@ -34,7 +47,13 @@ class RewardEvaluator(Node):
         self.episode: TaskInstance | None = None
         self.states: dict[int, JointState] = {}
         self.references: dict[int, JointState] = {}
+        # goal changes (the service's thread and the hot path's share them)
+        self.goal_lock = threading.Lock()
+        self.next_goal: GoalUpdate | None = None            # for the next episode announced
+        self.goal_changes: dict[int, GoalUpdate] = {}       # by episode start [ns]
+        self.evaluated_ns = -1                              # start of the last episode scored
         self.pub = self.create_publisher(RolloutEvaluation, names.ROLLOUT_EVALUATION, RELIABLE)
+        create_service(self, GoalChange, '~/goal_change', self.on_goal_change)
         self.hot_path = HotPath(self)
         self.hot_path.subscribe(TaskInstance, names.TASK_INSTANCE, self.on_task, LATCHED)
         self.hot_path.subscribe(JointState, names.JOINT_STATES, self.on_state, WHOLE_EPISODE)
@@ -53,7 +72,30 @@ class RewardEvaluator(Node):
         for stream in (self.states, self.references):
             for t in [t for t in stream if t < t0]:
                 del stream[t]
+        with self.goal_lock:
+            for t in [t for t in self.goal_changes if t < t0]:
+                del self.goal_changes[t]
+            if self.next_goal is not None:
+                self.goal_changes.setdefault(t0, self.next_goal)   # a live one comes later
+                self.next_goal = None
         self._try_finish()
+
+    def on_goal_change(self, request: GoalChange.Request, response: GoalChange.Response):
+        change = request.change
+        t0 = to_ns(change.stamp)
+        with self.goal_lock:
+            if t0 == 0:
+                self.next_goal = change if len(change.goal) else None    # empty: withdrawn
+            elif t0 <= self.evaluated_ns:
+                response.success, response.message = False, (
+                    f'the episode at {t0} ns has been evaluated already')
+                return response
+            elif len(change.goal):
+                self.goal_changes[t0] = change
+            else:
+                self.goal_changes.pop(t0, None)
+        response.success, response.message = True, 'goal change noted'
+        return response
 
     def on_state(self, msg: JointState) -> None:
         self._store(self.states, msg)
@@ -77,28 +119,40 @@ class RewardEvaluator(Node):
         times = [t0 + k * period for k in range(ep.num_steps + 1)]
         if not all(t in self.states and t in self.references for t in times):
             return
-        self.episode = None
+        with self.goal_lock:
+            self.episode, self.evaluated_ns = None, t0
+            change = self.goal_changes.pop(t0, None)
         states = [self.states.pop(t) for t in times]
         refs = [self.references.pop(t) for t in times]
         try:
-            self.pub.publish(self._evaluate(ep, states, refs))
+            self.pub.publish(self._evaluate(ep, states, refs, change))
         except (TaskError, ValueError) as exc:
             self.get_logger().error(f'cannot evaluate episode of {ep.task!r}: {exc}')
 
-    def _evaluate(self, ep: TaskInstance, states, refs) -> RolloutEvaluation:
+    def _evaluate(self, ep: TaskInstance, states, refs,
+                  change: GoalUpdate | None) -> RolloutEvaluation:
         if ep.task not in self._rewards:
             task = load_task(ep.task)
             self._rewards[ep.task] = Reward(task, RewardGeometry(ArmModel(task)))
         q = np.array([[s.position for s in states]])             # a population of one
         torque = np.array([[s.effort for s in states]])
         q_ref = np.array([[r.position for r in refs]])
-        result = self._rewards[ep.task].evaluate_replayed(q, torque, q_ref,
-                                                          np.asarray(ep.tau)[None])[0]
+        reward, taus = self._rewards[ep.task], np.asarray(ep.tau)[None]
+        if change is not None and list(refs[-1].position) != list(change.last_reference):
+            self.get_logger().warning(
+                f'the goal change of episode {to_ns(ep.stamp)} ns at {change.time_from_start:g} '
+                's did not reach the controller in time: scored against the old goal')
+            change = None
+        goal_position = (reward.goals(taus)[0][0] if change is None
+                         else reward.goal_position_of(change.goal))        # (3,)
+        result = reward.evaluate_replayed(q, torque, q_ref, taus, goal_position[None])[0]
         return RolloutEvaluation(
             stamp=ep.stamp, task=ep.task, tau=list(ep.tau), reward=result.reward,
             fulfilled=result.fulfilled, component_names=list(result.components),
             component_values=list(result.components.values()),
-            tracking_error=result.components['tracking_error'], num_steps=ep.num_steps)
+            tracking_error=result.components['tracking_error'], num_steps=ep.num_steps,
+            goal_position=goal_position.tolist(),
+            goal_change_time=-1.0 if change is None else change.time_from_start)
 
 
     def destroy_node(self):

@@ -3,8 +3,9 @@ the benchmarks and the tests.
 
 - `MemoryClient`: the skill memory's services (query, add_sample, complete, create_skill,
   save, load, info) on any node;
-- `RolloutClient`: one rollout worker's ``execute_rollout`` action and ``sim/reset`` service,
-  and whether its loop is connected;
+- `RolloutClient`: one rollout worker's ``execute_rollout`` action (with an optional goal
+  change) and ``sim/reset`` service, whether its loop is connected, and live goal updates of
+  the rollout that runs (``goal_update``);
 - `LearnClient`: the learner's ``learn_skill`` action;
 - `RosClient`: all three on a node of its own, in its own rclpy context, spun in a background
   thread (for programs that are not nodes: the CLI, benchmarks, tests); a context manager.
@@ -28,13 +29,14 @@ from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from psl_msgs.action import ExecuteRollout, LearnSkill
-from psl_msgs.msg import RolloutEvaluation
+from psl_msgs.msg import GoalUpdate, RolloutEvaluation
 from psl_msgs.srv import (AddSample, CompletePattern, CreateSkill, LoadMemory, QuerySkill,
                           ResetTask, SaveMemory)
 from psl_ros import names
 from psl_ros.action_client import ActionClient
 from psl_ros.futures import wait_for
 from psl_ros.qos import SERVICES
+from psl_ros.stamps import time_msg
 
 RESEND_AFTER = 2.0     # s without a goal response before a rollout goal is sent again
 RESULT_POLL = 5.0      # s between result requests while a goal runs (an answer can be lost)
@@ -183,6 +185,7 @@ class RolloutClient:
                                                callback_group=callback_group,
                                                qos_profile=SERVICES)
         self._ready = False      # the loop was seen complete once
+        self._goal_publisher = None
 
     def missing_endpoints(self) -> str:
         """What the worker's loop still lacks, as text ('' when complete)."""
@@ -233,13 +236,19 @@ class RolloutClient:
                         self.reset_client.srv_name)
 
     def rollout(self, task: str, tau, theta, timeout: float = 120.0,
-                feedback=None) -> ExecuteRollout.Result:
-        """One rollout; returns the action result (success, message, evaluation). The first
-        call waits until the loop is connected. Raises TimeoutError when the worker does not
-        answer, RuntimeError when it rejects the goal."""
+                feedback=None, new_goal=None,
+                new_goal_time: float = -1.0) -> ExecuteRollout.Result:
+        """One rollout; returns the action result (success, message, evaluation). With
+        `new_goal` (the DMP's space: joint angles, or the hand point of an end-effector-space
+        task) the goal moves to it from `new_goal_time` s after the episode start, known
+        before the start (deterministic). The first call waits until the loop is connected.
+        Raises TimeoutError when the worker does not answer, RuntimeError when it rejects
+        the goal."""
         if not self._ready:
             self.wait_until_ready(min(timeout, 30.0))
-        goal = ExecuteRollout.Goal(task=task, tau=_floats(tau), theta=_floats(theta))
+        goal = ExecuteRollout.Goal(task=task, tau=_floats(tau), theta=_floats(theta),
+                                   new_goal=[] if new_goal is None else _floats(new_goal),
+                                   new_goal_time=float(new_goal_time))
         start = time.monotonic()
         # a rollout may run twice (a late goal answer), never change the result
         handle = send_goal(self.rollout_client, goal, timeout, self.name, feedback, resend=True)
@@ -249,6 +258,27 @@ class RolloutClient:
         except BaseException:          # Ctrl-C, a timeout, a server gone: the goal ends too
             handle.cancel_goal_async()
             raise
+
+    def update_goal(self, goal, time_from_start: float, episode_ns: int = 0,
+                    timeout: float = 5.0) -> None:
+        """Ask the worker's executor (topic ``goal_update``, reliable) to move the goal of
+        the rollout that runs (`episode_ns`: its first state's time in ns, 0 = whichever
+        runs) to `goal` from `time_from_start` s on, or later if the episode has nearly
+        passed that time; the rollout's result message and evaluation (``goal_change_time``)
+        say what it did. The first call waits for the executor's subscription to be matched
+        (TimeoutError after `timeout` s)."""
+        new = self._goal_publisher is None
+        if new:
+            self._goal_publisher = self.node.create_publisher(
+                GoalUpdate, names.under(self.worker, names.GOAL_UPDATE), 10)
+        publisher = self._goal_publisher
+        if not wait_until(lambda: publisher.get_subscription_count() > 0, timeout,
+                          self.node.context):
+            raise TimeoutError(f'no dmp_executor subscribes to {publisher.topic_name}')
+        if new:
+            time.sleep(0.2)    # matched from here; give the executor's side a moment (`ready`)
+        publisher.publish(GoalUpdate(stamp=time_msg(int(episode_ns)), goal=_floats(goal),
+                                     time_from_start=float(time_from_start)))
 
 
 class LearnClient:
@@ -319,9 +349,16 @@ class RosClient:
         return self.memory_client.call(service, timeout, **fields)
 
     def rollout(self, task: str, tau, theta, timeout: float = 120.0,
-                feedback=None) -> ExecuteRollout.Result:
+                feedback=None, new_goal=None,
+                new_goal_time: float = -1.0) -> ExecuteRollout.Result:
         """`RolloutClient.rollout` on the rollout worker of this namespace."""
-        return self.worker.rollout(task, tau, theta, timeout, feedback)
+        return self.worker.rollout(task, tau, theta, timeout, feedback, new_goal,
+                                   new_goal_time)
+
+    def update_goal(self, goal, time_from_start: float, episode_ns: int = 0,
+                    timeout: float = 5.0) -> None:
+        """`RolloutClient.update_goal` on the rollout worker of this namespace."""
+        self.worker.update_goal(goal, time_from_start, episode_ns, timeout)
 
     def reset(self, task: str, tau, timeout: float = 10.0) -> ResetTask.Response:
         return self.worker.reset(task, tau, timeout)
@@ -365,4 +402,7 @@ def evaluation_dict(evaluation: RolloutEvaluation) -> dict:
         'components': dict(zip(evaluation.component_names, evaluation.component_values)),
         'tracking_error': evaluation.tracking_error,
         'num_steps': evaluation.num_steps,
+        'goal_position': [float(x) for x in evaluation.goal_position],
+        'goal_change_time': (None if evaluation.goal_change_time < 0
+                             else evaluation.goal_change_time),
     }

@@ -15,6 +15,7 @@ TASK_INSTANCE = 'task_instance'         # psl_msgs/TaskInstance (latched), the s
 ROLLOUT_EVALUATION = 'rollout_evaluation'   # psl_msgs/RolloutEvaluation, the evaluator
 EE_POSE = 'ee_pose'                     # geometry_msgs/PoseStamped, the simulator
 SCENE = 'scene'                         # visualization_msgs/MarkerArray (latched), the simulator
+GOAL_UPDATE = 'goal_update'             # psl_msgs/GoalUpdate: a live new goal for the executor
 CLOCK = '/clock'
 DIAGNOSTICS = '/diagnostics'
 WORLD_FRAME = 'world'                   # frame_id of ee_pose and of the scene's markers
@@ -22,6 +23,8 @@ WORLD_FRAME = 'world'                   # frame_id of ee_pose and of the scene's
 # services and actions
 RESET = 'sim/reset'                     # psl_msgs/ResetTask, the simulator's ~/reset
 EXECUTE_ROLLOUT = 'execute_rollout'     # psl_msgs/ExecuteRollout, the executor
+GOAL_CHANGE = 'reward_evaluator/goal_change'   # psl_msgs/GoalChange: the executor tells the
+                                               # evaluator of a changed goal (its ~/goal_change)
 LEARN_SKILL = 'learn_skill'             # psl_msgs/LearnSkill, the learner
 SKILL_MEMORY = 'skill_memory'           # the memory node: services skill_memory/<service>
 
