@@ -168,12 +168,7 @@ class TaskPolicy:
         movement.set_theta(theta[self.kinematics])
         dt = self.task.control_period
         traj = movement.integrate(dt, self.task.num_steps_of(tau) * dt)
-        q, qd = traj.y, traj.yd
-        if self.ik is not None:
-            q, qd = self._joint_path(traj.y, dt)
-        u_ffwd = (feedforward.signal(theta[self.dynamics], traj.t)
-                  if feedforward is not None else np.zeros_like(q))
-        return Reference(t=traj.t, q=q, qd=qd, u_ffwd=u_ffwd)
+        return self._reference_of(traj, theta, feedforward, dt)
 
     def reference_with_new_goal(self, theta: np.ndarray, tau: np.ndarray | None,
                                 t_switch: float, new_goal) -> Reference:
@@ -206,6 +201,12 @@ class TaskPolicy:
         movement, feedforward = self._for_duration(self.task.duration_of(tau))
         movement.set_theta(theta[self.kinematics])
         traj = movement.integrate_goal_change(dt, t_switch, new_goal, t_end)
+        return self._reference_of(traj, theta, feedforward, dt)
+
+    def _reference_of(self, traj, theta: np.ndarray, feedforward: FeedForward | None,
+                      dt: float) -> Reference:
+        """The Reference of an integrated movement: its joint path (through the inverse
+        kinematics in end-effector space) and theta_D's feed-forward on the same grid."""
         q, qd = traj.y, traj.yd
         if self.ik is not None:
             q, qd = self._joint_path(traj.y, dt)

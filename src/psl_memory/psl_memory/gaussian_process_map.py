@@ -35,8 +35,8 @@ import warnings
 import numpy as np
 
 from psl_memory.elm import RangeScaler
-from psl_memory.nearest_neighbour_library import check_samples, finite_vector
 from psl_memory.parameterized_skill import scaler_around
+from psl_memory.solved_instances import SolvedInstances, finite_vector
 
 # initial kernel hyper-parameters and their bounds (inputs in [-1, 1], outputs in units of s)
 AMPLITUDE0, AMPLITUDE_BOUNDS = 1.0, (1e-2, 1e2)
@@ -44,7 +44,7 @@ LENGTH_SCALE0, LENGTH_SCALE_BOUNDS = 0.5, (1e-2, 1e2)
 NOISE0, NOISE_BOUNDS = 1e-2, (1e-6, 1e1)
 
 
-class GaussianProcessMap:
+class GaussianProcessMap(SolvedInstances):
     """tau -> theta by GP regression with the default theta as prior mean.
 
     Args:
@@ -63,53 +63,19 @@ class GaussianProcessMap:
     def __init__(self, tau_low, tau_high, default_theta, random_state: int = 0,
                  n_restarts: int = 2):
         self.tau_scaler = RangeScaler(tau_low, tau_high)
-        self.default_theta = finite_vector(default_theta, None, 'default theta')
+        super().__init__(self.tau_scaler.dim, default_theta)
         theta_scaler = scaler_around(self.default_theta)
         self.spread = float(0.5 * (theta_scaler.high[0] - theta_scaler.low[0]))   # s
         self.random_state, self.n_restarts = int(random_state), int(n_restarts)
-        self._taus = np.empty((0, self.tau_dim))           # (N, E)
-        self._thetas = np.empty((0, self.theta_dim))       # (N, F)
         self._gp = None                                    # fitted regressor, None: empty
-
-    @property
-    def tau_dim(self) -> int:
-        return self.tau_scaler.dim
-
-    @property
-    def theta_dim(self) -> int:
-        return self.default_theta.size
-
-    @property
-    def num_samples(self) -> int:
-        return len(self._taus)
-
-    @property
-    def taus(self) -> np.ndarray:
-        """The stored task parameters (N, E), in the order they were added."""
-        return self._taus.copy()
-
-    @property
-    def thetas(self) -> np.ndarray:
-        """The stored policy parameters (N, F)."""
-        return self._thetas.copy()
 
     @property
     def kernel(self):
         """The fitted kernel (None while empty)."""
         return None if self._gp is None else self._gp.kernel_
 
-    def add(self, tau, theta) -> int:
-        """Add one sample and refit; returns the number of samples. Raises ValueError (and
-        changes nothing) for a tau or theta of the wrong size or with NaN or inf."""
-        return self.extend(np.atleast_2d(tau), np.atleast_2d(theta))
-
-    def extend(self, taus, thetas) -> int:
-        """Add samples taus (n, E), thetas (n, F) in this order, then refit once."""
-        taus, thetas = check_samples(taus, thetas, self.tau_dim, self.theta_dim)
-        self._taus = np.vstack([self._taus, taus])
-        self._thetas = np.vstack([self._thetas, thetas])
+    def _changed(self) -> None:
         self._fit()
-        return self.num_samples
 
     def _fit(self) -> None:
         from sklearn.exceptions import ConvergenceWarning
