@@ -30,8 +30,11 @@ class ArmModel:
                 f'{task.model_path}: psl drives one actuator per hinge/slide joint '
                 f'(nq={m.nq}, nv={m.nv}, nu={m.nu})')
         if task.n_joints != m.nq:
-            raise TaskError(f'{task.path}: start_posture has {task.n_joints} entries, '
-                            f'the model has {m.nq} joints')
+            joints = [m.joint(j).name or f'#{j}' for j in range(m.njnt)]
+            raise TaskError(f'{task.path}: start_posture has {task.n_joints} entries, the model '
+                            f'has {m.nq} joints ({", ".join(joints)}): give start_posture, '
+                            'goal_posture, controller.kp/kd and every demonstration row '
+                            f'{m.nq} entries, in actuator order')
         if abs(m.opt.timestep * task.control_rate - 1.0) > 1e-9:
             raise TaskError(f'{task.path}: control_rate {task.control_rate:g} Hz must equal '
                             f'1 / model timestep ({1.0 / m.opt.timestep:g} Hz)')
@@ -44,6 +47,7 @@ class ArmModel:
         self.dof_adr = m.jnt_dofadr[self.joint_ids]
         if not np.all(m.actuator_ctrllimited):
             raise TaskError(f'{task.model_path}: every actuator needs a ctrlrange (torque limit)')
+        self._check_postures()
         # the torque that reaches the joint: ctrlrange, narrowed by the actuator's forcerange
         # and the joint's actuatorfrcrange where the model sets them
         self.torque_low = m.actuator_ctrlrange[:, 0].copy()
@@ -79,11 +83,30 @@ class ArmModel:
                  & (m.actuator_biastype == mujoco.mjtBias.mjBIAS_NONE)
                  & (m.actuator_gear[:, 0] == 1.0))
         if not np.all(plain):
-            names = [m.actuator(i).name or f'#{i}' for i in np.flatnonzero(~plain)]
+            names = [m.actuator(i).name or f'on joint {m.joint(m.actuator_trnid[i, 0]).name}'
+                     if m.actuator_trntype[i] == mujoco.mjtTrn.mjTRN_JOINT
+                     else m.actuator(i).name or f'#{i}' for i in np.flatnonzero(~plain)]
             raise TaskError(
                 f'{self.task.model_path}: actuators {names} are not plain joint motors; psl '
                 'needs <motor joint="..." ctrlrange="-limit limit"/> (gear 1) on every joint, '
                 'ctrl = joint torque')
+
+    def _check_postures(self) -> None:
+        """Start and goal posture and every demonstration waypoint within the joints' ranges
+        (for joints with a range)."""
+        m, task = self.model, self.task
+        low, high = m.jnt_range[self.joint_ids, 0], m.jnt_range[self.joint_ids, 1]
+        limited = m.jnt_limited[self.joint_ids].astype(bool)
+        postures = [('start_posture', task.start_posture), ('goal_posture', task.goal_posture)]
+        postures += [(f'demonstration waypoint {i} (t = {t:g} s)', q)
+                     for i, (t, q) in enumerate(zip(task.demo_times, task.demo_positions))]
+        for what, q in postures:
+            outside = limited & ((q < low) | (q > high))
+            if np.any(outside):
+                j = int(np.flatnonzero(outside)[0])
+                raise TaskError(f'{task.path}: {what} puts joint {self.joint_names[j]!r} at '
+                                f'{q[j]:g}, outside its range [{low[j]:g}, {high[j]:g}] in '
+                                f'{task.model_path.name}: move it inside')
 
     def geom(self, name: str) -> int:
         """The id of the geom called `name`; TaskError if the model has none."""

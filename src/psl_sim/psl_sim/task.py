@@ -326,8 +326,19 @@ def _build(path: Path, data: Any) -> TaskDefinition:
     demo = _require(data, 'demonstration', path)
     demo_positions = np.asarray(demo['positions'], dtype=float)
     if demo_positions.ndim != 2 or demo_positions.shape[1] != n:
-        raise TaskError(f'{path}: demonstration positions must be rows of {n} joint angles')
+        found = (f'rows of {demo_positions.shape[1]}' if demo_positions.ndim == 2
+                 else f'shape {demo_positions.shape}')
+        raise TaskError(f'{path}: demonstration positions must be rows of {n} joint angles, '
+                        f'one per entry of start_posture (one per driven joint); found {found}')
     demo_times = _vector(demo['times'], 'demonstration times', len(demo_positions), path)
+    duration = float(_require(data, 'duration', path))
+    if not duration > 0.0:
+        raise TaskError(f'{path}: duration must be > 0 s, got {duration:g}')
+    if np.any(np.diff(demo_times) <= 0.0) or demo_times[0] != 0.0 or \
+            abs(demo_times[-1] - duration) > 1e-9 * max(1.0, duration):
+        raise TaskError(f'{path}: demonstration times must rise from 0 to duration '
+                        f'({duration:g} s): the DMP starts at the first waypoint and ends at '
+                        f'the last; got {demo_times.tolist()}')
     return TaskDefinition(
         name=str(data.get('name', path.stem)),
         path=path,
@@ -335,7 +346,7 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         description=str(data.get('description', '')),
         end_effector_site=str(_require(data, 'end_effector_site', path)),
         control_rate=float(_require(data, 'control_rate', path)),
-        duration=float(_require(data, 'duration', path)),
+        duration=duration,
         settle_time=float(data.get('settle_time', 0.0)),
         start_posture=start,
         goal_posture=_vector(_require(data, 'goal_posture', path), 'goal_posture', n, path),

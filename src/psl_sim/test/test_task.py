@@ -147,6 +147,7 @@ def test_load_by_yaml_path(tmp_path):
     data = embedded_data()
     data['name'] = 'copied_task'
     data['duration'] = 1.0
+    data['demonstration']['times'] = [0.0, 0.5, 1.0]
     path = write_task(tmp_path, data)
     task = load_task(str(path))
     assert task.name == 'copied_task'
@@ -379,3 +380,48 @@ def test_a_bad_section_value_is_refused(tmp_path, section, key, value, words):
     data[section][key] = value
     with pytest.raises(TaskError, match=words):
         load_task(str(write_task(tmp_path, data)))
+
+
+@pytest.mark.parametrize('times, words', [
+    ([0.1, 0.75, 1.5], 'rise from 0 to duration'),
+    ([0.0, 0.75, 2.0], 'rise from 0 to duration'),      # beyond the duration: silently cut before
+    ([0.0, 1.0, 0.9], 'rise from 0 to duration'),
+])
+def test_demonstration_times_must_span_the_duration(tmp_path, times, words):
+    data = embedded_data()
+    data['demonstration']['times'] = times
+    with pytest.raises(TaskError, match=words):
+        load_task(str(write_task(tmp_path, data)))
+
+
+def test_a_demonstration_row_of_the_wrong_length_names_both_counts(tmp_path):
+    data = embedded_data()
+    data['demonstration']['positions'] = [row + [0.0] for row in
+                                          data['demonstration']['positions']]
+    with pytest.raises(TaskError, match='rows of 3 joint angles, one per entry of start_posture'
+                                        '.*found rows of 4'):
+        load_task(str(write_task(tmp_path, data)))
+
+
+def test_postures_outside_the_joint_ranges_are_refused_naming_the_joint(tmp_path):
+    """reach_over_obstacle.xml gives every joint the range [-3, 3]."""
+    from psl_sim.arm_model import ArmModel
+    data = embedded_data()
+    data['goal_posture'] = [0.639, -3.2, -1.495]
+    with pytest.raises(TaskError, match="goal_posture puts joint 'joint2' at -3.2, outside its "
+                                        r'range \[-3, 3\]'):
+        ArmModel(load_task(str(write_task(tmp_path, data))))
+
+
+def test_a_start_posture_of_the_wrong_length_names_the_models_joints(tmp_path):
+    from psl_sim.arm_model import ArmModel
+    data = embedded_data()
+    for key in ('start_posture', 'goal_posture'):
+        data[key] = data[key] + [0.0]
+    for key in ('kp', 'kd'):
+        data['controller'][key] = data['controller'][key] + [1.0]
+    data['demonstration']['positions'] = [row + [0.0] for row in
+                                          data['demonstration']['positions']]
+    with pytest.raises(TaskError, match='start_posture has 4 entries, the model has 3 joints '
+                                        r'\(joint1, joint2, joint3\)'):
+        ArmModel(load_task(str(write_task(tmp_path, data))))
