@@ -20,6 +20,7 @@ global style change. Imports no ROS.
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -179,7 +180,7 @@ def plot_runs(dirs: Sequence[str | Path], out_path: str | Path,
     runs = [load_run(d) for d in dirs]
     out_path = Path(out_path)
     first = runs[0]
-    names, threshold = _task_info(first['metrics'].task)
+    names, threshold = _task_info(first['metrics'])
     fig = Figure(figsize=FIGSIZE, dpi=DPI, layout='constrained')
     ax_rollouts, ax_reward, ax_variance = fig.subplots(1, 3)
     _draw_rollouts(ax_rollouts, runs)
@@ -191,15 +192,27 @@ def plot_runs(dirs: Sequence[str | Path], out_path: str | Path,
     return out_path
 
 
-def _task_info(task_name: str) -> tuple[list[str] | None, float | None]:
-    """Axis names 'name [unit]' of tau and the success threshold, if the task can be loaded."""
+def _task_info(metrics: Metrics) -> tuple[list[str] | None, float | None]:
+    """Axis names 'name [unit]' of tau and the success threshold of a run's task: from its
+    YAML where it was learned (`Metrics.task_path`), by name on the task search path, or from
+    the copy of the YAML text the metrics keep; (None, None) when none of them gives them."""
+    import yaml
+    from psl_sim.task import TaskError, load_task
+    for source in (metrics.task_path, metrics.task):
+        try:
+            if source:
+                task = load_task(source)
+                names = [f'{p.name} [{p.unit}]' if p.unit else p.name for p in task.parameters]
+                return names, task.reward.success_threshold
+        except (OSError, TaskError):
+            continue
     try:
-        from psl_sim.task import load_task
-        task = load_task(task_name)
-    except (ImportError, OSError, ValueError):    # TaskError is a ValueError
+        data = yaml.safe_load(metrics.task_yaml) if metrics.task_yaml else None
+        names = [f"{p['name']} [{p['unit']}]" if p.get('unit') else str(p['name'])
+                 for p in data['task_parameters']]
+        return names, float(data['reward']['success_threshold'])
+    except (yaml.YAMLError, TypeError, KeyError, ValueError):
         return None, None
-    names = [f'{p.name} [{p.unit}]' if p.unit else p.name for p in task.parameters]
-    return names, task.reward.success_threshold
 
 
 def _tau_name(names: list[str] | None, d: int, dim: int) -> str:
@@ -222,14 +235,38 @@ def _progress(metrics: Metrics) -> str:
     return f" (incomplete: {len(metrics.tasks)}/{metrics.num_tasks} tasks)"
 
 
+def _flat(settings: dict, prefix: str = '') -> dict[str, str]:
+    """Nested settings as {'search.max_rollouts': '200', ...}."""
+    out = {}
+    for key, value in settings.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f'{prefix}{key}.'))
+        else:
+            out[f'{prefix}{key}'] = json.dumps(value)
+    return out
+
+
+def group_label(run: dict[str, Any], runs: list[dict[str, Any]]) -> str:
+    """What a run is averaged with: its strategy, and its task and every setting (but the
+    seed) in which the runs differ — seeds of one experiment share a curve, runs of different
+    tasks or settings (a 15-task batch session and a 2-task graph session) are drawn apart."""
+    flats = [_flat(r['metrics'].settings) for r in runs]
+    keys = sorted(set().union(*flats))
+    differ = [k for k in keys if k != 'seed' and len({f.get(k) for f in flats}) > 1]
+    m, flat = run['metrics'], _flat(run['metrics'].settings)
+    label = m.strategy
+    if len({r['metrics'].task for r in runs}) > 1:
+        label = f'{m.task}: {label}'
+    extra = [f'{k}={json.loads(flat[k]) if k in flat else "?"}' for k in differ
+             if k != 'strategy']
+    return f"{label} ({', '.join(extra)})" if extra else label
+
+
 def _draw_rollouts(ax: Axes, runs: list[dict[str, Any]]) -> None:
-    """Panel (a): rollouts per task, grouped by strategy (and task, if the runs differ)."""
-    several_tasks = len({r['metrics'].task for r in runs}) > 1
+    """Panel (a): rollouts per task, grouped by `group_label` (seeds of one experiment)."""
     groups: dict[str, list[dict[str, Any]]] = {}
     for run in runs:
-        m = run['metrics']
-        key = f"{m.task}: {m.strategy}" if several_tasks else m.strategy
-        groups.setdefault(key, []).append(run)
+        groups.setdefault(group_label(run, runs), []).append(run)
     positive = True
     for i, (key, members) in enumerate(groups.items()):
         colour = f'C{i % 10}'

@@ -230,3 +230,41 @@ def test_the_task_variability_tasks_plot(name, tmp_path):
     assert len(grid.axes) == 2 and grid.values.shape == (GRID, GRID)
     assert np.all(grid.values > 0)
     assert_png(plot_runs([out], out / 'learning.png', grid_points=GRID))
+
+
+def test_a_run_keeps_its_task_and_plots_from_any_folder(tmp_path, monkeypatch):
+    """Learned from a YAML outside the search path: metrics.json keeps its path and text, so
+    the plot names the axes after the file has gone (from the copy) and while it is there."""
+    from psl_bench.plot_learning import _task_info
+    from psl_optimizer.metrics import read_metrics
+    folder = tmp_path / 'elsewhere'
+    folder.mkdir()
+    data = yaml.safe_load((EMBEDDED_TASKS / f'{TASK}.yaml').read_text())
+    data['name'] = 'my_reach'
+    data['task_parameters'][0]['name'] = 'pillar_x'
+    shutil.copy(EMBEDDED_TASKS / data['model'], folder / data['model'])
+    (folder / 'my_reach.yaml').write_text(yaml.safe_dump(data))
+    mine = load_task(str(folder / 'my_reach.yaml'))
+    out = tmp_path / 'run'
+    Learner(mine, settings('bootstrap', 0, num_tasks=2), out).run()
+    metrics = read_metrics(out)
+    assert metrics.task_path == str(folder / 'my_reach.yaml')
+    assert yaml.safe_load(metrics.task_yaml)['name'] == 'my_reach'
+    expected = (['pillar_x [m]', 'obstacle_height [m]'], data['reward']['success_threshold'])
+    monkeypatch.chdir(tmp_path)
+    assert _task_info(metrics) == expected                  # from the file where it was
+    shutil.rmtree(folder)
+    assert _task_info(metrics) == expected                  # from the copy of its text
+    assert_png(plot_runs([out], tmp_path / 'gone.png', grid_points=GRID))
+
+
+def test_runs_of_different_settings_are_drawn_apart(runs, task, evaluator, tmp_path):
+    """Seeds of one experiment share a label; a session of another length gets its own."""
+    from psl_bench.plot_learning import group_label, load_run
+    short = tmp_path / 'short'
+    Learner(task, settings('bootstrap', 0, num_tasks=3), short, evaluator).run()
+    loaded = [load_run(runs['bootstrap', 0]), load_run(runs['bootstrap', 1]), load_run(short)]
+    labels = [group_label(run, loaded) for run in loaded]
+    assert labels[0] == labels[1] == f'bootstrap (num_tasks={NUM_TASKS})'
+    assert labels[2] == 'bootstrap (num_tasks=3)'
+    assert group_label(loaded[0], loaded[:2]) == 'bootstrap'

@@ -361,7 +361,8 @@ class Learner:
         metrics = Metrics(task=self.task.name, strategy=s.strategy, seed=s.seed,
                           settings=json.loads(json.dumps(dataclasses.asdict(s))),
                           tasks=list(done), complete=complete,
-                          summary=self.summary(done) if complete else None)
+                          summary=self.summary(done) if complete else None,
+                          task_path=str(self.task.path), task_yaml=self.task.path.read_text())
         metrics.write(self.out)
         return metrics
 

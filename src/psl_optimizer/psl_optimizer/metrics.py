@@ -99,6 +99,8 @@ class Metrics:
     tasks: list[TaskRecord]
     complete: bool                      # every training task is done (then summary is set)
     summary: Summary | None = None
+    task_path: str = ''                 # the task's YAML file, absolute (where it was learned)
+    task_yaml: str = ''                 # a copy of its text (names, units, threshold for plots)
 
     @property
     def num_tasks(self) -> int:
@@ -111,10 +113,13 @@ class Metrics:
                    seed=int(data['seed']), settings=dict(data.get('settings', {})),
                    tasks=[TaskRecord.from_dict(t) for t in data['tasks']],
                    complete=bool(data.get('complete', 'summary' in data)),
-                   summary=Summary.from_dict(data['summary']) if data.get('summary') else None)
+                   summary=Summary.from_dict(data['summary']) if data.get('summary') else None,
+                   task_path=str(data.get('task_path', '')),
+                   task_yaml=str(data.get('task_yaml', '')))
 
     def to_dict(self) -> dict:
-        data = {'task': self.task, 'strategy': self.strategy, 'seed': self.seed,
+        data = {'task': self.task, 'task_path': self.task_path, 'task_yaml': self.task_yaml,
+                'strategy': self.strategy, 'seed': self.seed,
                 'settings': self.settings, 'tasks': [t.to_dict() for t in self.tasks],
                 'complete': self.complete}
         if self.summary is not None:
