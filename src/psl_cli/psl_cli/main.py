@@ -31,6 +31,10 @@ def cmd_up(args) -> int:
         log_dir = None if args.log_dir is None else options.output_folder(args.log_dir)
     except ValueError as exc:
         return fail('psl up', exc, 2)
+    try:                    # a task the nodes would refuse: say so before starting them
+        check_task(args.task)
+    except ValueError as exc:
+        return fail('psl up', exc, 2)
     if args.memory_dir is not None:
         os.environ['PSL_MEMORY_DIR'] = os.path.abspath(args.memory_dir)  # the memory node's
     graph = Graph(task=args.task, mode=args.mode, namespace=args.namespace,
@@ -65,6 +69,18 @@ def cmd_up(args) -> int:
     finally:
         graph.stop()
         print('graph ended', flush=True)
+
+
+def check_task(task_name: str) -> None:
+    """Load the task, its model and its policy as the nodes will; ValueError (TaskError) with
+    the cause and the fix otherwise."""
+    from psl_controller.policy import policy_for
+    from psl_sim.arm_model import ArmModel
+    from psl_sim.task import load_task
+
+    task = load_task(task_name)
+    ArmModel(task)
+    policy_for(task)
 
 
 def create_task_skill(task_name: str, namespace: str = '', timeout: float = 30.0) -> str:

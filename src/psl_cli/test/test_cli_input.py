@@ -187,3 +187,39 @@ def test_an_answer_into_a_closed_pipe_ends_quietly(memory_folder):
     done = closed_pipe_run(['memory', 'info', '--namespace', MEMORY_NS, '--timeout', '30',
                             '--json'], memory_folder)
     assert done.returncode == 141 and done.stderr == '', done.stderr
+
+
+@pytest.fixture
+def broken_task(tmp_path):
+    """reach_over_obstacle with a goal posture outside joint2's range [-3, 3]."""
+    import shutil
+
+    import yaml
+    from psl_sim.task import EMBEDDED_TASKS
+    data = yaml.safe_load((EMBEDDED_TASKS / 'reach_over_obstacle.yaml').read_text())
+    data['goal_posture'] = [0.639, -3.5, -1.495]
+    shutil.copy(EMBEDDED_TASKS / data['model'], tmp_path / data['model'])
+    path = tmp_path / 'broken.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.parametrize('command', [['up'], ['learn', '--tasks', '2'], ['render']])
+def test_a_broken_task_is_one_line_naming_the_joint(broken_task, command, tmp_path):
+    """psl up refuses before starting any node; the others before doing anything."""
+    extra = {'up': ['--namespace', NOBODY], 'learn': ['-o', tmp_path / 'out'],
+             'render': ['-o', tmp_path / 'out.gif']}[command[0]]
+    done = run(command + ['--task', broken_task] + extra, tmp_path, timeout=60)
+    assert_one_line(done, "joint 'joint2'", 'outside its range [-3, 3]')
+    assert done.returncode == 2
+    assert 'started' not in done.stdout
+
+
+def test_a_node_that_cannot_start_says_why_in_one_line(broken_task, tmp_path):
+    """A node started on its own with a task it refuses: one line on stderr, exit code 1."""
+    done = subprocess.run([sys.executable, '-c',
+                           'from psl_sim.sim_node import main; main()', '--ros-args', '-r',
+                           f'__ns:=/{NOBODY}', '-p', f'task:={broken_task}'],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1
+    assert_one_line(done, 'SimNode: cannot start', "joint 'joint2'")

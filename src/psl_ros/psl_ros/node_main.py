@@ -1,10 +1,13 @@
 """The ``main()`` of every psl node (ros2/examples' minimal pattern, written once).
 
 Init, build the node, spin (one thread, or a MultiThreadedExecutor for nodes whose callbacks
-wait on other callbacks), end quietly on Ctrl-C or an external shutdown, destroy the node.
+wait on other callbacks), end quietly on Ctrl-C or an external shutdown, destroy the node. A
+node that cannot be built from its parameters (a ValueError while it is made: a task it cannot
+load, a bad parameter value) says why in one line on stderr and exits with 1, no traceback.
 """
 from __future__ import annotations
 
+import sys
 from typing import Callable
 
 import rclpy
@@ -16,7 +19,12 @@ def run_node(make_node: Callable[[], Node], args=None, threads: int = 1) -> None
     rclpy.init(args=args)
     node = None
     try:
-        node = make_node()
+        try:
+            node = make_node()
+        except ValueError as exc:       # e.g. psl_sim.task.TaskError: the configuration's fault
+            print(f'{getattr(make_node, "__name__", "node")}: cannot start: {exc}',
+                  file=sys.stderr, flush=True)
+            raise SystemExit(1) from None
         if threads == 1:
             rclpy.spin(node)
         else:
