@@ -25,6 +25,7 @@ from psl_controller.policy import Reference
 from psl_optimizer.reward import Reward
 from psl_optimizer.rollouts import RolloutResult, Rollouts
 from psl_sim.arm_model import ArmModel
+from psl_sim.model_spec import task_spec
 from psl_sim.reward_geometry import RewardGeometry
 from psl_sim.task import TaskDefinition
 
@@ -34,7 +35,7 @@ CONTROL = mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_MOCAP_POS
 
 def batch_model(task: TaskDefinition, law: PDLaw, geometry: RewardGeometry) -> mujoco.MjModel:
     """The task's model with the law as its actuators and the reward's sensors."""
-    spec = mujoco.MjSpec.from_file(str(task.model_path))
+    spec = task_spec(task)
     bias = law.actuator_bias()
     for i, actuator in enumerate(spec.actuators):
         actuator.gaintype = mujoco.mjtGain.mjGAIN_FIXED

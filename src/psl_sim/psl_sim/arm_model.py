@@ -11,6 +11,7 @@ import functools
 import mujoco
 import numpy as np
 
+from psl_sim.model_spec import task_model
 from psl_sim.task import TASK_BINDINGS, TaskDefinition, TaskError
 
 
@@ -19,10 +20,7 @@ class ArmModel:
 
     def __init__(self, task: TaskDefinition):
         self.task = task
-        try:
-            self.model = mujoco.MjModel.from_xml_path(str(task.model_path))
-        except ValueError as exc:
-            raise TaskError(f'cannot load model {task.model_path}: {exc}') from exc
+        self.model = task_model(task)
         self.data = mujoco.MjData(self.model)
         m = self.model
         if m.nu != m.nv or m.nq != m.nv:

@@ -19,6 +19,7 @@ import mujoco
 import numpy as np
 
 from psl_sim.arm_model import ArmModel
+from psl_sim.model_spec import task_spec
 
 CUTOFF = 10.0    # m; distances beyond this read as the cutoff (no obstacle is that far)
 
@@ -42,7 +43,7 @@ class RewardGeometry:
         self.pairs = [(arm.geom(g1), arm.geom(g2)) for g1 in reward.arm_geoms
                       for g2 in reward.obstacle_geoms]        # (arm geom id, obstacle geom id)
         self.first = arm.model.nsensordata      # ours follow the model's own sensors
-        spec = mujoco.MjSpec.from_file(str(arm.task.model_path))
+        spec = task_spec(arm.task)
         self.add_sensors(spec)
         self.model = spec.compile()             # the arm's model with the reward sensors
         self._data = mujoco.MjData(self.model)
