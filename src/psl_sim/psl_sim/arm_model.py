@@ -11,7 +11,7 @@ import functools
 import mujoco
 import numpy as np
 
-from psl_sim.model_spec import task_model
+from psl_sim.model_spec import robot_geoms, task_model
 from psl_sim.task import TASK_BINDINGS, TaskDefinition, TaskError
 
 
@@ -57,7 +57,11 @@ class ArmModel:
             self.torque_low[limited] = np.maximum(self.torque_low, limits[:, 0])[limited]
             self.torque_high[limited] = np.minimum(self.torque_high, limits[:, 1])[limited]
         self.ee_site = self._id(mujoco.mjtObj.mjOBJ_SITE, task.end_effector_site)
-        for name in task.reward.arm_geoms + task.reward.obstacle_geoms:
+        # the geoms the reward measures against the obstacles: reward.arm_geoms, or every geom
+        # of the bodies the joints move when omitted
+        self.arm_geoms = task.reward.arm_geoms or (
+            robot_geoms(self.model) if task.reward.obstacle_geoms else ())
+        for name in self.arm_geoms + task.reward.obstacle_geoms:
             self.geom(name)                    # the reward's geoms exist: fail at load
         self._bindings = [self._binding(p.binds) for p in task.parameters]
         # bindings that move things (data-level); a kinematic replay applies only these, so it

@@ -40,7 +40,7 @@ class RewardGeometry:
     def __init__(self, arm: ArmModel):
         self.arm = arm
         reward = arm.task.reward
-        self.pairs = [(arm.geom(g1), arm.geom(g2)) for g1 in reward.arm_geoms
+        self.pairs = [(arm.geom(g1), arm.geom(g2)) for g1 in arm.arm_geoms
                       for g2 in reward.obstacle_geoms]        # (arm geom id, obstacle geom id)
         self.first = arm.model.nsensordata      # ours follow the model's own sensors
         spec = task_spec(arm.task)

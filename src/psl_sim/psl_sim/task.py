@@ -29,6 +29,8 @@ BINDING_KINDS = ('mocap_position', 'body_mass', 'target_position', 'target_orien
 # rather than the model: they bind no body
 TASK_BINDINGS = ('target_position', 'target_orientation', 'duration')
 SPACES = ('joint', 'end_effector')     # where the DMP runs (policy.space)
+SCENE_TYPES = {'box': 3, 'sphere': 1, 'capsule': 2, 'cylinder': 2}   # type -> size entries
+END_EFFECTOR_SITE = 'psl_end_effector'  # the site psl adds for end_effector: {body, offset}
 
 
 class TaskError(ValueError):
@@ -56,6 +58,20 @@ class TargetSpec:
     position: np.ndarray            # (3,) m, world frame
     orientation: np.ndarray         # (3,) rad, extrinsic x-y-z rotation angles of the frame
     body: str = ''                  # a mocap body moved to the instance's target (display)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SceneObject:
+    """One entry of the ``scene`` section: a body psl adds to the model (a mocap body with
+    one geom of the same name), e.g. an obstacle, a table or a target marker."""
+
+    name: str
+    type: str                       # box | sphere | capsule | cylinder (SCENE_TYPES)
+    size: np.ndarray                # MuJoCo's geom size for the type (half-sizes, radius, ...)
+    position: np.ndarray            # (3,) m, world frame
+    orientation: np.ndarray         # (3,) rad, extrinsic x-y-z
+    contacts: bool = False          # collide with the robot (default: scored geometrically)
+    rgba: tuple[float, ...] = (0.8, 0.2, 0.2, 0.6)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -116,6 +132,11 @@ class TaskDefinition:
     demo_positions: np.ndarray      # (n_waypoints, n_joints)
     reward: RewardSpec
     target: TargetSpec | None = None
+    scene: tuple[SceneObject, ...] = ()
+    # end effector given as a body and an offset (psl adds the site END_EFFECTOR_SITE there);
+    # empty when the model has the site already
+    end_effector_body: str = ''
+    end_effector_offset: np.ndarray | None = None
 
     @property
     def tau_names(self) -> list[str]:
@@ -295,8 +316,14 @@ def _parse(path: Path) -> TaskDefinition:
 def _build(path: Path, data: Any) -> TaskDefinition:
     if not isinstance(data, dict):
         raise TaskError(f'{path}: a task file is a mapping of keys')
+    robot = data.get('robot', {})
+    if not isinstance(robot, dict) or set(robot) - {'model', 'end_effector'}:
+        raise TaskError(f'{path}: robot is a mapping with the keys model and end_effector')
+    if ('model' in robot) == ('model' in data):
+        raise TaskError(f'{path}: give the model once, as robot.model (or the top-level model)')
     # absolute (or ~/...) as given; a relative path is relative to the YAML file's folder
-    model_path = (path.parent / Path(str(_require(data, 'model', path))).expanduser()).resolve()
+    model = robot['model'] if 'model' in robot else data['model']
+    model_path = (path.parent / Path(str(model)).expanduser()).resolve()
     if not model_path.is_file():
         raise TaskError(f'{path}: model file {model_path} does not exist')
     start = _vector(_require(data, 'start_posture', path), 'start_posture', None, path)
@@ -344,7 +371,7 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         path=path,
         model_path=model_path,
         description=str(data.get('description', '')),
-        end_effector_site=str(_require(data, 'end_effector_site', path)),
+        **_end_effector(robot, data, path),
         control_rate=float(_require(data, 'control_rate', path)),
         duration=duration,
         settle_time=float(data.get('settle_time', 0.0)),
@@ -359,7 +386,67 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         demo_positions=demo_positions,
         reward=_reward(_section(data, 'reward', path), path),
         target=target,
+        scene=_scene(data.get('scene', []), path),
     )
+
+
+def _end_effector(robot: dict, data: dict, path: Path) -> dict:
+    """end_effector_site (and body, offset) from robot.end_effector ({site: NAME} or
+    {body: NAME, offset: [x, y, z]}) or the top-level end_effector_site."""
+    if ('end_effector' in robot) == ('end_effector_site' in data):
+        raise TaskError(f'{path}: give the end effector once, as robot.end_effector '
+                        '({site: NAME} or {body: NAME, offset: [x, y, z]}) or end_effector_site')
+    if 'end_effector_site' in data:
+        return {'end_effector_site': str(data['end_effector_site'])}
+    spec = robot['end_effector']
+    if not isinstance(spec, dict) or not (set(spec) == {'site'} or
+                                          set(spec) <= {'body', 'offset'} and 'body' in spec):
+        raise TaskError(f'{path}: robot.end_effector is {{site: NAME}} or {{body: NAME, '
+                        f'offset: [x, y, z]}}, got {spec!r}')
+    if 'site' in spec:
+        return {'end_effector_site': str(spec['site'])}
+    return {'end_effector_site': END_EFFECTOR_SITE, 'end_effector_body': str(spec['body']),
+            'end_effector_offset': _vector(spec.get('offset', [0.0, 0.0, 0.0]),
+                                           'robot.end_effector.offset', 3, path)}
+
+
+def _scene(entries: Any, path: Path) -> tuple[SceneObject, ...]:
+    if not isinstance(entries, list):
+        raise TaskError(f'{path}: scene is a list of objects')
+    known = [f.name for f in dataclasses.fields(SceneObject)]
+    objects, names = [], set()
+    for entry in entries:
+        if not isinstance(entry, dict) or 'name' not in entry:
+            raise TaskError(f'{path}: every scene object is a mapping with a name, got {entry!r}')
+        name = str(entry['name'])
+        unknown = sorted(set(entry) - set(known))
+        if unknown:
+            raise TaskError(f'{path}: scene object {name!r} has unknown keys {unknown}; '
+                            f'known: {", ".join(known)}')
+        kind = str(entry.get('type', 'box'))
+        if kind not in SCENE_TYPES:
+            raise TaskError(f'{path}: scene object {name!r}: type must be one of '
+                            f'{", ".join(SCENE_TYPES)}, got {kind!r}')
+        if name in names:
+            raise TaskError(f'{path}: two scene objects are called {name!r}')
+        names.add(name)
+        size = _vector(_require(entry, 'size', path), f'scene object {name!r} size',
+                       SCENE_TYPES[kind], path)
+        if not np.all(size > 0):
+            raise TaskError(f'{path}: scene object {name!r}: sizes must be > 0, got '
+                            f'{size.tolist()}')
+        contacts = entry.get('contacts', False)
+        if not isinstance(contacts, bool):
+            raise TaskError(f'{path}: scene object {name!r}: contacts must be true or false')
+        rgba = _vector(entry.get('rgba', SceneObject.rgba), f'scene object {name!r} rgba', 4,
+                       path)
+        objects.append(SceneObject(
+            name=name, type=kind, size=size, contacts=contacts, rgba=tuple(rgba.tolist()),
+            position=_vector(_require(entry, 'position', path),
+                             f'scene object {name!r} position', 3, path),
+            orientation=_vector(entry.get('orientation', [0.0, 0.0, 0.0]),
+                                f'scene object {name!r} orientation', 3, path)))
+    return tuple(objects)
 
 
 def _check_binding(binds: dict, name: str, lowest: float, path: Path) -> None:
