@@ -502,6 +502,23 @@ def _demo_options(p: argparse.ArgumentParser) -> None:
                    help='task instances rolled out before and after learning')
 
 
+def cmd_check(args) -> int:
+    from psl_optimizer.robot_check import check_robot, format_report
+    from psl_sim.task import load_task
+
+    try:
+        report = check_robot(load_task(args.task))
+    except ValueError as exc:                 # TaskError: the cause and the fix
+        return fail('psl check', exc, 2)
+    print(format_report(report))
+    return 1 if report.warnings and args.strict else 0
+
+
+def _check_options(p: argparse.ArgumentParser) -> None:
+    options.add_task(p)
+    p.add_argument('--strict', action='store_true', help='exit 1 when there are warnings')
+
+
 def cmd_render(args) -> int:
     from psl_cli import render
 
@@ -548,6 +565,9 @@ COMMANDS = {
     'demo': Command('start the graph, roll the demonstration out over a few obstacle '
                     'positions, learn the skill, roll it out zero-shot on the same positions, '
                     'record a bag, end everything', _demo_options, cmd_demo),
+    'check': Command('what psl makes of a task\'s robot (joints, limits, masses, end '
+                     'effector, scene) and what will hurt learning (gravity sag, torque '
+                     'saturation), with the fix', _check_options, cmd_check),
     'render': Command('draw one rollout offscreen into an animated GIF', _render_options,
                       cmd_render),
     'bench': Command('benchmarks (see docs/benchmarks.md)', _bench_options, cmd_bench),

@@ -1,0 +1,144 @@
+"""What psl made of a task's robot, and what in it will hurt learning (``psl check``).
+
+Loading a task already refuses what cannot work, with the cause and the fix (`psl_sim.task`,
+`psl_sim.arm_model`: lengths, joint ranges, demonstration times, motors). `check_robot` reports
+the rest, which runs but costs: per driven joint its range, torque limit and the mass it carries;
+the end effector, the scene objects and the geoms the reward measures; and warnings with their
+fix for
+
+- **gravity sag** under PD alone: at rest the controller must supply the bias force
+  ``qfrc_bias`` (gravity) with its position error, ``sag = qfrc_bias / kp`` [rad] per joint,
+  and the hand moves by ``|J sag|`` [m] (`mj_jacSite`), at the start and the goal posture;
+  without feed-forward a task whose hand sags more than `SAG_WARNING` is told to set
+  ``policy.feedforward``;
+- **torque saturation**: the share of control periods of the demonstration's rollout (batch
+  mode, the default instance) in which some joint's torque sits at its limit
+  (`SATURATION_WARNING`).
+Imports no ROS.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import mujoco
+import numpy as np
+
+from psl_optimizer.batch_rollout import BatchRollouts
+from psl_sim.arm_model import ArmModel
+from psl_sim.task import TaskDefinition
+
+SAG_WARNING = 0.005          # m of hand sag under PD alone worth a warning
+SATURATION_WARNING = 0.01    # share of saturated control periods worth a warning
+
+
+@dataclasses.dataclass(frozen=True)
+class Joint:
+    name: str
+    low: float | None            # rad (m for a slide); None: unlimited
+    high: float | None
+    torque_limit: float          # N m, the larger magnitude of the torque range
+    mass_carried: float          # kg, of the bodies this joint moves
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotReport:
+    task: str
+    model: str
+    joints: list[Joint]
+    end_effector: str
+    scene: list[str]
+    arm_geoms: list[str]
+    obstacle_geoms: list[str]
+    sag_rad: dict[str, np.ndarray]      # posture name -> (n,) rad
+    sag_hand: dict[str, float]          # posture name -> m
+    saturated_share: float
+    warnings: list[str]
+
+
+def hand_sag(arm: ArmModel, q: np.ndarray, kp: np.ndarray) -> tuple[np.ndarray, float]:
+    """Joint sag [rad] (n,) and hand displacement [m] under PD alone at rest at posture q
+    (on the arm's model as it is: its task instance applied)."""
+    model, data = arm.model, mujoco.MjData(arm.model)
+    data.qpos[arm.qpos_adr] = q
+    mujoco.mj_forward(model, data)
+    sag = data.qfrc_bias[arm.dof_adr] / kp
+    jac = np.zeros((3, model.nv))
+    mujoco.mj_jacSite(model, data, jac, None, arm.ee_site)
+    return sag, float(np.linalg.norm(jac[:, arm.dof_adr] @ sag))
+
+
+def check_robot(task: TaskDefinition) -> RobotReport:
+    """The report of the module docstring. Raises TaskError for a task that does not load."""
+    arm = ArmModel(task)
+    arm.reset(task.tau_default)             # the default instance (e.g. its payload mass)
+    m = arm.model
+    joints = []
+    for i, (name, jid) in enumerate(zip(arm.joint_names, arm.joint_ids)):
+        body = m.jnt_bodyid[jid]
+        moved = [b for b in range(m.nbody) if _descends(m, b, body)]
+        limited = bool(m.jnt_limited[jid])
+        joints.append(Joint(name=name, low=float(m.jnt_range[jid, 0]) if limited else None,
+                            high=float(m.jnt_range[jid, 1]) if limited else None,
+                            torque_limit=float(max(abs(arm.torque_low[i]),
+                                                   abs(arm.torque_high[i]))),
+                            mass_carried=float(m.body_mass[moved].sum())))
+    kp = task.controller.kp
+    sag_rad, sag_hand = {}, {}
+    for label, q in (('start', task.start_posture), ('goal', task.goal_posture)):
+        sag_rad[label], sag_hand[label] = hand_sag(arm, q, kp)
+    batch = BatchRollouts(task, n_threads=1)
+    result = batch.run(batch.policy.default_theta[None], task.tau_default)[0]
+    limits = np.maximum(np.abs(arm.torque_low), np.abs(arm.torque_high))
+    at_limit = np.abs(result.torque[1:]) >= limits - 1e-9 * np.maximum(1.0, limits)
+    saturated = float(np.mean(np.any(at_limit, axis=1)))
+    warnings = []
+    worst = max(sag_hand, key=sag_hand.get)
+    if sag_hand[worst] > SAG_WARNING and not task.policy.feedforward:
+        warnings.append(
+            f'gravity sag: under PD alone the hand sits {1000 * sag_hand[worst]:.1f} mm from the '
+            f'commanded point at the {worst} posture (joint sag up to '
+            f'{np.max(np.abs(sag_rad[worst])):.4f} rad): set policy.feedforward: true (psl '
+            'learns the torque), or raise controller.kp')
+    if saturated > SATURATION_WARNING:
+        joints_at = [arm.joint_names[j] for j in np.flatnonzero(np.any(at_limit, axis=0))]
+        warnings.append(
+            f'torque saturation: {100 * saturated:.1f} % of the demonstration\'s control periods '
+            f'hit a torque limit ({", ".join(joints_at)}): lower controller.kp/kd, slow the '
+            'movement (duration), or raise the motors\' ctrlrange')
+    return RobotReport(task=task.name, model=str(task.model_path), joints=joints,
+                       end_effector=task.end_effector_site,
+                       scene=[o.name for o in task.scene], arm_geoms=list(arm.arm_geoms),
+                       obstacle_geoms=list(task.reward.obstacle_geoms), sag_rad=sag_rad,
+                       sag_hand=sag_hand, saturated_share=saturated, warnings=warnings)
+
+
+def _descends(model: mujoco.MjModel, body: int, ancestor: int) -> bool:
+    while body > 0:
+        if body == ancestor:
+            return True
+        body = model.body_parentid[body]
+    return body == ancestor
+
+
+def format_report(report: RobotReport) -> str:
+    """The report as the text ``psl check`` prints."""
+    lines = [f'task {report.task}: model {report.model}',
+             f'{"joint":20s} {"range [rad]":>20s} {"torque limit [N m]":>19s} '
+             f'{"mass moved [kg]":>16s}']
+    for j in report.joints:
+        rng = 'unlimited' if j.low is None else f'[{j.low:.3g}, {j.high:.3g}]'
+        lines.append(f'{j.name:20s} {rng:>20s} {j.torque_limit:19.3g} {j.mass_carried:16.3g}')
+    lines.append(f'end effector: site {report.end_effector}')
+    if report.scene:
+        lines.append(f'scene objects: {", ".join(report.scene)}')
+    if report.obstacle_geoms:
+        lines.append(f'reward measures {", ".join(report.arm_geoms)} against '
+                     f'{", ".join(report.obstacle_geoms)}')
+    for label in report.sag_hand:
+        lines.append(f'gravity sag under PD alone at the {label} posture: hand '
+                     f'{1000 * report.sag_hand[label]:.2f} mm, joints '
+                     f'{np.array2string(report.sag_rad[label], precision=4)} rad')
+    lines.append(f'demonstration rollout: {100 * report.saturated_share:.1f} % of control '
+                 'periods at a torque limit')
+    lines += [f'warning: {w}' for w in report.warnings] or ['no warnings']
+    return '\n'.join(lines)

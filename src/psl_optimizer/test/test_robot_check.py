@@ -1,0 +1,71 @@
+"""psl check: the robot report against independent references (MuJoCo's inverse dynamics for
+the gravity torque, the model's masses) and its warnings on tasks made to trigger them."""
+import subprocess
+import sys
+
+import mujoco
+import numpy as np
+import pytest
+import yaml
+
+from psl_optimizer.robot_check import SAG_WARNING, check_robot, format_report
+from psl_sim.arm_model import ArmModel
+from psl_sim.task import EMBEDDED_TASKS, load_task
+
+
+def variant(tmp_path, name, change, xml=lambda text: text):
+    data = yaml.safe_load((EMBEDDED_TASKS / f'{name}.yaml').read_text())
+    change(data)
+    (tmp_path / data['model']).write_text(xml((EMBEDDED_TASKS / data['model']).read_text()))
+    path = tmp_path / f'{name}_variant.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return load_task(str(path))
+
+
+def test_the_gravity_sag_is_the_inverse_dynamics_torque_over_kp():
+    task = load_task('payload_transport')
+    report = check_robot(task)
+    arm = ArmModel(task)
+    arm.reset(task.tau_default)
+    data = mujoco.MjData(arm.model)
+    data.qpos[arm.qpos_adr] = task.start_posture
+    mujoco.mj_inverse(arm.model, data)               # at rest, zero acceleration: gravity
+    np.testing.assert_allclose(report.sag_rad['start'],
+                               data.qfrc_inverse[arm.dof_adr] / task.controller.kp, rtol=1e-9)
+    assert report.sag_hand['start'] > 0.05            # the compliant arm sags by centimetres
+    assert not report.warnings                         # ... and has feed-forward on
+    total = sum(arm.model.body_mass[1:])               # the shoulder moves every body
+    assert report.joints[0].mass_carried == pytest.approx(total)
+
+
+def test_no_gravity_no_sag():
+    report = check_robot(load_task('reach_over_obstacle'))
+    assert all(np.all(s == 0) for s in report.sag_rad.values())
+    assert [j.name for j in report.joints] == ['joint1', 'joint2', 'joint3']
+    assert [j.torque_limit for j in report.joints] == [40.0, 40.0, 40.0]   # the MJCF's
+
+
+def test_sag_without_feedforward_is_a_warning_with_the_fix(tmp_path):
+    task = variant(tmp_path, 'payload_transport',
+                   lambda d: d['policy'].update(feedforward=False))
+    report = check_robot(task)
+    assert report.sag_hand['start'] > SAG_WARNING
+    (warning,) = report.warnings
+    assert 'gravity sag' in warning and 'policy.feedforward: true' in warning
+
+
+def test_saturation_is_a_warning_naming_the_joints(tmp_path):
+    """The embedded arm with motors of 1 N m (its demonstration needs up to about 2)."""
+    report = check_robot(variant(tmp_path, 'reach_over_obstacle', lambda d: None,
+                                 lambda xml: xml.replace('ctrlrange="-40 40"',
+                                                         'ctrlrange="-1 1"')))
+    assert report.saturated_share > 0.01
+    assert any('torque saturation' in w and 'joint1' in w for w in report.warnings)
+
+
+def test_psl_check_prints_the_table():
+    done = subprocess.run([sys.executable, '-m', 'psl_cli.main', 'check', '--task',
+                           'point_reach_3d'], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert 'shoulder_flexion' in done.stdout and 'site palm' in done.stdout
+    assert done.stdout.strip() == format_report(check_robot(load_task('point_reach_3d')))
