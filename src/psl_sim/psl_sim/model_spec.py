@@ -6,6 +6,10 @@ sees the same model. Imports no ROS.
 """
 from __future__ import annotations
 
+import os
+from pathlib import Path
+from xml.etree import ElementTree
+
 import mujoco
 import numpy as np
 
@@ -28,9 +32,16 @@ def task_spec(task: TaskDefinition) -> mujoco.MjSpec:
             a scene object's name is taken.
     """
     try:
-        spec = mujoco.MjSpec.from_file(str(task.model_path))
+        if task.model_path.suffix.lower() == '.urdf':
+            spec = mujoco.MjSpec.from_string(urdf_text(task))
+            spec.option.timestep = 1.0 / task.control_rate      # a URDF has no timestep
+            # MuJoCo drops a URDF's contact-free geoms at compile: psl's scene objects are such
+            spec.compiler.discardvisual = False
+        else:
+            spec = mujoco.MjSpec.from_file(str(task.model_path))
     except ValueError as exc:
         raise TaskError(f'cannot load model {task.model_path}: {exc}') from exc
+    _add_motors(task, spec)
     if task.end_effector_body:
         body = spec.body(task.end_effector_body)
         if body is None:
@@ -55,6 +66,89 @@ def task_spec(task: TaskDefinition) -> mujoco.MjSpec:
                       rgba=list(obj.rgba), contype=1 if obj.contacts else 0,
                       conaffinity=1 if obj.contacts else 0)
     return spec
+
+
+def package_folder(task: TaskDefinition, package: str) -> Path:
+    """Where ``package://package/`` points: ``robot.package_paths`` of the task, then the
+    usual ROS search paths (ROS_PACKAGE_PATH folders named like the package or holding it,
+    AMENT_PREFIX_PATH/share/package). TaskError naming what was searched otherwise."""
+    if package in task.package_paths:
+        return task.package_paths[package]
+    searched = []
+    for root in filter(None, os.environ.get('ROS_PACKAGE_PATH', '').split(':')):
+        for candidate in (Path(root), Path(root) / package):
+            searched.append(str(candidate))
+            if candidate.name == package and candidate.is_dir():
+                return candidate
+    for prefix in filter(None, os.environ.get('AMENT_PREFIX_PATH', '').split(':')):
+        candidate = Path(prefix) / 'share' / package
+        searched.append(str(candidate))
+        if candidate.is_dir():
+            return candidate
+    raise TaskError(f'{task.path}: package://{package}/ of {task.model_path.name} is nowhere: '
+                    f'give robot.package_paths: {{{package}: FOLDER}} (searched '
+                    f'{", ".join(searched) or "no ROS_PACKAGE_PATH / AMENT_PREFIX_PATH"})')
+
+
+def urdf_text(task: TaskDefinition) -> str:
+    """The task's URDF with ``package://`` and relative mesh paths made absolute, meshes MuJoCo
+    cannot read (.dae) dropped from visual elements and refused in collision elements, and
+    Gazebo and transmission tags removed (MuJoCo ignores them anyway)."""
+    try:
+        root = ElementTree.parse(task.model_path).getroot()
+    except ElementTree.ParseError as exc:
+        raise TaskError(f'cannot read {task.model_path}: {exc}') from exc
+    for tag in ('gazebo', 'transmission'):
+        for element in root.findall(tag):
+            root.remove(element)
+    for link in root.iter('link'):
+        for kind in ('visual', 'collision'):
+            for element in link.findall(kind):
+                mesh = element.find('geometry/mesh')
+                if mesh is None:
+                    continue
+                filename = mesh.get('filename', '')
+                if filename.startswith('package://'):
+                    package, _, rest = filename[len('package://'):].partition('/')
+                    resolved = package_folder(task, package) / rest
+                else:
+                    resolved = (task.model_path.parent / filename).resolve()
+                if resolved.suffix.lower() == '.dae':
+                    if kind == 'visual':
+                        link.remove(element)      # MuJoCo reads STL, OBJ and MSH, not COLLADA
+                        continue
+                    raise TaskError(f'{task.path}: the collision mesh {filename} of link '
+                                    f'{link.get("name")!r} is COLLADA (.dae), which MuJoCo '
+                                    'cannot read: convert it to STL or OBJ')
+                if not resolved.is_file():
+                    raise TaskError(f'{task.path}: the mesh {filename} of link '
+                                    f'{link.get("name")!r} is not a file ({resolved})')
+                mesh.set('filename', str(resolved))
+    return ElementTree.tostring(root, encoding='unicode')
+
+
+def _add_motors(task: TaskDefinition, spec: mujoco.MjSpec) -> None:
+    """A model without actuators (a URDF, a bare MJCF): a plain motor on every hinge and slide
+    joint, in the model's joint order, its torque limit from ``robot.torque_limits``, else the
+    joint's ``actuatorfrcrange`` (a URDF's effort limit)."""
+    if len(spec.actuators):
+        return
+    joints = [j for j in spec.joints
+              if j.type in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)]
+    for i, joint in enumerate(joints):
+        if task.torque_limits is not None and i < len(task.torque_limits):
+            limit = float(task.torque_limits[i])
+        elif joint.actfrclimited == mujoco.mjtLimited.mjLIMITED_TRUE or joint.actfrcrange[1] > 0:
+            limit = float(max(abs(joint.actfrcrange[0]), abs(joint.actfrcrange[1])))
+        else:
+            raise TaskError(f'{task.path}: joint {joint.name!r} of {task.model_path.name} has no '
+                            'motor and no torque limit: give robot.torque_limits (N m per joint)')
+        motor = spec.add_actuator()
+        motor.name = joint.name
+        motor.target = joint.name
+        motor.trntype = mujoco.mjtTrn.mjTRN_JOINT
+        motor.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        motor.ctrlrange = [-limit, limit]
 
 
 def _name_robot_geoms(body, moving: bool) -> None:

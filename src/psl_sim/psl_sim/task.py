@@ -117,7 +117,7 @@ class TaskDefinition:
 
     name: str
     path: Path                      # the YAML file
-    model_path: Path                # the MJCF file
+    model_path: Path                # the MJCF or URDF file
     description: str
     end_effector_site: str
     control_rate: float             # Hz
@@ -137,6 +137,9 @@ class TaskDefinition:
     # empty when the model has the site already
     end_effector_body: str = ''
     end_effector_offset: np.ndarray | None = None
+    # a URDF's package://NAME/... paths: NAME -> folder (then ROS_PACKAGE_PATH, AMENT_PREFIX_PATH)
+    package_paths: dict[str, Path] = dataclasses.field(default_factory=dict)
+    torque_limits: np.ndarray | None = None   # (n,) N m for motors psl adds (else the model's)
 
     @property
     def tau_names(self) -> list[str]:
@@ -317,8 +320,9 @@ def _build(path: Path, data: Any) -> TaskDefinition:
     if not isinstance(data, dict):
         raise TaskError(f'{path}: a task file is a mapping of keys')
     robot = data.get('robot', {})
-    if not isinstance(robot, dict) or set(robot) - {'model', 'end_effector'}:
-        raise TaskError(f'{path}: robot is a mapping with the keys model and end_effector')
+    robot_keys = {'model', 'end_effector', 'package_paths', 'torque_limits'}
+    if not isinstance(robot, dict) or set(robot) - robot_keys:
+        raise TaskError(f'{path}: robot is a mapping with the keys {", ".join(sorted(robot_keys))}')
     if ('model' in robot) == ('model' in data):
         raise TaskError(f'{path}: give the model once, as robot.model (or the top-level model)')
     # absolute (or ~/...) as given; a relative path is relative to the YAML file's folder
@@ -387,7 +391,18 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         reward=_reward(_section(data, 'reward', path), path),
         target=target,
         scene=_scene(data.get('scene', []), path),
+        package_paths=_package_paths(robot.get('package_paths', {}), path),
+        torque_limits=(None if 'torque_limits' not in robot else _vector(
+            robot['torque_limits'], 'robot.torque_limits', n, path)),
     )
+
+
+def _package_paths(section: Any, path: Path) -> dict[str, Path]:
+    """robot.package_paths: package name -> folder (relative to the YAML's folder)."""
+    if not isinstance(section, dict):
+        raise TaskError(f'{path}: robot.package_paths maps package names to folders')
+    return {str(k): (path.parent / Path(str(v)).expanduser()).resolve()
+            for k, v in section.items()}
 
 
 def _end_effector(robot: dict, data: dict, path: Path) -> dict:
