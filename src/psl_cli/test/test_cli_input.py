@@ -198,6 +198,7 @@ def broken_task(tmp_path):
     from psl_sim.task import EMBEDDED_TASKS
     data = yaml.safe_load((EMBEDDED_TASKS / 'reach_over_obstacle.yaml').read_text())
     data['goal_posture'] = [0.639, -3.5, -1.495]
+    data['demonstration']['positions'][-1] = [0.639, -3.5, -1.495]
     shutil.copy(EMBEDDED_TASKS / data['model'], tmp_path / data['model'])
     path = tmp_path / 'broken.yaml'
     path.write_text(yaml.safe_dump(data))

@@ -61,7 +61,7 @@ def hand_sag(arm: ArmModel, q: np.ndarray, kp: np.ndarray) -> tuple[np.ndarray, 
     model, data = arm.model, mujoco.MjData(arm.model)
     data.qpos[arm.qpos_adr] = q
     mujoco.mj_forward(model, data)
-    sag = data.qfrc_bias[arm.dof_adr] / kp
+    sag = (data.qfrc_bias - data.qfrc_gravcomp)[arm.dof_adr] / kp    # gravcomp: cancelled
     jac = np.zeros((3, model.nv))
     mujoco.mj_jacSite(model, data, jac, None, arm.ee_site)
     return sag, float(np.linalg.norm(jac[:, arm.dof_adr] @ sag))
@@ -98,7 +98,7 @@ def check_robot(task: TaskDefinition) -> RobotReport:
             f'gravity sag: under PD alone the hand sits {1000 * sag_hand[worst]:.1f} mm from the '
             f'commanded point at the {worst} posture (joint sag up to '
             f'{np.max(np.abs(sag_rad[worst])):.4f} rad): set policy.feedforward: true (psl '
-            'learns the torque), or raise controller.kp')
+            'learns the torque) or robot.gravity_compensation: true, or raise controller.kp')
     if saturated > SATURATION_WARNING:
         joints_at = [arm.joint_names[j] for j in np.flatnonzero(np.any(at_limit, axis=0))]
         warnings.append(

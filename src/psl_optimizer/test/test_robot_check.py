@@ -15,8 +15,9 @@ from psl_sim.task import EMBEDDED_TASKS, load_task
 
 def variant(tmp_path, name, change, xml=lambda text: text):
     data = yaml.safe_load((EMBEDDED_TASKS / f'{name}.yaml').read_text())
+    model = data['model']
     change(data)
-    (tmp_path / data['model']).write_text(xml((EMBEDDED_TASKS / data['model']).read_text()))
+    (tmp_path / model).write_text(xml((EMBEDDED_TASKS / model).read_text()))
     path = tmp_path / f'{name}_variant.yaml'
     path.write_text(yaml.safe_dump(data))
     return load_task(str(path))
@@ -69,3 +70,18 @@ def test_psl_check_prints_the_table():
     assert done.returncode == 0, done.stderr
     assert 'shoulder_flexion' in done.stdout and 'site palm' in done.stdout
     assert done.stdout.strip() == format_report(check_robot(load_task('point_reach_3d')))
+
+
+def test_gravity_compensation_removes_the_sag(tmp_path):
+    """robot.gravity_compensation: MuJoCo's gravcomp cancels the weight of the moving bodies:
+    no sag left, and the arm holds its start posture with zero torque."""
+    task = variant(tmp_path, 'payload_transport', lambda d: d.update(
+        robot={'model': d.pop('model'), 'end_effector': {'site': d.pop('end_effector_site')},
+               'gravity_compensation': True}))
+    report = check_robot(task)
+    assert max(report.sag_hand.values()) < 1e-9
+    arm = ArmModel(task)
+    arm.reset(task.tau_default)
+    for _ in range(200):
+        arm.step(np.zeros(task.n_joints))
+    np.testing.assert_allclose(arm.q, task.start_posture, atol=1e-6)

@@ -53,6 +53,8 @@ def task_spec(task: TaskDefinition) -> mujoco.MjSpec:
                       size=[0.01, 0.01, 0.01])
     if task.reward.obstacle_geoms and not task.reward.arm_geoms:
         _name_robot_geoms(spec.worldbody, moving=False)     # the default arm_geoms need names
+    if task.gravity_compensation:
+        _compensate_gravity(spec.worldbody, moving=False)
     for obj in task.scene:
         taken = [kind for kind, found in (('body', spec.body(obj.name)),
                                           ('geom', spec.geom(obj.name))) if found is not None]
@@ -149,6 +151,16 @@ def _add_motors(task: TaskDefinition, spec: mujoco.MjSpec) -> None:
         motor.trntype = mujoco.mjtTrn.mjTRN_JOINT
         motor.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
         motor.ctrlrange = [-limit, limit]
+
+
+def _compensate_gravity(body, moving: bool) -> None:
+    """gravcomp 1 on every body a joint moves (``robot.gravity_compensation``): MuJoCo
+    applies the force that cancels its weight (a passive force, the same in every mode)."""
+    moving = moving or bool(body.joints)
+    if moving and not body.mocap:
+        body.gravcomp = 1.0
+    for child in body.bodies:
+        _compensate_gravity(child, moving)
 
 
 def _name_robot_geoms(body, moving: bool) -> None:

@@ -140,6 +140,7 @@ class TaskDefinition:
     # a URDF's package://NAME/... paths: NAME -> folder (then ROS_PACKAGE_PATH, AMENT_PREFIX_PATH)
     package_paths: dict[str, Path] = dataclasses.field(default_factory=dict)
     torque_limits: np.ndarray | None = None   # (n,) N m for motors psl adds (else the model's)
+    gravity_compensation: bool = False  # MuJoCo's gravcomp on the bodies the joints move
 
     @property
     def tau_names(self) -> list[str]:
@@ -320,7 +321,8 @@ def _build(path: Path, data: Any) -> TaskDefinition:
     if not isinstance(data, dict):
         raise TaskError(f'{path}: a task file is a mapping of keys')
     robot = data.get('robot', {})
-    robot_keys = {'model', 'end_effector', 'package_paths', 'torque_limits'}
+    robot_keys = {'model', 'end_effector', 'package_paths', 'torque_limits',
+                  'gravity_compensation'}
     if not isinstance(robot, dict) or set(robot) - robot_keys:
         raise TaskError(f'{path}: robot is a mapping with the keys {", ".join(sorted(robot_keys))}')
     if ('model' in robot) == ('model' in data):
@@ -362,6 +364,15 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         raise TaskError(f'{path}: demonstration positions must be rows of {n} joint angles, '
                         f'one per entry of start_posture (one per driven joint); found {found}')
     demo_times = _vector(demo['times'], 'demonstration times', len(demo_positions), path)
+    goal = _vector(_require(data, 'goal_posture', path), 'goal_posture', n, path)
+    for what, posture, row in (('start_posture', start, 0), ('goal_posture', goal, -1)):
+        if not np.allclose(demo_positions[row], posture, rtol=0.0, atol=1e-6):
+            raise TaskError(f'{path}: the demonstration must {"start" if row == 0 else "end"} '
+                            f'at {what} {posture.tolist()} (the DMP runs from its first to '
+                            f'its last waypoint), got {demo_positions[row].tolist()}')
+    gravity_compensation = robot.get('gravity_compensation', False)
+    if not isinstance(gravity_compensation, bool):
+        raise TaskError(f'{path}: robot.gravity_compensation must be true or false')
     duration = float(_require(data, 'duration', path))
     if not duration > 0.0:
         raise TaskError(f'{path}: duration must be > 0 s, got {duration:g}')
@@ -380,7 +391,7 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         duration=duration,
         settle_time=float(data.get('settle_time', 0.0)),
         start_posture=start,
-        goal_posture=_vector(_require(data, 'goal_posture', path), 'goal_posture', n, path),
+        goal_posture=goal,
         parameters=tuple(params),
         controller=ControllerSpec(
             kp=_vector(_require(controller, 'kp', path), 'controller.kp', n, path),
@@ -394,6 +405,7 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         package_paths=_package_paths(robot.get('package_paths', {}), path),
         torque_limits=(None if 'torque_limits' not in robot else _vector(
             robot['torque_limits'], 'robot.torque_limits', n, path)),
+        gravity_compensation=gravity_compensation,
     )
 
 

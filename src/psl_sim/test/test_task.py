@@ -411,6 +411,7 @@ def test_postures_outside_the_joint_ranges_are_refused_naming_the_joint(tmp_path
     from psl_sim.arm_model import ArmModel
     data = embedded_data()
     data['goal_posture'] = [0.639, -3.2, -1.495]
+    data['demonstration']['positions'][-1] = [0.639, -3.2, -1.495]
     with pytest.raises(TaskError, match="goal_posture puts joint 'joint2' at -3.2, outside its "
                                         r'range \[-3, 3\]'):
         ArmModel(load_task(str(write_task(tmp_path, data))))
@@ -428,3 +429,11 @@ def test_a_start_posture_of_the_wrong_length_names_the_models_joints(tmp_path):
     with pytest.raises(TaskError, match='start_posture has 4 entries, the model has 3 joints '
                                         r'\(joint1, joint2, joint3\)'):
         ArmModel(load_task(str(write_task(tmp_path, data))))
+
+
+@pytest.mark.parametrize('row, key', [(0, 'start'), (-1, 'end')])
+def test_the_demonstration_must_start_and_end_at_the_postures(tmp_path, row, key):
+    data = embedded_data()
+    data['demonstration']['positions'][row][0] += 0.1
+    with pytest.raises(TaskError, match=f'the demonstration must {key} at'):
+        load_task(str(write_task(tmp_path, data)))
