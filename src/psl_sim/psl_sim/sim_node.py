@@ -136,8 +136,14 @@ class SimNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self.pub_scene = self.create_publisher(MarkerArray, names.SCENE, LATCHED)
         self.hot_path = HotPath(self)
+        # a command answers the state published last (lockstep) or one of this episode's
+        # (realtime): one the controller published before that state answers an older one
+        # (e.g. the last state of the episode before, delivered late under load) and is
+        # dropped, by the publisher's source timestamp (the same wall clock on this machine)
+        self._state_wall_ns = self._episode_wall_ns = 0
+        self.stale_commands = 0
         self.hot_path.subscribe(Float64MultiArray, names.EFFORT_COMMAND, self.on_command,
-                                RELIABLE)
+                                RELIABLE, info=True)
         self.hot_path.start()
         create_service(self, ResetTask, '~/reset', self.on_reset)
         if self.mode == 'realtime':
@@ -194,6 +200,7 @@ class SimNode(Node):
                 stamp=time_msg(self.t_ns), task=task_id(arm.task), tau=tau.tolist(),
                 num_steps=num_steps, control_period=arm.task.control_period))
             self._publish_state()
+            self._episode_wall_ns = self._state_wall_ns
             self._ee_path = []
             self._scene_tick(always=True)
         response.success, response.message = True, f'episode of {num_steps} steps started'
@@ -202,7 +209,7 @@ class SimNode(Node):
         return response
 
     # -- commands -----------------------------------------------------------------------
-    def on_command(self, msg: Float64MultiArray) -> None:
+    def on_command(self, msg: Float64MultiArray, info: dict | None = None) -> None:
         command = np.asarray(msg.data, dtype=float)
         n = len(self.arm.joint_names)
         if command.shape != (n,) or not np.all(np.isfinite(command)):
@@ -214,6 +221,11 @@ class SimNode(Node):
         with self._lock:
             if self.steps_left == 0:
                 return                 # paused between episodes
+            published = (info or {}).get('source_timestamp', 0)
+            since = self._state_wall_ns if self.mode == 'lockstep' else self._episode_wall_ns
+            if published and published < since:
+                self.stale_commands += 1            # an answer to an earlier state
+                return
             if self.mode == 'lockstep':
                 self._advance(command)
             else:
@@ -263,7 +275,8 @@ class SimNode(Node):
             values=[KeyValue(key=k, value=str(v)) for k, v in (
                 ('mode', self.mode), ('task', self.arm.task.name), ('episode_start_ns', ep['t0']),
                 ('steps_done', done), ('steps', ep['steps']),
-                ('deadline_misses', ep['misses']), ('wall_time_s', f'{wall:.6f}'),
+                ('deadline_misses', ep['misses']), ('stale_commands', self.stale_commands),
+                ('wall_time_s', f'{wall:.6f}'),
                 ('steps_per_second', f'{done / wall:.1f}'))])
         diag = DiagnosticArray(status=[status])
         diag.header.stamp = time_msg(self.t_ns)
@@ -281,6 +294,7 @@ class SimNode(Node):
         js.effort = self.applied.tolist()
         # the state first: the controller answers it while the clock and the pose (a bag
         # records them) are built and sent
+        self._state_wall_ns = time.time_ns()
         self.pub_joints.publish(js)
         # building and serialising a message costs more than asking whether anyone listens
         if self.pub_clock.get_subscription_count():

@@ -1,0 +1,57 @@
+"""The simulator takes a command only as the answer to its latest state (lockstep) or to a
+state of the running episode (realtime): a command the controller published before that state
+answers an older one (the last state of the episode before, delivered late under load) and
+must not drive the new episode. The node runs in this process; commands are handed to its
+callback with the message info the middleware would give (source timestamp, wall clock ns)."""
+import time
+
+import pytest
+import rclpy
+from std_msgs.msg import Float64MultiArray
+
+from psl_msgs.srv import ResetTask
+from psl_sim.sim_node import SimNode
+
+
+@pytest.fixture(params=['lockstep', 'realtime'])
+def sim(request, monkeypatch):
+    """A simulator node of the given mode in this process, on a domain of its own (it publishes
+    nothing anyone here listens to); its realtime loop is not started, so nothing but the test
+    consumes a pending command."""
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(101 + (1 + hash(request.node.name)) % 100))
+    rclpy.init(args=['sim', '--ros-args', '-p', f'mode:={request.param}'])
+    node = None
+    try:
+        node = SimNode()
+        yield node
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def reset(node: SimNode) -> None:
+    response = node.on_reset(ResetTask.Request(task='reach_over_obstacle',
+                                               tau=[0.675, 0.16]), ResetTask.Response())
+    assert response.success, response.message
+
+
+def command(node: SimNode, published_ns: int) -> None:
+    node.on_command(Float64MultiArray(data=[1.0, 1.0, 1.0]),
+                    {'source_timestamp': published_ns})
+
+
+def test_a_command_published_before_the_state_is_not_its_answer(sim):
+    stale = time.time_ns()                   # e.g. the answer to the last episode's last state
+    reset(sim)
+    if sim.mode == 'lockstep':
+        steps, t0 = sim.steps_left, sim.t_ns
+        command(sim, stale)                  # dropped: the state still waits for its answer
+        assert (sim.steps_left, sim.t_ns, sim.stale_commands) == (steps, t0, 1)
+        command(sim, time.time_ns())         # published after the state: its answer
+        assert (sim.steps_left, sim.t_ns) == (steps - 1, t0 + sim.arm.task.control_period_ns)
+    else:                                    # the realtime loop runs on: only the counts
+        command(sim, stale)
+        assert sim.stale_commands == 1
+        command(sim, time.time_ns())
+    assert sim.stale_commands == 1
