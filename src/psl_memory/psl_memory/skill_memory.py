@@ -108,21 +108,7 @@ class SkillMemory:
         for index, name in enumerate(meta['skills']):      # by index: any name is safe
             for key, value in self.skills[name].get_state().items():
                 arrays[f'skill{index}/{key}'] = np.asarray(value)
-        if not path.parent.is_dir():
-            raise OSError(f'cannot save to {path}: folder {path.parent} does not exist')
-        fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.tmp', dir=path.parent)
-        try:
-            with os.fdopen(fd, 'wb') as f:
-                np.savez(f, **arrays)
-                f.flush()
-                os.fsync(f.fileno())
-            if path.is_symlink() or (path.exists() and not path.is_file()):
-                raise OSError(f'cannot save to {path}: not a regular file (a link, directory, '
-                              'device or FIFO); it is not replaced')
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        write_npz_atomically(path, arrays)
 
     @classmethod
     def read(cls, path: str | Path, max_bytes: int = MAX_FILE_BYTES) -> 'SkillMemory':
@@ -189,6 +175,31 @@ class SkillMemory:
         except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
             raise MemoryFileError(f'{path}: inconsistent content ({exc})') from exc
         return memory
+
+
+def write_npz_atomically(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write arrays as an npz file: a temporary file in the same folder, synced, then
+    renamed over `path`, which is never a link, directory, device or FIFO that gets replaced.
+
+    Raises:
+        OSError: the folder does not exist, or `path` is not a regular file.
+    """
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise OSError(f'cannot save to {path}: folder {path.parent} does not exist')
+    fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.tmp', dir=path.parent)
+    try:
+        with os.fdopen(fd, 'wb') as f:
+            np.savez(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        if path.is_symlink() or (path.exists() and not path.is_file()):
+            raise OSError(f'cannot save to {path}: not a regular file (a link, directory, '
+                          'device or FIFO); it is not replaced')
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def dataclass_dict(config: SkillConfig) -> dict:

@@ -22,7 +22,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import tempfile
 import time
 from pathlib import Path
 from typing import Callable
@@ -35,7 +34,7 @@ from psl_memory.gaussian_process_map import GaussianProcessMap
 from psl_memory.nearest_neighbour_library import NearestNeighbourLibrary
 from psl_memory.parameterized_skill import scaler_around
 from psl_memory.skill_config import SkillConfig
-from psl_memory.skill_memory import MAX_FILE_BYTES, SkillMemory
+from psl_memory.skill_memory import MAX_FILE_BYTES, SkillMemory, write_npz_atomically
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.ilc import ILCSettings, ilc_search
 from psl_optimizer.inverse_dynamics import oracle_theta
@@ -170,10 +169,8 @@ class InProcessBaseline:
                                              self.default_theta)
 
     def start(self, continue_from: str) -> None:
-        """A new session: an empty map (a baseline cannot continue from a memory file)."""
-        if continue_from:
-            raise ValueError(f'continue_from needs the elm skill map; the {self.skill_map!r} '
-                             'baseline starts empty')
+        """A new session: an empty map (`LearnSettings` refuses continue_from for a
+        baseline)."""
         self.map = self._empty()
 
     def restore(self, path: Path) -> None:
@@ -222,20 +219,11 @@ class InProcessBaseline:
         self.map.add(tau, theta)
 
     def save(self, path: Path) -> None:
-        """Write the samples atomically (temporary file in the same folder + rename)."""
-        path = Path(path)
-        fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.tmp', dir=path.parent)
-        try:
-            with os.fdopen(fd, 'wb') as f:
-                np.savez(f, format=np.array(BASELINE_FORMAT), skill_map=np.array(self.skill_map),
-                         task=np.array(self.task.name), taus=self.map.taus,
-                         thetas=self.map.thetas)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        """Write the samples atomically (`write_npz_atomically`)."""
+        write_npz_atomically(path, {
+            'format': np.array(BASELINE_FORMAT), 'skill_map': np.array(self.skill_map),
+            'task': np.array(self.task.name), 'taus': self.map.taus,
+            'thetas': self.map.thetas})
 
 
 def in_process_skill(task: TaskDefinition, settings: LearnSettings,
