@@ -8,13 +8,16 @@ the law's affine bias (`PDLaw.actuator_bias`), clipped to the law's torque limit
 controller law evaluated on the same state at the same step; only the order of the
 floating-point additions differs. The task parameters that move things (mocap bodies) enter
 through the control vector (``mjSTATE_MOCAP_POS``); those that change the model (body masses)
-get a copy of the batch model per task instance. The reward's sensors
+get a copy of the batch model per task instance. A task whose control period spans several
+physics steps (``n_substeps``) holds the law's torque over them, as the graph does: there the
+law runs in Python once per control period (`BatchRollouts._run_held`). The reward's sensors
 (`psl_sim.reward_geometry`) are part of the batch model, so the reward needs no Python loop
 over steps either. Imports no ROS.
 """
 from __future__ import annotations
 
 import copy
+import functools
 
 import mujoco
 import numpy as np
@@ -33,11 +36,13 @@ FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
 CONTROL = mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_MOCAP_POS
 
 
-def batch_model(task: TaskDefinition, law: PDLaw, geometry: RewardGeometry) -> mujoco.MjModel:
-    """The task's model with the law as its actuators and the reward's sensors."""
+def batch_model(task: TaskDefinition, law: PDLaw, geometry: RewardGeometry,
+                joint_of_actuator: np.ndarray) -> mujoco.MjModel:
+    """The task's model with the law as its actuators and the reward's sensors; actuator a
+    drives joint ``joint_of_actuator[a]`` of the law (command order)."""
     spec = task_spec(task)
     bias = law.actuator_bias()
-    for i, actuator in enumerate(spec.actuators):
+    for actuator, i in zip(spec.actuators, joint_of_actuator):
         actuator.gaintype = mujoco.mjtGain.mjGAIN_FIXED
         actuator.gainprm[0] = 1.0
         actuator.biastype = mujoco.mjtBias.mjBIAS_AFFINE
@@ -64,7 +69,9 @@ class BatchRollouts(Rollouts):
         self.law = law or law_for(task)
         self.geometry = RewardGeometry(self.arm)
         self.reward = Reward(task, self.geometry)
-        self.model = batch_model(task, self.law, self.geometry)
+        # the law is in command order (ArmModel.joint_names); the actuators in model order
+        self.joint_of_actuator = np.argsort(self.arm.actuator_ids)
+        self.model = batch_model(task, self.law, self.geometry, self.joint_of_actuator)
         self.datas = [mujoco.MjData(self.model) for _ in range(max(1, n_threads))]
         data = self.datas[0]
         mujoco.mj_resetData(self.model, data)
@@ -77,7 +84,7 @@ class BatchRollouts(Rollouts):
         """(B, N+1, nu + 3 n_mocap): the law's control of each reference, then the mocap
         positions of each (validated) task instance."""
         ctrl = np.stack([self.law.actuator_control(r.q, r.qd, r.u_ffwd)
-                         for r in references])                       # (B, N+1, nu)
+                         for r in references])[..., self.joint_of_actuator]   # (B, N+1, nu)
         mocap = np.empty((len(taus), self.model.nmocap, 3))
         for b, tau in enumerate(taus):
             data = self.datas[0]
@@ -102,6 +109,15 @@ class BatchRollouts(Rollouts):
                 copies[tuple(tau)] = model
         return [copies[tuple(tau)] for tau in taus]
 
+    @functools.cached_property
+    def held_model(self) -> mujoco.MjModel:
+        """For a task with substeps: the task's model with its plain motors (the law runs in
+        Python, once per control period, as the controller node does) and the reward's
+        sensors."""
+        spec = task_spec(self.task)
+        self.geometry.add_sensors(spec)
+        return spec.compile()
+
     def run(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
         """Roll out thetas (B, F) on task instances taus (B, E) or one tau (E,)."""
         thetas, taus = self._inputs(thetas, taus)
@@ -119,6 +135,8 @@ class BatchRollouts(Rollouts):
     def _run(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
         """`run` on validated inputs whose episodes have the same length."""
         references = [self.policy.reference(theta, tau) for theta, tau in zip(thetas, taus)]
+        if self.arm.n_substeps > 1:
+            return self._run_held(references, taus)
         control = self.controls(references, taus)
         # N+1 steps: the sensors of step k see state k, so step N gives state N's sensors;
         # the state after that extra step is not used.
@@ -140,3 +158,39 @@ class BatchRollouts(Rollouts):
         evaluations = self.reward.evaluate(q, torque, q_ref, self.geometry.read(sensors), taus)
         return [RolloutResult(evaluation=evaluations[b], q=q[b], torque=torque[b],
                               reference=references[b]) for b in range(len(thetas))]
+
+    def _run_held(self, references: list[Reference], taus: np.ndarray) -> list[RolloutResult]:
+        """A task whose control period spans several physics steps: the law's torque of state
+        k is held over the period's `ArmModel.n_substeps` steps, as in the graph (the
+        simulator's `ArmModel.step`). The law in the actuator would act on every physics
+        step, so here each rollout steps its own MjData in Python, one control period at a
+        time, with the law evaluated on the state at the period's start."""
+        arm, law, n_sub = self.arm, self.law, self.arm.n_substeps
+        n_steps, n = references[0].q.shape[0], len(arm.joint_names)
+        q = np.empty((len(taus), n_steps, n))
+        qd = np.empty_like(q)
+        torque = np.zeros_like(q)
+        sensors = np.empty((len(taus), n_steps, self.held_model.nsensordata))
+        for b, (reference, tau) in enumerate(zip(references, taus)):
+            model = self.held_model
+            if arm.changes_model:               # a task parameter changes the model (a mass)
+                model = copy.copy(self.held_model)
+                arm.apply_tau(tau, mujoco.MjData(model), model)
+            data = mujoco.MjData(model)
+            data.qpos[arm.qpos_adr] = self.task.start_posture
+            arm.move_bodies(tau, data)
+            mujoco.mj_forward(model, data)
+            for k in range(n_steps):
+                q[b, k], qd[b, k] = data.qpos[arm.qpos_adr], data.qvel[arm.dof_adr]
+                u = law.torque(q[b, k], qd[b, k], reference.q[k], reference.qd[k],
+                               reference.u_ffwd[k])
+                data.ctrl[arm.actuator_ids] = u
+                mujoco.mj_step(model, data)              # the sensors of state k
+                sensors[b, k] = data.sensordata
+                mujoco.mj_step(model, data, nstep=n_sub - 1)
+                if k + 1 < n_steps:
+                    torque[b, k + 1] = u
+        q_ref = np.stack([r.q for r in references])
+        evaluations = self.reward.evaluate(q, torque, q_ref, self.geometry.read(sensors), taus)
+        return [RolloutResult(evaluation=evaluations[b], q=q[b], torque=torque[b],
+                              reference=references[b]) for b in range(len(taus))]

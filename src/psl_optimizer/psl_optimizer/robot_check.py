@@ -46,6 +46,8 @@ class RobotReport:
     model: str
     joints: list[Joint]
     end_effector: str
+    passive_joints: list[str]
+    control: str                        # control rate, physics rate and substeps
     scene: list[str]
     arm_geoms: list[str]
     obstacle_geoms: list[str]
@@ -107,6 +109,10 @@ def check_robot(task: TaskDefinition) -> RobotReport:
             'movement (duration), or raise the motors\' ctrlrange')
     return RobotReport(task=task.name, model=str(task.model_path), joints=joints,
                        end_effector=task.end_effector_site,
+                       passive_joints=list(arm.passive_joints),
+                       control=(f'{task.control_rate:g} Hz, physics {1 / m.opt.timestep:g} Hz: '
+                                f'each command held over {arm.n_substeps} physics step'
+                                f'{"s" if arm.n_substeps > 1 else ""}'),
                        scene=[o.name for o in task.scene], arm_geoms=list(arm.arm_geoms),
                        obstacle_geoms=list(task.reward.obstacle_geoms), sag_rad=sag_rad,
                        sag_hand=sag_hand, saturated_share=saturated, warnings=warnings)
@@ -122,12 +128,17 @@ def _descends(model: mujoco.MjModel, body: int, ancestor: int) -> bool:
 
 def format_report(report: RobotReport) -> str:
     """The report as the text ``psl check`` prints."""
+    width = max(len('joint'), *(len(j.name) for j in report.joints))
     lines = [f'task {report.task}: model {report.model}',
-             f'{"joint":20s} {"range [rad]":>20s} {"torque limit [N m]":>19s} '
+             f'{"joint":{width}s} {"range [rad]":>16s} {"torque limit [N m]":>19s} '
              f'{"mass moved [kg]":>16s}']
     for j in report.joints:
         rng = 'unlimited' if j.low is None else f'[{j.low:.3g}, {j.high:.3g}]'
-        lines.append(f'{j.name:20s} {rng:>20s} {j.torque_limit:19.3g} {j.mass_carried:16.3g}')
+        lines.append(f'{j.name:{width}s} {rng:>16s} {j.torque_limit:19.3g} '
+                     f'{j.mass_carried:16.3g}')
+    lines.append(f'passive joints (no motor, move freely): '
+                 f'{", ".join(report.passive_joints) or "none"}')
+    lines.append(f'control: {report.control}')
     lines.append(f'end effector: site {report.end_effector}')
     if report.scene:
         lines.append(f'scene objects: {", ".join(report.scene)}')
@@ -137,7 +148,7 @@ def format_report(report: RobotReport) -> str:
     for label in report.sag_hand:
         lines.append(f'gravity sag under PD alone at the {label} posture: hand '
                      f'{1000 * report.sag_hand[label]:.2f} mm, joints '
-                     f'{np.array2string(report.sag_rad[label], precision=4)} rad')
+                     f'{np.array2string(np.round(report.sag_rad[label], 6), precision=4)} rad')
     lines.append(f'demonstration rollout: {100 * report.saturated_share:.1f} % of control '
                  'periods at a torque limit')
     lines += [f'warning: {w}' for w in report.warnings] or ['no warnings']

@@ -132,7 +132,7 @@ def test_the_urdf_robot_rolls_out_and_learns(folder, tmp_path):
 
 
 @pytest.mark.parametrize('change, words', [
-    (lambda d: d['robot'].update(package_paths={}), 'package://urdf_arm_description/ of arm.urdf is nowhere'),
+    (lambda d: d['robot'].update(package_paths={}), "package 'urdf_arm_description' is nowhere: give robot.package_paths"),
     (lambda d: d['robot'].update(package_paths={'urdf_arm_description': 'elsewhere'}),
      'is not a file'),
 ])

@@ -1,6 +1,7 @@
 """The physics of a task: its MuJoCo model with the task parameters applied.
 
-`ArmModel` steps the simulation with joint torques (one physics step per control period) and
+`ArmModel` steps the simulation with joint torques (held over the control period's
+`n_substeps` physics steps) and
 gives named accessors (joint names, torque limits, end-effector pose) and the task parameters'
 bindings. What the reward measures on it is `psl_sim.reward_geometry`. Imports no ROS.
 """
@@ -16,41 +17,57 @@ from psl_sim.task import TASK_BINDINGS, TaskDefinition, TaskError
 
 
 class ArmModel:
-    """A task's MJCF model: hinge/slide joints driven by one torque actuator each."""
+    """A task's model: the driven hinge/slide joints with one torque actuator each (command
+    order `joint_names`); every other joint passive (`passive_joints`)."""
 
     def __init__(self, task: TaskDefinition):
         self.task = task
         self.model = task_model(task)
         self.data = mujoco.MjData(self.model)
         m = self.model
-        if m.nu != m.nv or m.nq != m.nv:
-            raise TaskError(
-                f'{task.model_path}: psl drives one actuator per hinge/slide joint '
-                f'(nq={m.nq}, nv={m.nv}, nu={m.nu})')
-        if task.n_joints != m.nq:
-            joints = [m.joint(j).name or f'#{j}' for j in range(m.njnt)]
-            raise TaskError(f'{task.path}: start_posture has {task.n_joints} entries, the model '
-                            f'has {m.nq} joints ({", ".join(joints)}): give start_posture, '
-                            'goal_posture, controller.kp/kd and every demonstration row '
-                            f'{m.nq} entries, in actuator order')
-        if abs(m.opt.timestep * task.control_rate - 1.0) > 1e-9:
-            raise TaskError(f'{task.path}: control_rate {task.control_rate:g} Hz must equal '
-                            f'1 / model timestep ({1.0 / m.opt.timestep:g} Hz)')
+        self.n_substeps = substeps(task, m.opt.timestep)
         self._check_motors()
-        self.joint_names = [m.joint(m.actuator_trnid[i, 0]).name for i in range(m.nu)]
-        self.joint_ids = np.array([m.actuator_trnid[i, 0] for i in range(m.nu)])
-        if len(set(self.joint_ids.tolist())) != m.nu:
-            raise TaskError(f'{task.model_path}: every joint needs exactly one actuator')
+        # the driven joints in command order (task_spec left one actuator on each): the
+        # actuators' targets, reordered to robot.joints when the task names them
+        targets = [int(m.actuator_trnid[i, 0]) for i in range(m.nu)]
+        if len(set(targets)) != m.nu:
+            twice = sorted({m.joint(j).name for j in targets if targets.count(j) > 1})
+            raise TaskError(f'{task.model_path}: joints {twice} have more than one actuator; '
+                            'psl sends one torque per joint: keep exactly one actuator on '
+                            'each')
+        if task.joints:
+            self.joint_ids = np.array([m.joint(name).id for name in task.joints])
+        else:
+            self.joint_ids = np.array(targets, dtype=int)
+        self.actuator_ids = np.array([targets.index(j) for j in self.joint_ids], dtype=int)
+        self.joint_names = [m.joint(int(j)).name for j in self.joint_ids]
+        for j in self.joint_ids:
+            if int(m.jnt_type[j]) not in (int(mujoco.mjtJoint.mjJNT_HINGE),
+                                          int(mujoco.mjtJoint.mjJNT_SLIDE)):
+                raise TaskError(f'{task.model_path}: the actuated joint {m.joint(int(j)).name!r} '
+                                'is not a hinge or slide: psl drives one torque per joint; '
+                                'name the driven joints in robot.joints')
+        # every other joint moves freely (an object on the table, a gripper left alone)
+        self.passive_joints = [m.joint(j).name or f'#{j}' for j in range(m.njnt)
+                               if j not in set(self.joint_ids.tolist())]
+        if task.n_joints != len(self.joint_ids):
+            raise TaskError(
+                f'{task.path}: start_posture has {task.n_joints} entries, the model drives '
+                f'{len(self.joint_ids)} joints ({", ".join(self.joint_names)}): give '
+                'start_posture, goal_posture, controller.kp/kd and every demonstration row '
+                f'{len(self.joint_ids)} entries, in this order (or name the driven joints in '
+                'robot.joints)')
         self.qpos_adr = m.jnt_qposadr[self.joint_ids]
         self.dof_adr = m.jnt_dofadr[self.joint_ids]
-        if not np.all(m.actuator_ctrllimited):
+        if not np.all(m.actuator_ctrllimited[self.actuator_ids]):
             raise TaskError(f'{task.model_path}: every actuator needs a ctrlrange (torque limit)')
         self._check_postures()
         # the torque that reaches the joint: ctrlrange, narrowed by the actuator's forcerange
         # and the joint's actuatorfrcrange where the model sets them
-        self.torque_low = m.actuator_ctrlrange[:, 0].copy()
-        self.torque_high = m.actuator_ctrlrange[:, 1].copy()
-        for limited, limits in ((m.actuator_forcelimited, m.actuator_forcerange),
+        act = self.actuator_ids
+        self.torque_low = m.actuator_ctrlrange[act, 0].copy()
+        self.torque_high = m.actuator_ctrlrange[act, 1].copy()
+        for limited, limits in ((m.actuator_forcelimited[act], m.actuator_forcerange[act]),
                                 (m.jnt_actfrclimited[self.joint_ids],
                                  m.jnt_actfrcrange[self.joint_ids])):
             limited = limited.astype(bool)
@@ -60,7 +77,7 @@ class ArmModel:
         # the geoms the reward measures against the obstacles: reward.arm_geoms, or every geom
         # of the bodies the joints move when omitted
         self.arm_geoms = task.reward.arm_geoms or (
-            robot_geoms(self.model) if task.reward.obstacle_geoms else ())
+            robot_geoms(self.model, self.joint_ids) if task.reward.obstacle_geoms else ())
         for name in self.arm_geoms + task.reward.obstacle_geoms:
             self.geom(name)                    # the reward's geoms exist: fail at load
         self._bindings = [self._binding(p.binds) for p in task.parameters]
@@ -195,11 +212,12 @@ class ArmModel:
         return np.clip(torque, self.torque_low, self.torque_high)
 
     def step(self, torque: np.ndarray) -> np.ndarray:
-        """One control period (one physics step) with the given joint torques; returns the
-        torques actually applied (clipped to the actuator limits)."""
+        """One control period with the given joint torques, held over its `n_substeps`
+        physics steps; returns the torques actually applied (clipped to the actuator
+        limits)."""
         applied = self.clip_torque(np.asarray(torque, dtype=float))
-        self.data.ctrl[:] = applied
-        mujoco.mj_step(self.model, self.data)
+        self.data.ctrl[self.actuator_ids] = applied
+        mujoco.mj_step(self.model, self.data, nstep=self.n_substeps)
         return applied
 
     @property
@@ -215,6 +233,21 @@ class ArmModel:
         quat = np.empty(4)
         mujoco.mju_mat2Quat(quat, self.data.site_xmat[self.ee_site])
         return self.data.site_xpos[self.ee_site].copy(), quat
+
+
+def substeps(task: TaskDefinition, timestep: float) -> int:
+    """Physics steps per control period, ``round(1 / (control_rate * timestep))``: the command
+    is held over them. TaskError unless control_rate divides the physics rate 1 / timestep."""
+    ratio = 1.0 / (task.control_rate * timestep)
+    n = int(round(ratio))
+    if n < 1 or abs(ratio - n) > 1e-9 * ratio:
+        physics = 1.0 / timestep
+        rates = ', '.join(f'{physics / k:g}' for k in range(1, 6))
+        raise TaskError(f'{task.path}: control_rate {task.control_rate:g} Hz must divide the '
+                        f'physics rate 1 / timestep = {physics:g} Hz of {task.model_path.name} '
+                        f'a whole number of times (e.g. {rates} Hz): the command is held '
+                        'over that many physics steps')
+    return n
 
 
 @functools.lru_cache(maxsize=32)

@@ -6,14 +6,13 @@ sees the same model. Imports no ROS.
 """
 from __future__ import annotations
 
-import os
-from pathlib import Path
 from xml.etree import ElementTree
 
 import mujoco
 import numpy as np
 
-from psl_sim.task import TaskDefinition, TaskError, rotation_xyz
+from psl_sim.package_paths import PREFIX
+from psl_sim.task import TaskDefinition, TaskError, package_file, rotation_xyz
 
 
 GEOM_TYPES = {'box': mujoco.mjtGeom.mjGEOM_BOX, 'sphere': mujoco.mjtGeom.mjGEOM_SPHERE,
@@ -39,9 +38,12 @@ def task_spec(task: TaskDefinition) -> mujoco.MjSpec:
             spec.compiler.discardvisual = False
         else:
             spec = mujoco.MjSpec.from_file(str(task.model_path))
+    except TaskError:
+        raise
     except ValueError as exc:
         raise TaskError(f'cannot load model {task.model_path}: {exc}') from exc
-    _add_motors(task, spec)
+    driven = driven_joints(task, spec)
+    _set_motors(task, spec, driven)
     if task.end_effector_body:
         body = spec.body(task.end_effector_body)
         if body is None:
@@ -51,10 +53,14 @@ def task_spec(task: TaskDefinition) -> mujoco.MjSpec:
                             f'{", ".join(bodies)}')
         body.add_site(name=task.end_effector_site, pos=task.end_effector_offset,
                       size=[0.01, 0.01, 0.01])
-    if task.reward.obstacle_geoms and not task.reward.arm_geoms:
-        _name_robot_geoms(spec.worldbody, moving=False)     # the default arm_geoms need names
-    if task.gravity_compensation:
-        _compensate_gravity(spec.worldbody, moving=False)
+    for body in _driven_bodies(spec.worldbody, set(driven)):
+        if task.reward.obstacle_geoms and not task.reward.arm_geoms:
+            # the default arm_geoms are the robot's geoms; the reward's sensors need names
+            for k, geom in enumerate(body.geoms):
+                if not geom.name:
+                    geom.name = f'psl_geom_{body.name or "body"}_{k}'
+        if task.gravity_compensation:
+            body.gravcomp = 1.0     # MuJoCo cancels the body's weight (a passive force)
     for obj in task.scene:
         taken = [kind for kind, found in (('body', spec.body(obj.name)),
                                           ('geom', spec.geom(obj.name))) if found is not None]
@@ -68,28 +74,6 @@ def task_spec(task: TaskDefinition) -> mujoco.MjSpec:
                       rgba=list(obj.rgba), contype=1 if obj.contacts else 0,
                       conaffinity=1 if obj.contacts else 0)
     return spec
-
-
-def package_folder(task: TaskDefinition, package: str) -> Path:
-    """Where ``package://package/`` points: ``robot.package_paths`` of the task, then the
-    usual ROS search paths (ROS_PACKAGE_PATH folders named like the package or holding it,
-    AMENT_PREFIX_PATH/share/package). TaskError naming what was searched otherwise."""
-    if package in task.package_paths:
-        return task.package_paths[package]
-    searched = []
-    for root in filter(None, os.environ.get('ROS_PACKAGE_PATH', '').split(':')):
-        for candidate in (Path(root), Path(root) / package):
-            searched.append(str(candidate))
-            if candidate.name == package and candidate.is_dir():
-                return candidate
-    for prefix in filter(None, os.environ.get('AMENT_PREFIX_PATH', '').split(':')):
-        candidate = Path(prefix) / 'share' / package
-        searched.append(str(candidate))
-        if candidate.is_dir():
-            return candidate
-    raise TaskError(f'{task.path}: package://{package}/ of {task.model_path.name} is nowhere: '
-                    f'give robot.package_paths: {{{package}: FOLDER}} (searched '
-                    f'{", ".join(searched) or "no ROS_PACKAGE_PATH / AMENT_PREFIX_PATH"})')
 
 
 def urdf_text(task: TaskDefinition) -> str:
@@ -110,9 +94,9 @@ def urdf_text(task: TaskDefinition) -> str:
                 if mesh is None:
                     continue
                 filename = mesh.get('filename', '')
-                if filename.startswith('package://'):
-                    package, _, rest = filename[len('package://'):].partition('/')
-                    resolved = package_folder(task, package) / rest
+                if filename.startswith(PREFIX):
+                    resolved = package_file(task, filename, f'the mesh of link '
+                                                            f'{link.get("name")!r}')
                 else:
                     resolved = (task.model_path.parent / filename).resolve()
                 if resolved.suffix.lower() == '.dae':
@@ -129,16 +113,49 @@ def urdf_text(task: TaskDefinition) -> str:
     return ElementTree.tostring(root, encoding='unicode')
 
 
-def _add_motors(task: TaskDefinition, spec: mujoco.MjSpec) -> None:
-    """A model without actuators (a URDF, a bare MJCF): a plain motor on every hinge and slide
-    joint, in the model's joint order, its torque limit from ``robot.torque_limits``, else the
-    joint's ``actuatorfrcrange`` (a URDF's effort limit)."""
-    if len(spec.actuators):
-        return
-    joints = [j for j in spec.joints
-              if j.type in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)]
-    for i, joint in enumerate(joints):
-        if task.torque_limits is not None and i < len(task.torque_limits):
+ONE_DOF = (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)
+
+
+def driven_joints(task: TaskDefinition, spec: mujoco.MjSpec) -> list[str]:
+    """The joints psl drives, in command order: ``robot.joints``, else the joints of the
+    model's actuators (actuator order), else every hinge and slide joint of a model without
+    actuators (a URDF). Every other joint stays passive.
+
+    Raises:
+        TaskError: robot.joints names a joint the model lacks, or one that is not a hinge or
+            slide (psl commands one torque per joint).
+    """
+    if not task.joints:
+        if len(spec.actuators):
+            return [a.target for a in spec.actuators]
+        return [j.name for j in spec.joints if j.type in ONE_DOF]
+    by_name = {j.name: j for j in spec.joints if j.name}
+    for name in task.joints:
+        if name not in by_name:
+            raise TaskError(f'{task.path}: robot.joints names {name!r}; '
+                            f'{task.model_path.name} has the joints {", ".join(by_name)}')
+        if by_name[name].type not in ONE_DOF:
+            raise TaskError(f'{task.path}: robot.joints names {name!r}, a '
+                            f'{by_name[name].type.name[6:].lower()} joint: psl drives hinge '
+                            'and slide joints only; leave it out (it stays passive)')
+    return list(task.joints)
+
+
+def _set_motors(task: TaskDefinition, spec: mujoco.MjSpec, driven: list[str]) -> None:
+    """With ``robot.joints``: remove the actuators of the joints that are not driven (they
+    stay passive); then a plain motor on every driven joint without an actuator, its torque
+    limit from ``robot.torque_limits``, else the joint's ``actuatorfrcrange`` (a URDF's effort
+    limit)."""
+    if task.joints:
+        for actuator in list(spec.actuators):
+            if actuator.trntype != mujoco.mjtTrn.mjTRN_JOINT or actuator.target not in driven:
+                spec.delete(actuator)
+    actuated = {a.target for a in spec.actuators if a.trntype == mujoco.mjtTrn.mjTRN_JOINT}
+    for i, name in enumerate(driven):
+        if name in actuated:
+            continue
+        joint = spec.joint(name)
+        if task.torque_limits is not None:
             limit = float(task.torque_limits[i])
         elif joint.actfrclimited == mujoco.mjtLimited.mjLIMITED_TRUE or joint.actfrcrange[1] > 0:
             limit = float(max(abs(joint.actfrcrange[0]), abs(joint.actfrcrange[1])))
@@ -146,42 +163,33 @@ def _add_motors(task: TaskDefinition, spec: mujoco.MjSpec) -> None:
             raise TaskError(f'{task.path}: joint {joint.name!r} of {task.model_path.name} has no '
                             'motor and no torque limit: give robot.torque_limits (N m per joint)')
         motor = spec.add_actuator()
-        motor.name = joint.name
+        motor.name = joint.name if spec.actuator(joint.name) is None else f'psl_{joint.name}'
         motor.target = joint.name
         motor.trntype = mujoco.mjtTrn.mjTRN_JOINT
         motor.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
         motor.ctrlrange = [-limit, limit]
 
 
-def _compensate_gravity(body, moving: bool) -> None:
-    """gravcomp 1 on every body a joint moves (``robot.gravity_compensation``): MuJoCo
-    applies the force that cancels its weight (a passive force, the same in every mode)."""
-    moving = moving or bool(body.joints)
+def _driven_bodies(body, driven: set[str], moving: bool = False):
+    """The bodies a driven joint moves (the body of a driven joint and all below it), but
+    not mocap bodies: the robot."""
+    moving = moving or any(j.name in driven for j in body.joints)
     if moving and not body.mocap:
-        body.gravcomp = 1.0
+        yield body
     for child in body.bodies:
-        _compensate_gravity(child, moving)
+        yield from _driven_bodies(child, driven, moving)
 
 
-def _name_robot_geoms(body, moving: bool) -> None:
-    """Give every unnamed geom of a body that a joint moves a name (``psl_geom_<body>_<k>``):
-    the reward's geomdist sensors name their geoms."""
-    moving = moving or bool(body.joints)
-    if moving and not body.mocap:
-        for k, geom in enumerate(body.geoms):
-            if not geom.name:
-                geom.name = f'psl_geom_{body.name or "body"}_{k}'
-    for child in body.bodies:
-        _name_robot_geoms(child, moving)
-
-
-def robot_geoms(model: mujoco.MjModel) -> tuple[str, ...]:
-    """Names of the geoms on bodies that joints move (not welded to the world, not mocap): the
-    arm geoms the reward measures when ``reward.arm_geoms`` is omitted."""
-    moving = (model.body_weldid[model.geom_bodyid] != 0) & \
-        (model.body_mocapid[model.geom_bodyid] < 0)
-    return tuple(model.geom(int(g)).name for g in np.flatnonzero(moving)
-                 if model.geom(int(g)).name)
+def robot_geoms(model: mujoco.MjModel, joint_ids: np.ndarray) -> tuple[str, ...]:
+    """Names of the geoms on the bodies the driven joints (ids) move: the arm geoms the reward
+    measures when ``reward.arm_geoms`` is omitted (a passive object's geoms are not the arm's)."""
+    driven = set(model.jnt_bodyid[joint_ids].tolist())
+    moved = np.zeros(model.nbody, dtype=bool)
+    for b in range(1, model.nbody):         # parents come before their children
+        moved[b] = b in driven or moved[model.body_parentid[b]]
+    moved &= model.body_mocapid < 0
+    return tuple(model.geom(int(g)).name for g in range(model.ngeom)
+                 if moved[model.geom_bodyid[g]] and model.geom(int(g)).name)
 
 
 def _geom_size(size: np.ndarray) -> list[float]:
@@ -196,5 +204,7 @@ def task_model(task: TaskDefinition) -> mujoco.MjModel:
     """
     try:
         return task_spec(task).compile()
+    except TaskError:
+        raise
     except ValueError as exc:
         raise TaskError(f'cannot compile model {task.model_path}: {exc}') from exc

@@ -152,8 +152,10 @@ class SimNode(Node):
             self._thread.start()
         self.get_logger().info(
             f'{self.mode} simulation of task {self.arm.task.name!r} '
-            f'({len(self.arm.joint_names)} joints, {self.arm.task.control_rate:g} Hz); '
-            f'waiting for {self.resolve_service_name("~/reset")}')
+            f'({len(self.arm.joint_names)} joints, {self.arm.task.control_rate:g} Hz'
+            + (f'; passive: {", ".join(self.arm.passive_joints)}'
+               if self.arm.passive_joints else '')
+            + f'); waiting for {self.resolve_service_name("~/reset")}')
 
     def on_set_parameters(self, params) -> SetParametersResult:
         for p in params:

@@ -22,6 +22,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from psl_sim.package_paths import PREFIX as PACKAGE_PREFIX, PackageNotFound, resolve
+
 EMBEDDED_TASKS = Path(__file__).resolve().parent / 'tasks'
 BINDING_KINDS = ('mocap_position', 'body_mass', 'target_position', 'target_orientation',
                  'duration')
@@ -141,6 +143,9 @@ class TaskDefinition:
     package_paths: dict[str, Path] = dataclasses.field(default_factory=dict)
     torque_limits: np.ndarray | None = None   # (n,) N m for motors psl adds (else the model's)
     gravity_compensation: bool = False  # MuJoCo's gravcomp on the bodies the joints move
+    # robot.joints: the driven joints in command order (empty: every joint with an actuator,
+    # or every hinge/slide joint of a model without actuators); the rest stay passive
+    joints: tuple[str, ...] = ()
 
     @property
     def tau_names(self) -> list[str]:
@@ -322,14 +327,19 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         raise TaskError(f'{path}: a task file is a mapping of keys')
     robot = data.get('robot', {})
     robot_keys = {'model', 'end_effector', 'package_paths', 'torque_limits',
-                  'gravity_compensation'}
+                  'gravity_compensation', 'joints'}
     if not isinstance(robot, dict) or set(robot) - robot_keys:
         raise TaskError(f'{path}: robot is a mapping with the keys {", ".join(sorted(robot_keys))}')
     if ('model' in robot) == ('model' in data):
         raise TaskError(f'{path}: give the model once, as robot.model (or the top-level model)')
-    # absolute (or ~/...) as given; a relative path is relative to the YAML file's folder
-    model = robot['model'] if 'model' in robot else data['model']
-    model_path = (path.parent / Path(str(model)).expanduser()).resolve()
+    # absolute (or ~/...) as given; a relative path is relative to the YAML file's folder;
+    # package://NAME/... through psl_sim.package_paths
+    model = str(robot['model'] if 'model' in robot else data['model'])
+    package_paths = _package_paths(robot.get('package_paths', {}), path)
+    if model.startswith(PACKAGE_PREFIX):
+        model_path = package_file(path, model, 'robot.model', package_paths).resolve()
+    else:
+        model_path = (path.parent / Path(model).expanduser()).resolve()
     if not model_path.is_file():
         raise TaskError(f'{path}: model file {model_path} does not exist')
     start = _vector(_require(data, 'start_posture', path), 'start_posture', None, path)
@@ -370,6 +380,7 @@ def _build(path: Path, data: Any) -> TaskDefinition:
             raise TaskError(f'{path}: the demonstration must {"start" if row == 0 else "end"} '
                             f'at {what} {posture.tolist()} (the DMP runs from its first to '
                             f'its last waypoint), got {demo_positions[row].tolist()}')
+    joints = _joint_names(robot.get('joints', []), n, path)
     gravity_compensation = robot.get('gravity_compensation', False)
     if not isinstance(gravity_compensation, bool):
         raise TaskError(f'{path}: robot.gravity_compensation must be true or false')
@@ -402,11 +413,41 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         reward=_reward(_section(data, 'reward', path), path),
         target=target,
         scene=_scene(data.get('scene', []), path),
-        package_paths=_package_paths(robot.get('package_paths', {}), path),
+        package_paths=package_paths,
         torque_limits=(None if 'torque_limits' not in robot else _vector(
             robot['torque_limits'], 'robot.torque_limits', n, path)),
         gravity_compensation=gravity_compensation,
+        joints=joints,
     )
+
+
+def _joint_names(entries: Any, n: int, path: Path) -> tuple[str, ...]:
+    """robot.joints: distinct joint names, one per entry of start_posture (none: the
+    model's actuated joints)."""
+    if not isinstance(entries, list) or not all(isinstance(e, str) for e in entries):
+        raise TaskError(f'{path}: robot.joints is a list of joint names, got {entries!r}')
+    if entries and len(entries) != n:
+        raise TaskError(f'{path}: robot.joints names {len(entries)} driven joints, '
+                        f'start_posture has {n} entries: give one posture entry per driven '
+                        'joint, in the order of robot.joints')
+    if len(set(entries)) != len(entries):
+        raise TaskError(f'{path}: robot.joints names a joint twice: {entries}')
+    return tuple(entries)
+
+
+def package_file(task: 'TaskDefinition | Path', url: str, what: str,
+                 package_paths: dict[str, Path] | None = None) -> Path:
+    """The file a ``package://NAME/...`` url of a task names (`psl_sim.package_paths`);
+    TaskError naming what was searched and the fix when the package is nowhere."""
+    path = task.path if isinstance(task, TaskDefinition) else task
+    if isinstance(task, TaskDefinition):
+        package_paths = task.package_paths
+    try:
+        return resolve(url, package_paths)
+    except PackageNotFound as exc:
+        raise TaskError(f'{path}: {what} {url}: package {exc.name!r} is nowhere: give '
+                        f'robot.package_paths: {{{exc.name}: FOLDER}}, or install it '
+                        f'(searched {", ".join(exc.searched)})') from None
 
 
 def _package_paths(section: Any, path: Path) -> dict[str, Path]:

@@ -426,7 +426,7 @@ def test_a_start_posture_of_the_wrong_length_names_the_models_joints(tmp_path):
         data['controller'][key] = data['controller'][key] + [1.0]
     data['demonstration']['positions'] = [row + [0.0] for row in
                                           data['demonstration']['positions']]
-    with pytest.raises(TaskError, match='start_posture has 4 entries, the model has 3 joints '
+    with pytest.raises(TaskError, match='start_posture has 4 entries, the model drives 3 joints '
                                         r'\(joint1, joint2, joint3\)'):
         ArmModel(load_task(str(write_task(tmp_path, data))))
 
