@@ -32,7 +32,7 @@ def cmd_up(args) -> int:
     except ValueError as exc:
         return fail('psl up', exc, 2)
     try:                    # a task the nodes would refuse: say so before starting them
-        check_task(args.task)
+        warn_about('psl up', check_task(args.task), args.task)
     except ValueError as exc:
         return fail('psl up', exc, 2)
     if args.memory_dir is not None:
@@ -71,16 +71,23 @@ def cmd_up(args) -> int:
         print('graph ended', flush=True)
 
 
-def check_task(task_name: str) -> None:
+def check_task(task_name: str) -> list[str]:
     """Load the task, its model and its policy as the nodes will; ValueError (TaskError) with
-    the cause and the fix otherwise."""
+    the cause and the fix otherwise. Returns the warnings of ``psl check`` (what runs but
+    costs: gravity sag, torque saturation)."""
     from psl_controller.policy import policy_for
-    from psl_sim.arm_model import ArmModel
+    from psl_optimizer.robot_check import check_robot
     from psl_sim.task import load_task
 
     task = load_task(task_name)
-    ArmModel(task)
     policy_for(task)
+    return check_robot(task).warnings
+
+
+def warn_about(command: str, warnings: list[str], task_name: str) -> None:
+    """psl check's warnings, one line each on stderr, before a command starts work."""
+    for warning in warnings:
+        print(f'{command}: warning: {warning} (psl check --task {task_name})', file=sys.stderr)
 
 
 def create_task_skill(task_name: str, namespace: str = '', timeout: float = 30.0) -> str:
@@ -285,6 +292,7 @@ def cmd_learn(args) -> int:
 
     try:
         task = load_task(args.task)
+        warn_about('psl learn', check_task(args.task), args.task)
         _check_skill_map(args)
         map_part = '' if args.skill_map == 'elm' else f'-{args.skill_map}'
         out = options.output_folder(args.out or f'runs/{task.name}-{args.strategy}{map_part}'

@@ -85,3 +85,18 @@ def test_gravity_compensation_removes_the_sag(tmp_path):
     for _ in range(200):
         arm.step(np.zeros(task.n_joints))
     np.testing.assert_allclose(arm.q, task.start_posture, atol=1e-6)
+
+
+def test_psl_learn_says_the_warnings_before_it_learns(tmp_path):
+    """The same words on the command that would suffer from them, one line each."""
+    task = variant(tmp_path, 'reach_over_obstacle', lambda d: None,
+                   lambda xml: xml.replace('ctrlrange="-40 40"', 'ctrlrange="-1 1"'))
+    done = subprocess.run([sys.executable, '-m', 'psl_cli.main', 'learn', '--task',
+                           str(task.path), '--tasks', '1', '--budget', '4', '--test-tasks', '1',
+                           '-o', str(tmp_path / 'run')], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    warnings = [line for line in done.stderr.splitlines() if 'warning' in line]
+    assert len(warnings) == 1, done.stderr
+    assert warnings[0].startswith('psl learn: warning: torque saturation') and \
+        f'(psl check --task {task.path})' in warnings[0]
