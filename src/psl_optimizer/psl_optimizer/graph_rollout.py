@@ -3,8 +3,9 @@
 The population is spread over the workers (sim, controller, executor and evaluator running as
 processes, each worker under its own namespace), one rollout per worker at a time; lockstep
 rollouts do not depend on the worker, so the results are those of one worker. The results
-carry the evaluator's evaluation; the measured trajectories stay in the graph (the
-`RolloutResult` fields are None) until the rollout action returns them.
+carry the evaluator's evaluation and the measured episode it scored (joint angles, applied
+torques, the controller's reference: `trajectory_of`), so that whatever needs trajectories
+(ILC of the feed-forward) runs in graph mode as in batch mode.
 """
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from typing import Callable
 
 import numpy as np
 
+from psl_controller.policy import Reference
 from psl_optimizer.reward import RewardResult
 from psl_optimizer.rollouts import RolloutResult, Rollouts, Stopped
 from psl_ros.client import RolloutClient
@@ -64,4 +66,20 @@ class GraphRollouts(Rollouts):
         ev = result.evaluation
         return RolloutResult(evaluation=RewardResult(
             reward=ev.reward, fulfilled=ev.fulfilled,
-            components=dict(zip(ev.component_names, ev.component_values))))
+            components=dict(zip(ev.component_names, ev.component_values))),
+            **trajectory_of(ev))
+
+
+def trajectory_of(evaluation) -> dict:
+    """q, torque and reference (`RolloutResult` fields) of a psl_msgs/RolloutEvaluation: its
+    rows reshaped to (num_steps + 1, joints); {} when it carries none or they do not fit."""
+    n, rows = len(evaluation.joint_names), evaluation.num_steps + 1
+    fields = ('position', 'velocity', 'effort', 'reference_position', 'reference_velocity',
+              'reference_effort')
+    arrays = [np.asarray(getattr(evaluation, f), dtype=float) for f in fields]
+    if n == 0 or any(a.size != rows * n for a in arrays):
+        return {}
+    q, _, torque, q_ref, qd_ref, u_ffwd = (a.reshape(rows, n) for a in arrays)
+    t = np.arange(rows) * evaluation.control_period
+    return {'q': q, 'torque': torque,
+            'reference': Reference(t=t, q=q_ref, qd=qd_ref, u_ffwd=u_ffwd)}

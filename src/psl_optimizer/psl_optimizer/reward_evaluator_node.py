@@ -5,7 +5,9 @@ state, number of steps). The evaluator collects the ``joint_states`` of that epi
 controller's ``reference`` for each of them (matched by time stamp, so arrival order does not
 matter), scores the rollout with the task's reward (`psl_optimizer.reward.Reward`, the
 geometry from a kinematic replay of the measured joint angles) and publishes a
-psl_msgs/RolloutEvaluation stamped with the episode's first state.
+psl_msgs/RolloutEvaluation stamped with the episode's first state, carrying the measured
+episode (joint angles, velocities, applied torques and the controller's reference of each
+state) for learners that need it (ILC in graph mode).
 
 A goal change the executor made (``~/goal_change``, psl_msgs/GoalChange: stamped with the
 episode's start, or zero for the next episode) makes the episode's goal the new goal's
@@ -146,13 +148,20 @@ class RewardEvaluator(Node):
         goal_position = (reward.goals(taus)[0][0] if change is None
                          else reward.goal_position_of(change.goal))        # (3,)
         result = reward.evaluate_replayed(q, torque, q_ref, taus, goal_position[None])[0]
+
+        def rows(messages, field):
+            return [x for m in messages for x in getattr(m, field)]
         return RolloutEvaluation(
             stamp=ep.stamp, task=ep.task, tau=list(ep.tau), reward=result.reward,
             fulfilled=result.fulfilled, component_names=list(result.components),
             component_values=list(result.components.values()),
             tracking_error=result.components['tracking_error'], num_steps=ep.num_steps,
             goal_position=goal_position.tolist(),
-            goal_change_time=-1.0 if change is None else change.time_from_start)
+            goal_change_time=-1.0 if change is None else change.time_from_start,
+            control_period=ep.control_period, joint_names=list(states[0].name),
+            position=rows(states, 'position'), velocity=rows(states, 'velocity'),
+            effort=rows(states, 'effort'), reference_position=rows(refs, 'position'),
+            reference_velocity=rows(refs, 'velocity'), reference_effort=rows(refs, 'effort'))
 
 
     def destroy_node(self):
