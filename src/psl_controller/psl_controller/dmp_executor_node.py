@@ -1,6 +1,8 @@
 """The DMP executor node: serves the ``execute_rollout`` action (psl_msgs/ExecuteRollout).
 
-One rollout: check the goal, roll out the policy for theta on the control grid, send the
+One rollout: check the goal, roll out the policy for theta on the control grid, check the
+reference against the task's safety limits (`psl_sim.safety_check`: a refused candidate is never
+sent, no episode runs, the result carries the penalty and the reason in ``refused``), send the
 commanded trajectory to the controller (``joint_trajectory``, stamped zero = "start with the
 next state"), start an episode of the task instance with the simulator's ``sim/reset``
 service, then wait for the reward evaluator's ``rollout_evaluation`` of that episode and
@@ -55,7 +57,8 @@ from psl_ros.futures import wait_for
 from psl_ros.node_main import run_node
 from psl_ros.qos import RELIABLE, SERVICES
 from psl_ros.stamps import duration_msg, time_msg, to_ns
-from psl_sim.arm_model import joint_names_of
+from psl_sim.arm_model import ArmModel, joint_names_of
+from psl_sim.safety_check import SafetyCheck
 from psl_sim.task import TaskDefinition, TaskError, load_task
 
 LEAD_STEPS = 5          # control periods of lead at the least
@@ -124,6 +127,7 @@ class DMPExecutor(Node):
         self.create_subscription(GoalUpdate, names.GOAL_UPDATE, self.on_goal_update, 10,
                                  callback_group=group)
         self._rollout_lock = threading.Lock()
+        self._safety_checks: dict = {}          # task path -> SafetyCheck
         self._cv = threading.Condition()
         self._evaluations: dict[int, RolloutEvaluation] = {}   # by episode start [ns]
         self._progress: dict[int, float] = {}   # episode start [ns] -> fraction done
@@ -163,8 +167,9 @@ class DMPExecutor(Node):
         with self._rollout_lock:
             result = ExecuteRollout.Result()
             try:
-                result.evaluation, notes = self._rollout(goal_handle)
-                result.success, result.message = True, '; '.join(['rollout done'] + notes)
+                result.evaluation, notes, result.refused = self._rollout(goal_handle)
+                done = 'refused by the safety check' if result.refused else 'rollout done'
+                result.success, result.message = True, '; '.join([done] + notes)
                 goal_handle.succeed()
             except (TaskError, ValueError, RuntimeError) as exc:
                 result.success, result.message = False, str(exc)
@@ -175,7 +180,8 @@ class DMPExecutor(Node):
                     goal_handle.abort()
             return result
 
-    def _rollout(self, goal_handle) -> tuple[RolloutEvaluation, list[str]]:
+    def _rollout(self, goal_handle) -> tuple[RolloutEvaluation, list[str], str]:
+        """(evaluation, notes, the safety check's reason or '')."""
         goal = goal_handle.request
         task = load_task(goal.task)
         tau, theta = np.asarray(goal.tau), np.asarray(goal.theta)
@@ -189,6 +195,13 @@ class DMPExecutor(Node):
         else:
             reference = policy.reference(theta, tau)
         compute_cost = time.monotonic() - started
+        verdict = self._safety(task).check(tau, reference.q, reference.qd)
+        if not verdict.safe:        # never sent: no trajectory, no episode
+            self.get_logger().info(f'candidate refused by the safety check: {verdict.reason}')
+            return RolloutEvaluation(
+                task=goal.task, tau=list(goal.tau), reward=verdict.penalty(task.safety.penalty),
+                fulfilled=False, component_names=['safety_violation'],
+                component_values=[verdict.violation]), [verdict.reason], verdict.reason
         if not self.reset_client.wait_for_service(timeout_sec=5.0):
             raise RuntimeError('the simulator service sim/reset is not available')
         # joint order of the simulator, which the controller maps by name
@@ -208,10 +221,15 @@ class DMPExecutor(Node):
                 if run.change_time is not None and evaluation.goal_change_time < 0:
                     run.notes.append('the controller refused the changed trajectory (it came '
                                      'too late): the episode kept its goal')
-                return evaluation, run.notes
+                return evaluation, run.notes, ''
         finally:
             with self._live_lock:
                 self._running = None
+
+    def _safety(self, task: TaskDefinition) -> SafetyCheck:
+        if task.path not in self._safety_checks:
+            self._safety_checks[task.path] = SafetyCheck(ArmModel(task))
+        return self._safety_checks[task.path]
 
     def _start_episode(self, run: _Rollout, changes: bool,
                        compute_cost: float) -> ResetTask.Response:

@@ -12,7 +12,9 @@ get a copy of the batch model per task instance. A task whose control period spa
 physics steps (``n_substeps``) holds the law's torque over them, as the graph does: there the
 law runs in Python once per control period (`BatchRollouts._run_held`). The reward's sensors
 (`psl_sim.reward_geometry`) are part of the batch model, so the reward needs no Python loop
-over steps either. Imports no ROS.
+over steps either. Every candidate's reference passes the task's safety check
+(`psl_sim.safety_check`) first; a refused one is not simulated and gets the penalty. Imports no
+ROS.
 """
 from __future__ import annotations
 
@@ -26,10 +28,11 @@ from mujoco import rollout as mj_rollout
 from psl_controller.pd_law import PDLaw, law_for
 from psl_controller.policy import Reference
 from psl_optimizer.reward import Reward
-from psl_optimizer.rollouts import RolloutResult, Rollouts
+from psl_optimizer.rollouts import RolloutResult, Rollouts, refused_result
 from psl_sim.arm_model import ArmModel
 from psl_sim.model_spec import task_spec
 from psl_sim.reward_geometry import RewardGeometry
+from psl_sim.safety_check import SafetyCheck
 from psl_sim.task import TaskDefinition
 
 FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
@@ -69,6 +72,7 @@ class BatchRollouts(Rollouts):
         self.law = law or law_for(task)
         self.geometry = RewardGeometry(self.arm)
         self.reward = Reward(task, self.geometry)
+        self.safety = SafetyCheck(self.arm)
         # the law is in command order (ArmModel.joint_names); the actuators in model order
         self.joint_of_actuator = np.argsort(self.arm.actuator_ids)
         self.model = batch_model(task, self.law, self.geometry, self.joint_of_actuator)
@@ -121,20 +125,28 @@ class BatchRollouts(Rollouts):
     def run(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
         """Roll out thetas (B, F) on task instances taus (B, E) or one tau (E,)."""
         thetas, taus = self._inputs(thetas, taus)
-        steps = np.array([self.task.num_steps_of(tau) for tau in taus])
-        if np.all(steps == steps[0]):
-            return self._run(thetas, taus)
-        # instances of different durations: one mujoco.rollout per episode length
-        results: list[RolloutResult | None] = [None] * len(thetas)
-        for n in np.unique(steps):
-            index = np.flatnonzero(steps == n)
-            for i, result in zip(index, self._run(thetas[index], taus[index])):
-                results[i] = result
-        return results
-
-    def _run(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
-        """`run` on validated inputs whose episodes have the same length."""
         references = [self.policy.reference(theta, tau) for theta, tau in zip(thetas, taus)]
+        results: list[RolloutResult | None] = [None] * len(thetas)
+        safe = []
+        for i, (reference, tau) in enumerate(zip(references, taus)):
+            verdict = self.safety.check(tau, reference.q, reference.qd)
+            if verdict.safe:
+                safe.append(i)
+            else:          # not executed: the penalty and the reason
+                results[i] = refused_result(verdict.reason,
+                                            verdict.penalty(self.task.safety.penalty),
+                                            verdict.violation)
+        steps = np.array([self.task.num_steps_of(taus[i]) for i in safe], dtype=int)
+        # instances of different durations: one mujoco.rollout per episode length
+        for n in np.unique(steps):
+            index = [i for i, k in zip(safe, steps) if k == n]
+            for i, result in zip(index, self._run([references[i] for i in index],
+                                                  taus[index])):
+                results[i] = result
+        return self._count(results)
+
+    def _run(self, references: list[Reference], taus: np.ndarray) -> list[RolloutResult]:
+        """The rollouts of checked references whose episodes have the same length."""
         if self.arm.n_substeps > 1:
             return self._run_held(references, taus)
         control = self.controls(references, taus)
@@ -143,21 +155,21 @@ class BatchRollouts(Rollouts):
         state, sensors = mj_rollout.rollout(self.models(taus), self.datas,
                                             self.initial_state[None], control,
                                             control_spec=CONTROL)
-        n = len(self.arm.joint_names)
+        n, count = len(self.arm.joint_names), len(references)
         qpos = state[:, :, 1 + self.arm.qpos_adr]                    # states 1..N+1
         qvel = state[:, :, 1 + self.model.nq + self.arm.dof_adr]
-        q = np.concatenate([np.broadcast_to(self.task.start_posture, (len(thetas), 1, n)),
+        q = np.concatenate([np.broadcast_to(self.task.start_posture, (count, 1, n)),
                             qpos[:, :-1]], axis=1)                   # S_0..S_N
-        qd = np.concatenate([np.zeros((len(thetas), 1, n)), qvel[:, :-1]], axis=1)
+        qd = np.concatenate([np.zeros((count, 1, n)), qvel[:, :-1]], axis=1)
         q_ref = np.stack([r.q for r in references])                 # (B, N+1, n)
         qd_ref = np.stack([r.qd for r in references])
         u_ffwd = np.stack([r.u_ffwd for r in references])
         # torque applied in step k: the law on state k (the actuator's force, clipped alike)
         u = self.law.torque(q, qd, q_ref, qd_ref, u_ffwd)
-        torque = np.concatenate([np.zeros((len(thetas), 1, n)), u[:, :-1]], axis=1)
+        torque = np.concatenate([np.zeros((count, 1, n)), u[:, :-1]], axis=1)
         evaluations = self.reward.evaluate(q, torque, q_ref, self.geometry.read(sensors), taus)
         return [RolloutResult(evaluation=evaluations[b], q=q[b], torque=torque[b],
-                              reference=references[b]) for b in range(len(thetas))]
+                              reference=references[b]) for b in range(len(references))]
 
     def _run_held(self, references: list[Reference], taus: np.ndarray) -> list[RolloutResult]:
         """A task whose control period spans several physics steps: the law's torque of state

@@ -17,7 +17,7 @@ import numpy as np
 
 from psl_controller.policy import Reference
 from psl_optimizer.reward import RewardResult
-from psl_optimizer.rollouts import RolloutResult, Rollouts, Stopped
+from psl_optimizer.rollouts import RolloutResult, Rollouts, Stopped, refused_result
 from psl_ros.client import RolloutClient
 from psl_sim.task import TaskDefinition, task_id
 
@@ -43,7 +43,8 @@ class GraphRollouts(Rollouts):
     def run(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
         thetas, taus = self._inputs(thetas, taus)
         if len(self.workers) == 1:
-            return [self._one(self.workers[0], tau, theta) for theta, tau in zip(thetas, taus)]
+            return self._count([self._one(self.workers[0], tau, theta)
+                                for theta, tau in zip(thetas, taus)])
         free: queue.Queue = queue.Queue()
         for worker in self.workers:
             free.put(worker)
@@ -55,7 +56,7 @@ class GraphRollouts(Rollouts):
             finally:
                 free.put(worker)
         with ThreadPoolExecutor(max_workers=len(self.workers)) as pool:
-            return list(pool.map(one, range(len(thetas))))
+            return self._count(list(pool.map(one, range(len(thetas)))))
 
     def _one(self, worker: RolloutClient, tau: np.ndarray, theta: np.ndarray) -> RolloutResult:
         if self.should_stop():
@@ -64,6 +65,8 @@ class GraphRollouts(Rollouts):
         if not result.success:
             raise RuntimeError(f'rollout failed: {result.message}')
         ev = result.evaluation
+        if result.refused:          # the executor's safety check: nothing was executed
+            return refused_result(result.refused, ev.reward, ev.component_values[0])
         return RolloutResult(evaluation=RewardResult(
             reward=ev.reward, fulfilled=ev.fulfilled,
             components=dict(zip(ev.component_names, ev.component_values))),

@@ -8,11 +8,11 @@ feed-forward only: the learner never sees it. Imports no ROS.
 """
 from __future__ import annotations
 
-import mujoco
 import numpy as np
 
 from psl_controller.policy import Reference, TaskPolicy, policy_for
 from psl_sim.arm_model import ArmModel
+from psl_sim.safety_check import reference_acceleration
 from psl_sim.task import TaskDefinition
 
 
@@ -28,20 +28,9 @@ def inverse_dynamics_torque(task: TaskDefinition, tau: np.ndarray,
     Raises:
         TaskError: tau outside the task's ranges.
     """
-    arm = ArmModel(task)
-    model, data = arm.model, mujoco.MjData(arm.model)
-    arm.apply_tau(task.validate_tau(tau), data, model)   # a private model: the payload mass
-    dt = task.control_period
-    qdd = np.diff(reference.qd, axis=0) / dt                            # (T-1, n)
-    qdd = np.vstack([qdd, qdd[-1:]]) if len(qdd) else np.zeros_like(reference.qd)
-    torque = np.empty_like(reference.q)                                 # (T, n)
-    for k in range(len(reference.q)):
-        data.qpos[arm.qpos_adr] = reference.q[k]
-        data.qvel[arm.dof_adr] = reference.qd[k]
-        data.qacc[arm.dof_adr] = qdd[k]
-        mujoco.mj_inverse(model, data)
-        torque[k] = data.qfrc_inverse[arm.dof_adr]
-    return torque
+    return ArmModel(task).inverse_dynamics(task.validate_tau(tau), reference.q, reference.qd,
+                                           reference_acceleration(reference.qd,
+                                                                  task.control_period))
 
 
 def oracle_theta_d(task: TaskDefinition, tau: np.ndarray, theta: np.ndarray,

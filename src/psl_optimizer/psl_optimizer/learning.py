@@ -334,14 +334,15 @@ class Learner:
             drawn = next(stream)
             tau = drawn if s.task_selection == 'random' else most_uncertain(
                 self.task, self.skill.variance, s.selection_candidates, s.seed, index)
-            start = time.perf_counter()
+            start, refused = time.perf_counter(), self.rollouts.refused
             result = self._search(tau, index, centre, scale)
             if result.fulfilled or not s.add_only_fulfilled:
                 self.skill.add(tau, result.theta)
             done.append(TaskRecord(index=index, tau=tau.tolist(), rollouts=result.rollouts,
                                    fulfilled=result.fulfilled, best_reward=result.reward,
                                    start_reward=result.rewards[0],
-                                   seconds=time.perf_counter() - start))
+                                   seconds=time.perf_counter() - start,
+                                   refused=self.rollouts.refused - refused))
             self._save_checkpoint(done)
             if progress is not None:
                 progress(done[-1])

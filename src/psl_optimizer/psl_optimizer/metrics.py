@@ -28,18 +28,21 @@ class TaskRecord:
 
     index: int                  # position in the session's task sequence
     tau: list[float]            # the task instance
-    rollouts: int               # rollouts its search took (every one counted)
+    rollouts: int               # candidates its search evaluated (every one counted)
     fulfilled: bool             # a rollout reached the success threshold
     best_reward: float
     start_reward: float         # the search's first rollout: PS(tau), or the default policy
     seconds: float              # wall time of the search
+    refused: int = 0            # of the candidates, those the safety check refused: not
+                                # executed (executed rollouts = rollouts - refused)
 
     @classmethod
     def from_dict(cls, data: dict) -> 'TaskRecord':
         return cls(index=int(data['index']), tau=[float(x) for x in data['tau']],
                    rollouts=int(data['rollouts']), fulfilled=bool(data['fulfilled']),
                    best_reward=float(data['best_reward']),
-                   start_reward=float(data['start_reward']), seconds=float(data['seconds']))
+                   start_reward=float(data['start_reward']), seconds=float(data['seconds']),
+                   refused=int(data.get('refused', 0)))
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -40,6 +40,7 @@ class RolloutResult:
     torque: np.ndarray | None = None       # (N+1, n) torque applied in the step before each
                                            # state (row 0: 0)
     reference: Reference | None = None     # the commanded trajectory on the same grid
+    refused: str = ''                      # the safety check's reason: nothing was executed
 
     @property
     def has_trajectory(self) -> bool:
@@ -52,14 +53,31 @@ class RolloutResult:
         return None if self.reference is None else self.reference.q
 
 
+def refused_result(reason: str, reward: float, violation: float) -> RolloutResult:
+    """The result of a candidate the safety check refused (`psl_sim.safety_check`): the
+    penalty reward, not fulfilled, its violation as the one component, no trajectory."""
+    from psl_optimizer.reward import RewardResult
+
+    return RolloutResult(evaluation=RewardResult(
+        reward=float(reward), fulfilled=False, components={'safety_violation': float(violation)}),
+        refused=reason)
+
+
 class Rollouts(abc.ABC):
-    """Rollouts of one task's policies on its task instances."""
+    """Rollouts of one task's policies on its task instances. `checked` counts the candidates
+    run (each one passed the safety check or was refused by it), `refused` those refused."""
 
     def __init__(self, task: TaskDefinition):
         from psl_controller.policy import policy_for
 
         self.task = task
         self.policy: TaskPolicy = policy_for(task)
+        self.checked = self.refused = 0
+
+    def _count(self, results: list[RolloutResult]) -> list[RolloutResult]:
+        self.checked += len(results)
+        self.refused += sum(1 for r in results if r.refused)
+        return results
 
     @abc.abstractmethod
     def run(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:

@@ -60,7 +60,9 @@ def test_batch_equals_step_by_step_simulation(task, batch):
     rng = np.random.default_rng(3)
     default = policy_for(task).default_theta
     thetas = default + rng.normal(0.0, 0.2 * np.abs(default).max(), (4, default.size))
-    thetas[0] *= 6.0          # a violent policy: its torques saturate
+    # a violent policy that stays in the joint ranges (the safety check's default): its
+    # torques saturate
+    thetas[0] = default + 3.0 * (thetas[0] - default)
     taus = np.array([task.sample_tau(rng) for _ in range(4)])
     results = batch.run(thetas, taus)
     saturated = 0
@@ -68,6 +70,31 @@ def test_batch_equals_step_by_step_simulation(task, batch):
         q, torque, _ = assert_equals_step_by_step(task, theta, tau, result)
         saturated += np.any(np.abs(torque) >= 40.0 - 1e-9)
     assert saturated > 0, 'the perturbed policies should hit the torque limit somewhere'
+
+
+def test_a_candidate_leaving_the_joint_ranges_is_refused_and_not_simulated(task, batch):
+    """theta * 6 drives joint2 far beyond its range [-3, 3]: refused with the reason and the
+    penalty; the other members of the population are what they are alone."""
+    default = policy_for(task).default_theta
+    wild, tau = 6.0 * default, task.tau_default
+    reference = batch.policy.reference(wild, tau)
+    assert np.abs(reference.q).max() > 3.0
+    checked, refused = batch.checked, batch.refused
+    wilder = 8.0 * default
+    results = batch.run(np.array([default, wild, wilder]), tau)
+    assert [bool(r.refused) for r in results] == [False, True, True]
+    assert 'below its limit -3' in results[1].refused or 'above its limit 3' in results[1].refused
+    for r in results[1:]:
+        assert not r.evaluation.fulfilled and r.q is None
+        assert r.evaluation.reward < task.safety.penalty
+    assert results[2].evaluation.reward < results[1].evaluation.reward     # graded
+    # theta = 1e308 never gets as far: the range policy refuses it with the range
+    with pytest.raises(ValueError, match='a units or scaling error'):
+        batch.run(1e308 * np.ones_like(default)[None], tau)
+    alone = batch.run(default[None], tau)[0]
+    assert np.array_equal(alone.q, results[0].q)
+    assert alone.evaluation.reward == results[0].evaluation.reward
+    assert (batch.checked - checked, batch.refused - refused) == (4, 2)
 
 
 def test_each_member_sees_its_own_task_instance(task, batch):

@@ -7,6 +7,7 @@ bindings. What the reward measures on it is `psl_sim.reward_geometry`. Imports n
 """
 from __future__ import annotations
 
+import copy
 import functools
 
 import mujoco
@@ -207,6 +208,23 @@ class ArmModel:
         self.data.qpos[self.qpos_adr] = self.task.start_posture
         mujoco.mj_forward(self.model, self.data)
         return tau
+
+    def inverse_dynamics(self, tau: np.ndarray, q: np.ndarray, qd: np.ndarray,
+                         qdd: np.ndarray) -> np.ndarray:
+        """Joint torques (T, n) that make the model, with task instance tau applied (e.g. a
+        payload mass, in a private copy), move along q, qd, qdd (T, n) (`mujoco.mj_inverse`).
+        tau must be valid already."""
+        model = copy.copy(self.model)
+        data = mujoco.MjData(model)
+        self.apply_tau(tau, data, model)
+        torque = np.empty_like(q)
+        for k in range(len(q)):
+            data.qpos[self.qpos_adr] = q[k]
+            data.qvel[self.dof_adr] = qd[k]
+            data.qacc[self.dof_adr] = qdd[k]
+            mujoco.mj_inverse(model, data)
+            torque[k] = data.qfrc_inverse[self.dof_adr]
+        return torque
 
     def clip_torque(self, torque: np.ndarray) -> np.ndarray:
         return np.clip(torque, self.torque_low, self.torque_high)

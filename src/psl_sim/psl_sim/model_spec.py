@@ -180,14 +180,19 @@ def _driven_bodies(body, driven: set[str], moving: bool = False):
         yield from _driven_bodies(child, driven, moving)
 
 
-def robot_geoms(model: mujoco.MjModel, joint_ids: np.ndarray) -> tuple[str, ...]:
-    """Names of the geoms on the bodies the driven joints (ids) move: the arm geoms the reward
-    measures when ``reward.arm_geoms`` is omitted (a passive object's geoms are not the arm's)."""
+def robot_bodies(model: mujoco.MjModel, joint_ids: np.ndarray) -> np.ndarray:
+    """(nbody,) True for the bodies the driven joints (ids) move (not mocap): the robot."""
     driven = set(model.jnt_bodyid[joint_ids].tolist())
     moved = np.zeros(model.nbody, dtype=bool)
     for b in range(1, model.nbody):         # parents come before their children
         moved[b] = b in driven or moved[model.body_parentid[b]]
-    moved &= model.body_mocapid < 0
+    return moved & (model.body_mocapid < 0)
+
+
+def robot_geoms(model: mujoco.MjModel, joint_ids: np.ndarray) -> tuple[str, ...]:
+    """Names of the geoms on the bodies the driven joints (ids) move: the arm geoms the reward
+    measures when ``reward.arm_geoms`` is omitted (a passive object's geoms are not the arm's)."""
+    moved = robot_bodies(model, joint_ids)
     return tuple(model.geom(int(g)).name for g in range(model.ngeom)
                  if moved[model.geom_bodyid[g]] and model.geom(int(g)).name)
 

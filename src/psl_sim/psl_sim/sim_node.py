@@ -142,6 +142,7 @@ class SimNode(Node):
         # dropped, by the publisher's source timestamp (the same wall clock on this machine)
         self._state_wall_ns = self._episode_wall_ns = 0
         self.stale_commands = 0
+        self.episodes = 0           # episodes started since the node started (resets)
         self.hot_path.subscribe(Float64MultiArray, names.EFFORT_COMMAND, self.on_command,
                                 RELIABLE, info=True)
         self.hot_path.start()
@@ -193,6 +194,7 @@ class SimNode(Node):
             num_steps = (int(round(duration * arm.task.control_rate)) if duration > 0
                          else arm.task.num_steps_of(tau))
             self.arm = arm
+            self.episodes += 1
             self.applied = np.zeros(len(arm.joint_names))
             self.pending = None
             self.steps_left = num_steps
@@ -276,7 +278,7 @@ class SimNode(Node):
             hardware_id=str(ep['t0']),
             values=[KeyValue(key=k, value=str(v)) for k, v in (
                 ('mode', self.mode), ('task', self.arm.task.name), ('episode_start_ns', ep['t0']),
-                ('steps_done', done), ('steps', ep['steps']),
+                ('steps_done', done), ('steps', ep['steps']), ('episodes', self.episodes),
                 ('deadline_misses', ep['misses']), ('stale_commands', self.stale_commands),
                 ('wall_time_s', f'{wall:.6f}'),
                 ('steps_per_second', f'{done / wall:.1f}'))])

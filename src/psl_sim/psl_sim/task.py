@@ -113,6 +113,24 @@ class RewardSpec:
     arm_geoms: tuple[str, ...] = ()         # the arm's geoms measured against them
 
 
+@dataclasses.dataclass(frozen=True)
+class SafetySpec:
+    """The ``safety`` section: what a candidate's commanded trajectory must keep before it is
+    executed (`psl_sim.safety_check`), in either rollout mode. By default the reference must be
+    finite and inside the joint ranges; every other limit is off until the task sets it."""
+
+    joint_margin: float = 0.0           # rad (m) kept inside each limited joint's range
+    max_velocity: float = float('inf')  # rad/s (m/s), |qd_ref| of every driven joint
+    max_acceleration: float = float('inf')  # rad/s^2, |qdd_ref|
+    torque_share: float = float('inf')  # inverse-dynamics torque along the reference, as a
+                                        # share of each joint's torque limit (1: within them)
+    collisions: bool = False            # no penetration of reward.obstacle_geoms in a
+                                        # kinematic replay of the reference
+    self_collision: bool = False        # no contact between the robot's own geoms in it
+    replay_period: float = 0.01         # s between the replayed states of the collision check
+    penalty: float = -100.0             # reward of a refused candidate, minus its violation
+
+
 @dataclasses.dataclass(frozen=True, eq=False)   # hashed by identity: load_task caches
 class TaskDefinition:
     """Everything a task varies and how it is scored (see the module docstring)."""
@@ -134,6 +152,7 @@ class TaskDefinition:
     demo_positions: np.ndarray      # (n_waypoints, n_joints)
     reward: RewardSpec
     target: TargetSpec | None = None
+    safety: SafetySpec = SafetySpec()
     scene: tuple[SceneObject, ...] = ()
     # end effector given as a body and an offset (psl adds the site END_EFFECTOR_SITE there);
     # empty when the model has the site already
@@ -412,6 +431,7 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         demo_positions=demo_positions,
         reward=_reward(_section(data, 'reward', path), path),
         target=target,
+        safety=_safety(data.get('safety', {}), path),
         scene=_scene(data.get('scene', []), path),
         package_paths=package_paths,
         torque_limits=(None if 'torque_limits' not in robot else _vector(
@@ -580,6 +600,30 @@ def _policy(section: dict, path: Path) -> PolicySpec:
                       n_components=int(section.get('n_components', PolicySpec.n_components)),
                       fit_seed=int(section.get('fit_seed', PolicySpec.fit_seed)),
                       learn_goal=learn_goal, space=space)
+
+
+def _safety(section: Any, path: Path) -> SafetySpec:
+    if not isinstance(section, dict):
+        raise TaskError(f'{path}: safety must be a mapping of keys')
+    _known_keys(section, SafetySpec, 'safety', path)
+    values = {}
+    for field in dataclasses.fields(SafetySpec):
+        if field.name not in section:
+            continue
+        value = section[field.name]
+        if isinstance(field.default, bool):
+            if not isinstance(value, bool):
+                raise TaskError(f'{path}: safety.{field.name} must be true or false')
+        else:
+            value = float(value)
+            if field.name != 'penalty' and not value >= 0.0:
+                raise TaskError(f'{path}: safety.{field.name} must be >= 0, got {value:g}')
+            if field.name == 'replay_period' and not value > 0.0:
+                raise TaskError(f'{path}: safety.replay_period must be > 0 s')
+            if field.name == 'penalty' and not np.isfinite(value):
+                raise TaskError(f'{path}: safety.penalty must be finite')
+        values[field.name] = value
+    return SafetySpec(**values)
 
 
 def _reward(section: dict, path: Path) -> RewardSpec:

@@ -1,0 +1,151 @@
+"""The safety check before a rollout: a candidate's commanded trajectory is executed only if it
+keeps the task's ``safety`` limits (`psl_sim.task.SafetySpec`).
+
+Both rollout modes call it on the reference of every candidate before anything moves: batch mode
+(`psl_optimizer.batch_rollout`) before ``mujoco.rollout``, the graph's executor before it sends
+the trajectory and resets the episode. A refused candidate is not executed; it gets the reward
+``penalty - violation`` and the reason. Checked, in this order (the first failure is the reason):
+
+1. the reference is finite;
+2. every driven joint stays ``joint_margin`` inside its range (limited joints);
+3. ``|qd_ref| <= max_velocity`` and ``|qdd_ref| <= max_acceleration`` (qdd the forward
+   difference of qd_ref, `reference_acceleration`);
+4. the torque that makes the model follow the reference (``mj_inverse`` on the task instance:
+   what the PD + feed-forward law must supply when it tracks) stays within ``torque_share``
+   times each joint's torque limit;
+5. ``collisions``: in a kinematic replay of the reference (every ``replay_period`` s) no robot
+   geom penetrates an obstacle of ``reward.obstacle_geoms``; ``self_collision``: no contact
+   between geoms of two robot bodies (MuJoCo's own filter drops parent and child).
+
+The violation (>= 0) grows with how far the candidate is from safe, so that CMA-ES, which sees
+the penalty, is led back: the excess in rad (range), the excess ratio (velocity, acceleration,
+torque) or in m (penetration). Imports no ROS.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import mujoco
+import numpy as np
+
+from psl_sim.arm_model import ArmModel
+from psl_sim.model_spec import robot_bodies
+
+NOT_FINITE_VIOLATION = 1e6
+
+
+@dataclasses.dataclass(frozen=True)
+class Verdict:
+    """The outcome for one candidate: safe, or the reason and how far from safe."""
+
+    safe: bool
+    reason: str = ''
+    violation: float = 0.0          # >= 0; 0 when safe
+
+    def penalty(self, base: float) -> float:
+        """The reward of a refused candidate: base - violation."""
+        return float(base - self.violation)
+
+
+SAFE = Verdict(True)
+
+
+def reference_acceleration(qd: np.ndarray, dt: float) -> np.ndarray:
+    """The acceleration (T, n) of each control period: the forward difference of the commanded
+    velocity qd (T, n) (with one semi-implicit Euler step per period, the acceleration that
+    reaches the next commanded velocity); the last period repeats the one before."""
+    qdd = np.diff(qd, axis=0) / dt                                      # (T-1, n)
+    return np.vstack([qdd, qdd[-1:]]) if len(qdd) else np.zeros_like(qd)
+
+
+class SafetyCheck:
+    """The task's safety limits on its arm (see the module docstring)."""
+
+    def __init__(self, arm: ArmModel):
+        self.arm, self.spec = arm, arm.task.safety
+        m = arm.model
+        limited = m.jnt_limited[arm.joint_ids].astype(bool)
+        margin = self.spec.joint_margin
+        self.low = np.where(limited, m.jnt_range[arm.joint_ids, 0] + margin, -np.inf)
+        self.high = np.where(limited, m.jnt_range[arm.joint_ids, 1] - margin, np.inf)
+        self.torque_limit = np.maximum(np.abs(arm.torque_low), np.abs(arm.torque_high))
+        self._replay = None
+        if self.spec.collisions or self.spec.self_collision:
+            self._replay = mujoco.MjData(arm.model)
+            self._robot_bodies = set(np.flatnonzero(robot_bodies(m, arm.joint_ids)).tolist())
+            self._obstacles = [arm.geom(g) for g in arm.task.reward.obstacle_geoms]
+            self._arm = [arm.geom(g) for g in arm.arm_geoms]
+
+    @property
+    def checks_dynamics(self) -> bool:
+        return bool(np.isfinite(self.spec.torque_share))
+
+    def check(self, tau: np.ndarray, q: np.ndarray, qd: np.ndarray) -> Verdict:
+        """The verdict on a reference q, qd (T, n) for the (valid) task instance tau."""
+        s, names = self.spec, self.arm.joint_names
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qd))):
+            return Verdict(False, 'the reference is not finite', NOT_FINITE_VIOLATION)
+        excess = np.maximum(self.low - q, q - self.high)                  # (T, n)
+        if np.any(excess > 0.0):
+            k, j = np.unravel_index(int(np.argmax(excess)), excess.shape)
+            side = 'below' if q[k, j] < self.low[j] else 'above'
+            bound = self.low[j] if side == 'below' else self.high[j]
+            return Verdict(False, f'joint {names[j]!r} at {q[k, j]:.4g} is {side} its limit '
+                           f'{bound:.4g} (range with margin {s.joint_margin:g}) at t = '
+                           f'{k * self.arm.task.control_period:.3f} s',
+                           float(np.clip(excess, 0.0, None).sum() * self.arm.task.control_period
+                                 + excess.max()))
+        dt = self.arm.task.control_period
+        qdd = reference_acceleration(qd, dt)
+        for what, values, limit, unit in (('velocity', qd, s.max_velocity, '/s'),
+                                          ('acceleration', qdd, s.max_acceleration, '/s^2')):
+            ratio = np.abs(values) / limit
+            if np.any(ratio > 1.0):
+                k, j = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+                return Verdict(False, f'joint {names[j]!r} reaches a {what} of '
+                               f'{abs(values[k, j]):.4g} rad{unit}, above the limit {limit:g} at '
+                               f't = {k * dt:.3f} s', float(ratio.max() - 1.0))
+        if self.checks_dynamics:
+            torque = self.arm.inverse_dynamics(tau, q, qd, qdd)
+            ratio = np.abs(torque) / (s.torque_share * self.torque_limit)
+            if np.any(ratio > 1.0):
+                k, j = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+                return Verdict(False, f'joint {names[j]!r} needs {abs(torque[k, j]):.4g} N m to '
+                               f'follow the reference at t = {k * dt:.3f} s, above '
+                               f'{s.torque_share:g} x its limit {self.torque_limit[j]:g} N m',
+                               float(ratio.max() - 1.0))
+        if self._replay is not None:
+            return self._check_collisions(tau, q)
+        return SAFE
+
+    def _check_collisions(self, tau: np.ndarray, q: np.ndarray) -> Verdict:
+        arm, s, m, data = self.arm, self.spec, self.arm.model, self._replay
+        mujoco.mj_resetData(m, data)
+        arm.move_bodies(tau, data)
+        dt = arm.task.control_period
+        every = max(1, int(round(s.replay_period / dt)))
+        steps = list(range(0, len(q), every))
+        if steps[-1] != len(q) - 1:
+            steps.append(len(q) - 1)
+        fromto = np.empty(6)
+        for k in steps:
+            data.qpos[arm.qpos_adr] = q[k]
+            mujoco.mj_kinematics(m, data)
+            if s.collisions:
+                for g1 in self._arm:
+                    for g2 in self._obstacles:
+                        distance = mujoco.mj_geomDistance(m, data, g1, g2, 0.0, fromto)
+                        if distance < 0.0:
+                            return Verdict(False, f'geom {m.geom(g1).name!r} enters obstacle '
+                                           f'{m.geom(g2).name!r} by {-distance * 1000:.1f} mm at '
+                                           f't = {k * dt:.3f} s', float(-distance))
+            if s.self_collision:
+                mujoco.mj_collision(m, data)
+                for c in data.contact[:data.ncon]:
+                    b1, b2 = int(m.geom_bodyid[c.geom1]), int(m.geom_bodyid[c.geom2])
+                    if b1 != b2 and b1 in self._robot_bodies and b2 in self._robot_bodies \
+                            and c.dist < 0.0:
+                        return Verdict(False, f'the robot touches itself: geoms '
+                                       f'{m.geom(c.geom1).name!r} and {m.geom(c.geom2).name!r} '
+                                       f'at t = {k * dt:.3f} s', float(-c.dist))
+        return SAFE
