@@ -39,7 +39,7 @@ from psl_optimizer.metrics import METRICS_FILE, read_metrics
 
 TARGETS = {'speedup': 5.0, 'zero_shot_success': 0.8}   # bootstrap vs scratch; every strategy
 METRICS = ('total_rollouts', 'late_rollouts', 'speedup', 'zero_shot_success',
-           'zero_shot_reward', 'train_seconds')
+           'zero_shot_reward', 'train_seconds', 'refused')
 
 
 def run_folder(out: Path, task: str, strategy: str, seed: int, readout: str | None,
@@ -85,6 +85,8 @@ def read_run(folder: Path, after: int) -> dict:
         'zero_shot_success': summary.zero_shot_success_rate,
         'zero_shot_reward': summary.zero_shot_mean_reward,
         'train_seconds': float(sum(t.seconds for t in metrics.tasks)),
+        # candidates the safety check refused (not executed), of total_rollouts
+        'refused': sum(t.refused for t in metrics.tasks),
     }
 
 
@@ -266,6 +268,9 @@ def format_table(report: dict) -> str:
                      f"{cell(row, 'zero_shot_reward', 3)} | {cell(row, 'train_seconds', 1)} |")
     t, rows = report['targets'], report['strategies']
     lines.append('')
+    lines.append('safety check, candidates refused (not executed) per session: ' + ', '.join(
+        f"{name} {cell(row, 'refused', 1)} of {row['total_rollouts']['mean']:.0f}"
+        for name, row in rows.items() if 'refused' in row))
     if 'speedup' in t:
         per_seed = ', '.join(f'{v:.1f}' for v in rows['bootstrap']['speedup']['values'])
         lines.append(f"target scratch / bootstrap ≥ {t['speedup']['min']:g}× ({late}): "

@@ -128,6 +128,7 @@ class SafetyCheck:
         if steps[-1] != len(q) - 1:
             steps.append(len(q) - 1)
         fromto = np.empty(6)
+        first, worst = None, 0.0            # the first touch (the reason), the deepest
         for k in steps:
             data.qpos[arm.qpos_adr] = q[k]
             mujoco.mj_kinematics(m, data)
@@ -136,16 +137,19 @@ class SafetyCheck:
                     for g2 in self._obstacles:
                         distance = mujoco.mj_geomDistance(m, data, g1, g2, 0.0, fromto)
                         if distance < 0.0:
-                            return Verdict(False, f'geom {m.geom(g1).name!r} enters obstacle '
-                                           f'{m.geom(g2).name!r} by {-distance * 1000:.1f} mm at '
-                                           f't = {k * dt:.3f} s', float(-distance))
+                            worst = max(worst, -distance)
+                            first = first or (f'geom {m.geom(g1).name!r} enters obstacle '
+                                              f'{m.geom(g2).name!r} at t = {k * dt:.3f} s')
             if s.self_collision:
                 mujoco.mj_collision(m, data)
                 for c in data.contact[:data.ncon]:
                     b1, b2 = int(m.geom_bodyid[c.geom1]), int(m.geom_bodyid[c.geom2])
                     if b1 != b2 and b1 in self._robot_bodies and b2 in self._robot_bodies \
                             and c.dist < 0.0:
-                        return Verdict(False, f'the robot touches itself: geoms '
-                                       f'{m.geom(c.geom1).name!r} and {m.geom(c.geom2).name!r} '
-                                       f'at t = {k * dt:.3f} s', float(-c.dist))
+                        worst = max(worst, -float(c.dist))
+                        first = first or (f'the robot touches itself: geoms '
+                                          f'{m.geom(c.geom1).name!r} and '
+                                          f'{m.geom(c.geom2).name!r} at t = {k * dt:.3f} s')
+        if first is not None:
+            return Verdict(False, f'{first} (deepest {worst * 1000:.1f} mm)', worst)
         return SAFE
