@@ -62,9 +62,25 @@ def cmd_up(args) -> int:
             print('graph ready', flush=True)
         while not stop.wait(0.2):
             dead = graph.dead()
-            if dead:
-                print(graph.describe_death(dead[0]), file=sys.stderr)
+            fatal = [p for p in dead if not p.worker]
+            if fatal:
+                print(graph.describe_death(fatal[0]), file=sys.stderr)
                 return 1
+            for worker in sorted({p.worker for p in dead}):
+                # a worker that fails fails alone: the learner sends its rollout elsewhere
+                node = next(p for p in dead if p.worker == worker)
+                print(f'psl up: {graph.describe_death(node)}', file=sys.stderr)
+                if args.worker_death == 'restart':
+                    new = graph.restart_worker(worker)
+                    print(f'restarted worker {worker}: ' + ', '.join(
+                        f'{p.name} pid {p.pid}' for p in new), flush=True)
+                else:
+                    graph.drop_worker(worker)
+                    left = {p.worker for p in graph.processes} - {''}
+                    print(f'dropped worker {worker}; {len(left)} left', flush=True)
+                    if not left:
+                        print('psl up: no rollout worker left', file=sys.stderr)
+                        return 1
         return 0
     finally:
         graph.stop()
@@ -118,6 +134,10 @@ def _up_options(p: argparse.ArgumentParser) -> None:
     p.add_argument('--workers', type=options.non_negative_int, default=0,
                    help='N rollout workers (sim, controller, executor, evaluator) under '
                    '<namespace>/worker0..N-1; the learner spreads a population over them')
+    p.add_argument('--worker-death', choices=('restart', 'drop'), default='restart',
+                   help='with --workers N > 1, when a node of one worker dies: restart that '
+                   "worker's nodes (default) or go on without it; the learner re-sends its "
+                   'unanswered rollout to another worker either way')
     p.add_argument('--log-dir', metavar='DIR',
                    help="folder for the nodes' output, one <node>.log each (default: a new "
                    f'folder named by the start time under ${LOG_ROOT_VARIABLE}, or when that is '

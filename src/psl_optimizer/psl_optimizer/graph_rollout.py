@@ -10,6 +10,8 @@ torques, the controller's reference: `trajectory_of`), so that whatever needs tr
 from __future__ import annotations
 
 import queue
+import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
@@ -45,18 +47,74 @@ class GraphRollouts(Rollouts):
         if len(self.workers) == 1:
             return self._count([self._one(self.workers[0], tau, theta)
                                 for theta, tau in zip(thetas, taus)])
-        free: queue.Queue = queue.Queue()
-        for worker in self.workers:
-            free.put(worker)
+        return self._count(self._spread(thetas, taus))
 
-        def one(i: int) -> RolloutResult:
-            worker = free.get()
+    def _spread(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
+        """The population over the workers, one rollout per worker at a time. A worker whose
+        rollout fails (its node died, it does not answer) fails alone: the rollout goes back
+        in the queue for another worker (lockstep rollouts do not depend on the worker, so
+        the result is the same), and the failed worker waits for its loop to come back (a
+        restarted worker) before it takes another one. A rollout that fails on every worker,
+        or with no worker left, raises with the reasons."""
+        pending: queue.Queue = queue.Queue()
+        for i in range(len(thetas)):
+            pending.put(i)
+        results: list[RolloutResult | None] = [None] * len(thetas)
+        failures: dict[int, dict[str, str]] = {}     # rollout -> worker -> its last error
+        lock = threading.Lock()
+        alive = [len(self.workers)]
+        abort = threading.Event()               # a cancel or an error: every worker stops
+
+        def finished() -> bool:
+            with lock:
+                return abort.is_set() or all(r is not None for r in results) or \
+                    any(len(f) >= alive[0] for f in failures.values())
+
+        def back(worker: RolloutClient) -> bool:
+            """Wait until the worker's loop is up again; False after `timeout` or when the
+            population is done without it."""
+            deadline = time.monotonic() + self.timeout
+            while not finished() and time.monotonic() < deadline:
+                try:
+                    worker.wait_until_ready(1.0)
+                    return True
+                except TimeoutError:
+                    pass
+            return False
+
+        def serve(worker: RolloutClient) -> None:
             try:
-                return self._one(worker, taus[i], thetas[i])
+                while not finished():
+                    try:
+                        i = pending.get(timeout=0.1)
+                    except queue.Empty:
+                        continue
+                    try:
+                        results[i] = self._one(worker, taus[i], thetas[i])
+                    except (RuntimeError, TimeoutError) as exc:
+                        with lock:
+                            failures.setdefault(i, {})[worker.name] = str(exc)
+                        pending.put(i)
+                        if not back(worker):
+                            return
+            except BaseException:
+                abort.set()
+                raise
             finally:
-                free.put(worker)
+                with lock:
+                    alive[0] -= 1
+
         with ThreadPoolExecutor(max_workers=len(self.workers)) as pool:
-            return self._count(list(pool.map(one, range(len(thetas)))))
+            futures = [pool.submit(serve, worker) for worker in self.workers]
+            for future in futures:
+                future.result()              # Stopped (a cancel) and bugs surface here
+        missing = [i for i, r in enumerate(results) if r is None]
+        if missing:
+            reasons = '; '.join(f'{w}: {e}' for w, e in failures.get(missing[0], {}).items()) \
+                or 'no worker left'
+            raise RuntimeError(f'{len(missing)} rollouts of the population failed on every '
+                               f'rollout worker ({reasons})')
+        return results
 
     def _one(self, worker: RolloutClient, tau: np.ndarray, theta: np.ndarray) -> RolloutResult:
         if self.should_stop():

@@ -89,6 +89,8 @@ class NodeProcess:
     name: str
     process: subprocess.Popen
     log_path: Path
+    cmd: list[str] = dataclasses.field(default_factory=list)
+    worker: str = ''                # the rollout worker's namespace ('' = not a worker's node)
 
     @property
     def pid(self) -> int:
@@ -169,16 +171,36 @@ class Graph:
                     cmd += ['-r', f'__ns:={namespace}']
                 for key, value in self.params(name).items():
                     cmd += ['-p', f'{key}:={value}']
-                log_path = self.log_dir / f'{label.replace("/", ".")}.log'
-                with open(log_path, 'wb') as log:
-                    process = subprocess.Popen(
-                        cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                        start_new_session=True)   # Ctrl-C reaches us only; we end them
-                self.processes.append(NodeProcess(label, process, log_path))
+                worker = namespace if self.workers and name in WORKER_NODES else ''
+                self.processes.append(self._spawn(label, cmd, worker))
         except BaseException:
             self.stop()
             raise
         return self.processes
+
+    def _spawn(self, label: str, cmd: list[str], worker: str, mode: str = 'wb') -> NodeProcess:
+        log_path = self.log_dir / f'{label.replace("/", ".")}.log'
+        with open(log_path, mode) as log:
+            process = subprocess.Popen(
+                cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                start_new_session=True)   # Ctrl-C reaches us only; we end them
+        return NodeProcess(label, process, log_path, cmd, worker)
+
+    def restart_worker(self, worker: str) -> list[NodeProcess]:
+        """End the rest of a rollout worker's nodes (by PID) and start all of them again (a
+        fresh loop: a simulator restarted alone would start its clock again under nodes that
+        remember the old one). Their logs go on in the same files. Returns the new ones."""
+        old = [p for p in self.processes if p.worker == worker]
+        _end(old, timeout=3.0)
+        new = [self._spawn(p.name, p.cmd, worker, mode='ab') for p in old]
+        self.processes = [p for p in self.processes if p.worker != worker] + new
+        return new
+
+    def drop_worker(self, worker: str) -> None:
+        """End the rest of a rollout worker's nodes; the graph goes on without it."""
+        old = [p for p in self.processes if p.worker == worker]
+        _end(old, timeout=3.0)
+        self.processes = [p for p in self.processes if p.worker != worker]
 
     def dead(self) -> list[NodeProcess]:
         return [p for p in self.processes if p.process.poll() is not None]
@@ -216,21 +238,7 @@ class Graph:
 
     def stop(self, timeout: float = 5.0) -> None:
         """End every process this graph started, by PID."""
-        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 2.0), (signal.SIGKILL, 2.0)):
-            alive = [p for p in self.processes if p.process.poll() is None]
-            if not alive:
-                break
-            for p in alive:
-                try:
-                    os.kill(p.pid, sig)
-                except ProcessLookupError:
-                    pass
-            deadline = time.monotonic() + wait
-            for p in alive:
-                try:
-                    p.process.wait(timeout=max(0.0, deadline - time.monotonic()))
-                except subprocess.TimeoutExpired:
-                    pass
+        _end(self.processes, timeout)
 
     def __enter__(self) -> 'Graph':
         self.start()
@@ -238,3 +246,22 @@ class Graph:
 
     def __exit__(self, *exc) -> None:
         self.stop()
+
+
+def _end(processes: list[NodeProcess], timeout: float) -> None:
+    """End processes by PID: SIGINT, then SIGTERM, then SIGKILL for those still alive."""
+    for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, 2.0), (signal.SIGKILL, 2.0)):
+        alive = [p for p in processes if p.process.poll() is None]
+        if not alive:
+            break
+        for p in alive:
+            try:
+                os.kill(p.pid, sig)
+            except ProcessLookupError:
+                pass
+        deadline = time.monotonic() + wait
+        for p in alive:
+            try:
+                p.process.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass
