@@ -38,7 +38,7 @@ def cmd_up(args) -> int:
     if args.memory_dir is not None:
         os.environ['PSL_MEMORY_DIR'] = os.path.abspath(args.memory_dir)  # the memory node's
     graph = Graph(task=args.task, mode=args.mode, namespace=args.namespace,
-                  workers=args.workers, log_dir=log_dir)
+                  workers=args.workers, log_dir=log_dir, reset=args.reset)
     names = {name for name, *_ in graph.nodes_spec}
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -134,6 +134,11 @@ def _up_options(p: argparse.ArgumentParser) -> None:
     p.add_argument('--workers', type=options.non_negative_int, default=0,
                    help='N rollout workers (sim, controller, executor, evaluator) under '
                    '<namespace>/worker0..N-1; the learner spreads a population over them')
+    p.add_argument('--reset', choices=('teleport', 'drive'), default='',
+                   help="how each episode begins: teleport the arm to the start posture "
+                   '(simulation only) or drive it there through the controller (a homing '
+                   "quintic within the task's homing limits, then settled); default: the "
+                   "task's homing.reset (teleport)")
     p.add_argument('--worker-death', choices=('restart', 'drop'), default='restart',
                    help='with --workers N > 1, when a node of one worker dies: restart that '
                    "worker's nodes (default) or go on without it; the learner re-sends its "

@@ -48,6 +48,7 @@ from rclpy.node import Node
 from diagnostic_msgs.msg import DiagnosticArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from psl_controller.homing import homing_reference
 from psl_controller.policy import Reference, TaskPolicy, policy_for
 from psl_msgs.action import ExecuteRollout
 from psl_msgs.msg import GoalUpdate, RolloutEvaluation
@@ -59,7 +60,7 @@ from psl_ros.qos import RELIABLE, SERVICES
 from psl_ros.stamps import duration_msg, time_msg, to_ns
 from psl_sim.arm_model import ArmModel, joint_names_of
 from psl_sim.safety_check import SafetyCheck
-from psl_sim.task import TaskDefinition, TaskError, load_task
+from psl_sim.task import RESETS, TaskDefinition, TaskError, load_task
 
 LEAD_STEPS = 5          # control periods of lead at the least
 RATE_MARGIN = 1.5       # the loop may run this many times faster than last measured
@@ -113,6 +114,9 @@ class DMPExecutor(Node):
         super().__init__('dmp_executor')
         self.declare_parameter('timeout_margin', 10.0, ParameterDescriptor(
             description='seconds to wait for an evaluation beyond the episode length'))
+        self.declare_parameter('reset', '', ParameterDescriptor(
+            description="how an episode begins: teleport | drive ('' = the task's "
+                        'homing.reset)'))
         group = ReentrantCallbackGroup()
         self.pub_trajectory = self.create_publisher(JointTrajectory, names.JOINT_TRAJECTORY,
                                                      RELIABLE)
@@ -238,6 +242,12 @@ class DMPExecutor(Node):
         the reference took to compute [s]."""
         goal = run.goal
         self._wait_for_subscriber(self.pub_trajectory, 'controller')
+        reset = self.get_parameter('reset').value or run.task.homing.reset
+        if reset not in RESETS:
+            raise ValueError(f'parameter reset must be one of {", ".join(RESETS)} or empty, '
+                             f'got {reset!r}')
+        if reset == 'drive':
+            self._home(run)
         if changes:
             self._announce(GoalUpdate(time_from_start=goal.new_goal_time,
                                       goal=list(goal.new_goal),
@@ -252,13 +262,61 @@ class DMPExecutor(Node):
             self._acked(self.pub_trajectory, 'the controller did not receive the trajectory')
             run.reset_sent = time.monotonic()     # no step of the episode before this
             response = self._call(self.reset_client,
-                                  ResetTask.Request(task=goal.task, tau=goal.tau))
+                                  ResetTask.Request(task=goal.task, tau=goal.tau, mode=reset))
             if not response.success:
                 raise ValueError(response.message)
         except BaseException:
             if changes:        # no episode: the evaluator's next one has no goal change
                 self._withdraw(GoalUpdate())
             raise
+        return response
+
+    def _home(self, run: _Rollout) -> None:
+        """Drive the arm from where it is to the task's start posture (a ``drive`` reset):
+        the simulator says the current state (reset mode ``probe``), the controller gets the
+        homing quintic (`psl_controller.homing`), a homing episode runs it (announced, not
+        evaluated), and the arm must then be within the homing tolerance of the start
+        posture, at rest; RuntimeError naming the joint that is not."""
+        goal, task, spec = run.goal, run.task, run.task.homing
+        probe = self._probe(goal)
+        q0, qd0 = np.asarray(probe.position), np.asarray(probe.velocity)
+        start = task.start_posture
+        if np.abs(q0 - start).max() <= spec.tolerance and np.abs(qd0).max() <= spec.tolerance:
+            return                                  # there already
+        reference = homing_reference(q0, qd0, start, spec, task.control_period)
+        self.pub_trajectory.publish(trajectory_msg(run.joint_names, reference))
+        self._acked(self.pub_trajectory, 'the controller did not receive the homing trajectory')
+        response = self._call(self.reset_client, ResetTask.Request(
+            task=goal.task, tau=goal.tau, mode='drive', duration=float(reference.t[-1]),
+            homing=True))
+        if not response.success:
+            raise ValueError(f'homing: {response.message}')
+        deadline = time.monotonic() + reference.t[-1] + self.get_parameter(
+            'timeout_margin').value
+        while True:                                 # the episode runs; then say the state
+            probe = self._probe(goal, quiet=True)
+            if probe.success or time.monotonic() > deadline:
+                break
+            time.sleep(0.01)
+        if not probe.success:
+            raise RuntimeError(f'homing: the homing episode did not end within '
+                               f'{reference.t[-1]:.1f} s + the timeout margin: {probe.message}')
+        q, qd = np.asarray(probe.position), np.asarray(probe.velocity)
+        error = np.maximum(np.abs(q - start), np.abs(qd))
+        if error.max() > spec.tolerance:
+            j = int(np.argmax(error))
+            raise RuntimeError(
+                f'homing did not settle: joint {run.joint_names[j]!r} is at {q[j]:.4g} rad '
+                f'({qd[j]:.3g} rad/s), start posture {start[j]:.4g}, after '
+                f'{reference.t[-1]:.2f} s (tolerance {spec.tolerance:g}): raise the '
+                'controller gains or homing.settle_time, or relax homing.tolerance')
+
+    def _probe(self, goal, quiet: bool = False) -> ResetTask.Response:
+        """The simulator's current state (reset mode ``probe``: no episode starts)."""
+        response = self._call(self.reset_client,
+                              ResetTask.Request(task=goal.task, tau=goal.tau, mode='probe'))
+        if not response.success and not quiet:
+            raise ValueError(f'homing: {response.message}')
         return response
 
     def _await_evaluation(self, goal_handle, task: TaskDefinition,

@@ -64,6 +64,8 @@ class RewardEvaluator(Node):
         self.get_logger().info('evaluating episodes announced on task_instance')
 
     def on_task(self, msg: TaskInstance) -> None:
+        if msg.homing:          # the executor drives the arm to the start: nothing to score
+            return
         if self.episode is not None:
             self.get_logger().warning(
                 f'episode at {to_ns(self.episode.stamp)} ns was not evaluated: got '

@@ -113,12 +113,12 @@ class Graph:
     def __init__(self, task: str = 'reach_over_obstacle', mode: str = 'lockstep',
                  namespace: str = '', log_dir: str | Path | None = None,
                  nodes: tuple = NODES, extra_params: dict[str, dict] | None = None,
-                 workers: int = 0):
+                 workers: int = 0, reset: str = ''):
         if mode not in SIM_MODES:
             raise ValueError(f'mode must be one of {SIM_MODES}, got {mode!r}')
         if workers < 0:
             raise ValueError(f'workers must be >= 0, got {workers}')
-        self.workers = workers
+        self.workers, self.reset = workers, reset
         self.task, self.mode = task, mode
         self.namespace = '/' + namespace.strip('/') if namespace.strip('/') else ''
         self.log_dir = Path(log_dir).resolve() if log_dir else default_log_dir()
@@ -128,11 +128,14 @@ class Graph:
 
     def params(self, name: str) -> dict:
         """The -p parameters of a node: the task for the simulator and the controller, the
-        mode for the simulator, the workers for the learner, the memory folder
+        mode for the simulator, the reset for the executor, the workers for the learner, the
+        memory folder
         (``PSL_MEMORY_DIR``, if set) for the skill memory, then `extra_params`."""
         params = {'task': self.task} if name in ('sim', 'pd_controller') else {}
         if name == 'sim':
             params['mode'] = self.mode
+        if name == 'dmp_executor' and self.reset:
+            params['reset'] = self.reset          # teleport | drive ('' = the task's)
         if name == 'learner' and self.workers:
             params['workers'] = '[' + ','.join(self.worker_namespaces(relative=True)) + ']'
         if name == 'skill_memory' and os.environ.get('PSL_MEMORY_DIR'):

@@ -226,6 +226,20 @@ class ArmModel:
             torque[k] = data.qfrc_inverse[self.dof_adr]
         return torque
 
+    def place(self, tau: np.ndarray) -> np.ndarray:
+        """The task instance placed around the arm as it is (no teleport: a real arm's next
+        episode starts where the last one ended); tau validated first. Returns it."""
+        tau = self.apply_tau(self.task.validate_tau(tau))
+        mujoco.mj_forward(self.model, self.data)
+        return tau
+
+    def take_state(self, other: 'ArmModel') -> None:
+        """The state (time, joints, velocities) of another task's arm of the same robot."""
+        self.data.time = other.data.time
+        self.data.qpos[:] = other.data.qpos
+        self.data.qvel[:] = other.data.qvel
+        mujoco.mj_forward(self.model, self.data)
+
     def clip_torque(self, torque: np.ndarray) -> np.ndarray:
         return np.clip(torque, self.torque_low, self.torque_high)
 

@@ -50,6 +50,7 @@ from psl_sim.arm_model import ArmModel
 from psl_sim.scene import PATH_SHAPE, Scene, Shape, ShapeKind
 from psl_ros import names
 from psl_ros.graph import SIM_MODES
+RESET_MODES = ('teleport', 'drive', 'probe')     # ResetTask.mode
 from psl_ros.hot_path import HotPath
 from psl_ros.node_main import run_node
 from psl_ros.qos import LATCHED, RELIABLE
@@ -182,14 +183,34 @@ class SimNode(Node):
 
     # -- services -----------------------------------------------------------------------
     def on_reset(self, request: ResetTask.Request, response: ResetTask.Response):
-        duration = self.get_parameter('episode_duration').value
+        duration = request.duration or self.get_parameter('episode_duration').value
+        mode = request.mode or 'teleport'
         with self._lock:
             try:
+                if mode not in RESET_MODES:
+                    raise TaskError(f'reset mode must be one of {", ".join(RESET_MODES)}, got '
+                                    f'{mode!r}')
+                if mode != 'teleport' and self.steps_left > 0:
+                    raise TaskError('an episode is running: drive and probe start from the '
+                                    'state between episodes')
                 arm = self._arm(request.task)
-                tau = arm.reset(request.tau)       # refuses a bad tau before changing anything
+                if mode == 'teleport':          # refuses a bad tau before changing anything
+                    tau = arm.reset(request.tau)
+                else:                           # the arm stays where it is
+                    tau = arm.task.validate_tau(request.tau)
+                    if arm is not self.arm:
+                        arm.take_state(self.arm)
+                    if mode == 'drive':
+                        arm.place(tau)
             except TaskError as exc:
                 response.success, response.message = False, str(exc)
                 self.get_logger().warning(f'reset refused: {exc}')
+                return response
+            response.joint_names = list(arm.joint_names)
+            response.position, response.velocity = arm.q.tolist(), arm.qd.tolist()
+            if mode == 'probe':
+                response.success, response.message = True, 'the current state'
+                response.stamp, response.num_steps = time_msg(self.t_ns), 0
                 return response
             num_steps = (int(round(duration * arm.task.control_rate)) if duration > 0
                          else arm.task.num_steps_of(tau))
@@ -202,14 +223,14 @@ class SimNode(Node):
                             'steps': num_steps}
             self.pub_task.publish(TaskInstance(
                 stamp=time_msg(self.t_ns), task=task_id(arm.task), tau=tau.tolist(),
-                num_steps=num_steps, control_period=arm.task.control_period))
+                num_steps=num_steps, control_period=arm.task.control_period,
+                homing=request.homing))
             self._publish_state()
             self._episode_wall_ns = self._state_wall_ns
             self._ee_path = []
             self._scene_tick(always=True)
         response.success, response.message = True, f'episode of {num_steps} steps started'
         response.stamp, response.num_steps = time_msg(self.t_ns), num_steps
-        response.joint_names = list(arm.joint_names)
         return response
 
     # -- commands -----------------------------------------------------------------------

@@ -33,6 +33,7 @@ TASK_BINDINGS = ('target_position', 'target_orientation', 'duration')
 SPACES = ('joint', 'end_effector')     # where the DMP runs (policy.space)
 SCENE_TYPES = {'box': 3, 'sphere': 1, 'capsule': 2, 'cylinder': 2}   # type -> size entries
 END_EFFECTOR_SITE = 'psl_end_effector'  # the site psl adds for end_effector: {body, offset}
+RESETS = ('teleport', 'drive')          # how an episode begins (homing.reset)
 
 
 class TaskError(ValueError):
@@ -131,6 +132,22 @@ class SafetySpec:
     penalty: float = -100.0             # reward of a refused candidate, minus its violation
 
 
+@dataclasses.dataclass(frozen=True)
+class HomingSpec:
+    """The ``homing`` section: how an episode begins. ``teleport`` (simulation only) puts the
+    arm at the start posture at rest; ``drive`` moves it there through the controller first,
+    along a quintic within the velocity and acceleration limits, and waits until it has
+    settled (`psl_controller.homing`)."""
+
+    reset: str = 'teleport'             # teleport | drive (RESETS); psl up --reset overrides
+    max_velocity: float = 1.0           # rad/s (m/s) of any joint along the homing path
+    max_acceleration: float = 4.0       # rad/s^2
+    min_duration: float = 0.2           # s, the shortest homing motion
+    settle_time: float = 0.3            # s held at the start posture after the motion
+    tolerance: float = 0.01             # rad from the start posture (and rad/s of velocity)
+                                        # within which the arm counts as there
+
+
 @dataclasses.dataclass(frozen=True, eq=False)   # hashed by identity: load_task caches
 class TaskDefinition:
     """Everything a task varies and how it is scored (see the module docstring)."""
@@ -153,6 +170,7 @@ class TaskDefinition:
     reward: RewardSpec
     target: TargetSpec | None = None
     safety: SafetySpec = SafetySpec()
+    homing: HomingSpec = HomingSpec()
     scene: tuple[SceneObject, ...] = ()
     # end effector given as a body and an offset (psl adds the site END_EFFECTOR_SITE there);
     # empty when the model has the site already
@@ -432,6 +450,7 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         reward=_reward(_section(data, 'reward', path), path),
         target=target,
         safety=_safety(data.get('safety', {}), path),
+        homing=_homing(data.get('homing', {}), path),
         scene=_scene(data.get('scene', []), path),
         package_paths=package_paths,
         torque_limits=(None if 'torque_limits' not in robot else _vector(
@@ -600,6 +619,20 @@ def _policy(section: dict, path: Path) -> PolicySpec:
                       n_components=int(section.get('n_components', PolicySpec.n_components)),
                       fit_seed=int(section.get('fit_seed', PolicySpec.fit_seed)),
                       learn_goal=learn_goal, space=space)
+
+
+def _homing(section: Any, path: Path) -> HomingSpec:
+    if not isinstance(section, dict):
+        raise TaskError(f'{path}: homing must be a mapping of keys')
+    _known_keys(section, HomingSpec, 'homing', path)
+    values = {k: float(v) for k, v in section.items() if k != 'reset'}
+    for key, value in values.items():
+        if not value > 0.0 or not np.isfinite(value):
+            raise TaskError(f'{path}: homing.{key} must be > 0, got {value:g}')
+    reset = str(section.get('reset', HomingSpec.reset))
+    if reset not in RESETS:
+        raise TaskError(f'{path}: homing.reset must be one of {", ".join(RESETS)}, got {reset!r}')
+    return HomingSpec(reset=reset, **values)
 
 
 def _safety(section: Any, path: Path) -> SafetySpec:

@@ -1,0 +1,67 @@
+"""The homing motion of a ``drive`` reset: from where the arm is to the start posture.
+
+A real arm cannot be teleported: before each episode the executor drives it from its measured
+posture q0 (velocity qd0) to the task's start posture q1 along a quintic per joint, the
+polynomial with the given position and velocity and zero acceleration at the start and rest at
+the end (position q1, zero velocity and acceleration)::
+
+    q(s) = q0 + qd0 T s + (10 d - 6 qd0 T) s^3 + (-15 d + 8 qd0 T) s^4 + (6 d - 3 qd0 T) s^5,
+
+s = t / T, d = q1 - q0, then holds q1 for the settle time. From rest its peak velocity is
+15 d / (8 T) and its peak acceleration 10 d / (sqrt(3) T^2): the duration is the shortest that
+keeps every joint within ``max_velocity`` and ``max_acceleration`` (and at least
+``min_duration``), checked on the sampled path with the moving start too. Imports no ROS.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from psl_controller.policy import Reference
+from psl_sim.task import HomingSpec
+
+PEAK_VELOCITY = 15.0 / 8.0              # x d / T, from rest
+PEAK_ACCELERATION = 10.0 / np.sqrt(3.0)  # x d / T^2, from rest
+
+
+def quintic(q0: np.ndarray, qd0: np.ndarray, q1: np.ndarray, duration: float,
+            t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Position, velocity and acceleration (len(t), n) of the quintic of the module doc at
+    times t (clipped to [0, duration]: before, q0; after, q1 at rest)."""
+    T = float(duration)
+    s = np.clip(np.asarray(t, dtype=float) / T, 0.0, 1.0)[:, None]
+    d, v = q1 - q0, qd0 * T
+    c3, c4, c5 = 10 * d - 6 * v, -15 * d + 8 * v, 6 * d - 3 * v
+    q = q0 + v * s + c3 * s**3 + c4 * s**4 + c5 * s**5
+    qd = (v + 3 * c3 * s**2 + 4 * c4 * s**3 + 5 * c5 * s**4) / T
+    qdd = (6 * c3 * s + 12 * c4 * s**2 + 20 * c5 * s**3) / T**2
+    after = (np.asarray(t, dtype=float) > T)[:, None]
+    return (np.where(after, q1, q), np.where(after, 0.0, qd), np.where(after, 0.0, qdd))
+
+
+def homing_duration(q0: np.ndarray, qd0: np.ndarray, q1: np.ndarray,
+                    spec: HomingSpec, dt: float) -> float:
+    """The shortest duration, a whole number of control periods dt, whose quintic keeps every
+    joint within the spec's velocity and acceleration limits (at least ``min_duration``)."""
+    d = np.abs(q1 - q0).max(initial=0.0)
+    T = max(spec.min_duration, PEAK_VELOCITY * d / spec.max_velocity,
+            np.sqrt(PEAK_ACCELERATION * d / spec.max_acceleration))
+    T = dt * np.ceil(T / dt - 1e-9)
+    for _ in range(100):                # a moving start needs a little longer
+        t = np.arange(int(round(T / dt)) + 1) * dt
+        _, qd, qdd = quintic(q0, qd0, q1, T, t)
+        if np.abs(qd).max() <= spec.max_velocity * (1 + 1e-9) + np.abs(qd0).max() and \
+                np.abs(qdd).max() <= spec.max_acceleration * (1 + 1e-9):
+            return float(T)
+        T *= 1.1
+    return float(T)
+
+
+def homing_reference(q0: np.ndarray, qd0: np.ndarray, q1: np.ndarray, spec: HomingSpec,
+                     dt: float) -> Reference:
+    """The homing motion sampled every control period dt: the quintic, then ``settle_time``
+    held at q1 (feed-forward zero)."""
+    q0, qd0, q1 = (np.asarray(a, dtype=float) for a in (q0, qd0, q1))
+    T = homing_duration(q0, qd0, q1, spec, dt)
+    t = np.arange(int(round((T + spec.settle_time) / dt)) + 1) * dt
+    q, qd, _ = quintic(q0, qd0, q1, T, t)
+    return Reference(t=t, q=q, qd=qd, u_ffwd=np.zeros_like(q))

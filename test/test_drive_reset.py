@@ -1,0 +1,75 @@
+"""Episodes that drive, not teleport: with ``reset: drive`` the executor moves the arm from
+where the last episode left it to the start posture (a homing quintic through the controller)
+before each rollout. The joint states are then continuous from one episode to the next, every
+control period of the simulation clock accounted for, in lockstep and in realtime; with
+teleport resets they jump. Each case starts its own graph (separate processes over DDS)."""
+import numpy as np
+import pytest
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+
+from psl_controller.policy import policy_for
+from psl_ros.client import RosClient
+from psl_ros.graph import NODES, Graph, pid_alive
+from psl_ros.stamps import to_ns
+from psl_sim.task import load_task
+
+TASK = 'reach_over_obstacle'
+JUMP = 0.05         # rad: no joint moves more in one 2 ms control period (homing: <= 1 rad/s)
+
+
+def consecutive_rollouts(tmp_path, reset: str, mode: str, wait_until):
+    """Two rollouts in a row; every joint state published from the first episode's start to
+    the second's end, by stamp."""
+    task = load_task(TASK)
+    theta = policy_for(task).default_theta
+    g = Graph(task=TASK, mode=mode, reset=reset, log_dir=tmp_path / 'logs',
+              nodes=tuple(n for n in NODES
+                          if n[0] not in ('skill_memory', 'learner')))
+    states = {}
+    try:
+        g.start()
+        g.wait_ready(timeout=60)
+        with RosClient() as client:
+            sub = client.node.create_subscription(
+                JointState, 'joint_states', lambda m: states.__setitem__(to_ns(m.header.stamp), m),
+                QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE))
+            assert wait_until(lambda: sub.get_publisher_count() >= 1, 10.0)
+            first = client.rollout(TASK, task.tau_low, theta, timeout=120)
+            second = client.rollout(TASK, task.tau_high, theta, timeout=120)
+            assert first.success and second.success, (first.message, second.message)
+            t0 = to_ns(first.evaluation.stamp)
+            t1 = to_ns(second.evaluation.stamp) + second.evaluation.num_steps * \
+                task.control_period_ns
+            period = task.control_period_ns
+            wanted = range(t0, t1 + 1, period)
+            assert wait_until(lambda: all(t in states for t in wanted), 20.0), \
+                f'{sum(t in states for t in wanted)} of {len(wanted)} states'
+            client.node.destroy_subscription(sub)
+    finally:
+        g.stop()
+        assert not [p.name for p in g.processes if pid_alive(p.pid)]
+    q = np.array([states[t].position for t in wanted])
+    return task, first, second, q
+
+
+@pytest.mark.parametrize('mode', ['lockstep', 'realtime'])
+def test_drive_resets_keep_the_joint_states_continuous(tmp_path, mode, wait_until):
+    task, first, second, q = consecutive_rollouts(tmp_path, 'drive', mode, wait_until)
+    steps = np.abs(np.diff(q, axis=0)).max()
+    assert steps < JUMP, f'a joint moved {steps:.3f} rad in one control period'
+    # between the episodes the arm went back from the goal to the start, through the controller
+    gap = (to_ns(second.evaluation.stamp) - to_ns(first.evaluation.stamp)) // \
+        task.control_period_ns - first.evaluation.num_steps
+    assert gap > 0.2 * task.control_rate            # homing periods on the clock
+    start_of_second = q[first.evaluation.num_steps + gap]
+    assert np.abs(start_of_second - task.start_posture).max() <= task.homing.tolerance
+    assert second.evaluation.num_steps == task.num_steps
+
+
+def test_teleport_resets_jump(tmp_path, wait_until):
+    """The contrast: the default reset puts the arm back at the start at once."""
+    task, first, second, q = consecutive_rollouts(tmp_path, 'teleport', 'lockstep', wait_until)
+    assert np.abs(np.diff(q, axis=0)).max() > 0.5
+    assert to_ns(second.evaluation.stamp) == to_ns(first.evaluation.stamp) + \
+        first.evaluation.num_steps * task.control_period_ns
