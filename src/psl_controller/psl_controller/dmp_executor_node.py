@@ -1,6 +1,7 @@
 """The DMP executor node: serves the ``execute_rollout`` action (psl_msgs/ExecuteRollout).
 
-One rollout: check the goal, roll out the policy for theta on the control grid, check the
+One rollout: check the goal, give the controller the task's gains if the task changed (its
+parameter service, validated there), roll out the policy for theta on the control grid, check the
 reference against the task's safety limits (`psl_sim.safety_check`: a refused candidate is never
 sent, no episode runs, the result carries the penalty and the reason in ``refused``), send the
 commanded trajectory to the controller (``joint_trajectory``, stamped zero = "start with the
@@ -45,6 +46,8 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
 from diagnostic_msgs.msg import DiagnosticArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
@@ -132,6 +135,11 @@ class DMPExecutor(Node):
                                  callback_group=group)
         self._rollout_lock = threading.Lock()
         self._safety_checks: dict = {}          # task path -> SafetyCheck
+        # gains per task: the controller gets a rollout's task's gains when they differ from
+        # the gains it runs (its parameter service validates them)
+        self.controller_parameters = AsyncParameterClient(self, 'pd_controller',
+                                                          callback_group=group)
+        self._gains: tuple | None = None        # (kp, kd) the controller runs, as tuples
         self._cv = threading.Condition()
         self._evaluations: dict[int, RolloutEvaluation] = {}   # by episode start [ns]
         self._progress: dict[int, float] = {}   # episode start [ns] -> fraction done
@@ -246,6 +254,7 @@ class DMPExecutor(Node):
         if reset not in RESETS:
             raise ValueError(f'parameter reset must be one of {", ".join(RESETS)} or empty, '
                              f'got {reset!r}')
+        self._set_gains(run.task)
         if reset == 'drive':
             self._home(run)
         if changes:
@@ -270,6 +279,34 @@ class DMPExecutor(Node):
                 self._withdraw(GoalUpdate())
             raise
         return response
+
+    def _set_gains(self, task: TaskDefinition) -> None:
+        """The controller's gains := the task's (``controller.kp/kd``) when they differ from
+        the gains it runs (at first: those of the task it was started with): two tasks of
+        different gains share one running controller. Gains set by hand (``pd_controller``
+        parameters) stay as long as the rollouts' tasks have the same gains."""
+        wanted = (tuple(task.controller.kp.tolist()), tuple(task.controller.kd.tolist()))
+        if self._gains is None:
+            self._gains = self._controller_task_gains()
+        if wanted == self._gains:
+            return
+        future = self.controller_parameters.set_parameters([
+            Parameter('kp', value=list(wanted[0])), Parameter('kd', value=list(wanted[1]))])
+        response = wait_for(future, 10.0, 'pd_controller/set_parameters')
+        refused = [r.reason for r in response.results if not r.successful]
+        if refused:
+            raise ValueError(f'the controller refused the gains of task {task.name!r}: '
+                             f'{refused[0]}')
+        self._gains = wanted
+
+    def _controller_task_gains(self) -> tuple:
+        """(kp, kd) of the task the controller was started with (its ``task`` parameter)."""
+        if not self.controller_parameters.wait_for_services(timeout_sec=5.0):
+            raise RuntimeError("the controller's parameter service is not available")
+        response = wait_for(self.controller_parameters.get_parameters(['task']), 10.0,
+                            'pd_controller/get_parameters')
+        start = load_task(response.values[0].string_value)
+        return (tuple(start.controller.kp.tolist()), tuple(start.controller.kd.tolist()))
 
     def _home(self, run: _Rollout) -> None:
         """Drive the arm from where it is to the task's start posture (a ``drive`` reset):

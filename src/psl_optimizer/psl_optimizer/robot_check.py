@@ -29,6 +29,7 @@ from psl_sim.task import TaskDefinition
 
 SAG_WARNING = 0.005          # m of hand sag under PD alone worth a warning
 SATURATION_WARNING = 0.01    # share of saturated control periods worth a warning
+LIMIT_WARNING = 0.02         # rad (m): a posture this close to a joint limit is warned about
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,6 +102,12 @@ def check_robot(task: TaskDefinition) -> RobotReport:
             f'commanded point at the {worst} posture (joint sag up to '
             f'{np.max(np.abs(sag_rad[worst])):.4f} rad): set policy.feedforward: true (psl '
             'learns the torque) or robot.gravity_compensation: true, or raise controller.kp')
+    near = _near_limits(arm, task)
+    if near:
+        warnings.append(
+            f'postures at a joint limit: {near}; the safety check refuses every candidate '
+            'that moves past the range (about half of the search\'s steps there): move the '
+            'postures and the demonstration inside the range')
     if saturated > SATURATION_WARNING:
         joints_at = [arm.joint_names[j] for j in np.flatnonzero(np.any(at_limit, axis=0))]
         warnings.append(
@@ -116,6 +123,19 @@ def check_robot(task: TaskDefinition) -> RobotReport:
                        scene=[o.name for o in task.scene], arm_geoms=list(arm.arm_geoms),
                        obstacle_geoms=list(task.reward.obstacle_geoms), sag_rad=sag_rad,
                        sag_hand=sag_hand, saturated_share=saturated, warnings=warnings)
+
+
+def _near_limits(arm: ArmModel, task: TaskDefinition) -> str:
+    """The driven joints whose start, goal or demonstration waypoints lie within
+    `LIMIT_WARNING` of a limit (the safety check's range with its margin), named."""
+    m = arm.model
+    limited = m.jnt_limited[arm.joint_ids].astype(bool)
+    low = m.jnt_range[arm.joint_ids, 0] + task.safety.joint_margin
+    high = m.jnt_range[arm.joint_ids, 1] - task.safety.joint_margin
+    q = np.vstack([task.start_posture, task.goal_posture, task.demo_positions])
+    close = limited & (np.any(q - low < LIMIT_WARNING, axis=0) |
+                       np.any(high - q < LIMIT_WARNING, axis=0))
+    return ', '.join(arm.joint_names[j] for j in np.flatnonzero(close))
 
 
 def _descends(model: mujoco.MjModel, body: int, ancestor: int) -> bool:

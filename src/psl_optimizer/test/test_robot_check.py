@@ -100,3 +100,21 @@ def test_psl_learn_says_the_warnings_before_it_learns(tmp_path):
     assert len(warnings) == 1, done.stderr
     assert warnings[0].startswith('psl learn: warning: torque saturation') and \
         f'(psl check --task {task.path})' in warnings[0]
+
+
+def test_a_posture_at_a_joint_limit_is_a_warning(tmp_path):
+    """The Pusher's wrist flex at 0, the upper end of its range [-1.09, 0]: the safety check
+    would refuse every candidate that bends it further; the check names the joint."""
+    from pathlib import Path
+    source = Path(__file__).resolve().parents[3] / 'examples' / 'pusher_reach_over_obstacle.yaml'
+    data = yaml.safe_load(source.read_text())
+    for key in ('start_posture', 'goal_posture'):
+        data[key][5] = 0.0
+    for row in data['demonstration']['positions']:
+        row[5] = 0.0
+    path = tmp_path / 'pusher_at_limit.yaml'
+    path.write_text(yaml.safe_dump(data))
+    report = check_robot(load_task(str(path)))
+    (warning,) = report.warnings
+    assert warning.startswith('postures at a joint limit: r_wrist_flex_joint;')
+    assert not check_robot(load_task(str(source))).warnings
