@@ -113,12 +113,16 @@ class Graph:
     def __init__(self, task: str = 'reach_over_obstacle', mode: str = 'lockstep',
                  namespace: str = '', log_dir: str | Path | None = None,
                  nodes: tuple = NODES, extra_params: dict[str, dict] | None = None,
-                 workers: int = 0, reset: str = ''):
+                 workers: int = 0, reset: str = '',
+                 launch_prefix: dict[str, list[str]] | None = None):
         if mode not in SIM_MODES:
             raise ValueError(f'mode must be one of {SIM_MODES}, got {mode!r}')
         if workers < 0:
             raise ValueError(f'workers must be >= 0, got {workers}')
         self.workers, self.reset = workers, reset
+        # a command to run a worker's nodes under, by worker name (e.g. 'worker1': ['ip',
+        # 'netns', 'exec', 'lab']); '' = the graph's own nodes (memory, learner)
+        self.launch_prefix = launch_prefix or {}
         self.task, self.mode = task, mode
         self.namespace = '/' + namespace.strip('/') if namespace.strip('/') else ''
         self.log_dir = Path(log_dir).resolve() if log_dir else default_log_dir()
@@ -175,7 +179,8 @@ class Graph:
                 for key, value in self.params(name).items():
                     cmd += ['-p', f'{key}:={value}']
                 worker = namespace if self.workers and name in WORKER_NODES else ''
-                self.processes.append(self._spawn(label, cmd, worker))
+                prefix = self.launch_prefix.get(worker.rsplit('/', 1)[-1], [])
+                self.processes.append(self._spawn(label, list(prefix) + cmd, worker))
         except BaseException:
             self.stop()
             raise
