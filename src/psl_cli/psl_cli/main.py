@@ -500,10 +500,18 @@ def _plot_options(p: argparse.ArgumentParser) -> None:
 def cmd_record(args) -> int:
     from psl_ros.bag_recorder import record
 
+    # Ctrl-C and SIGTERM end the recording normally (the bag is complete); set explicitly:
+    # a recorder started in the background by a script inherits SIGINT ignored
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set())
+                for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        recording = record(args.output, args.topics, duration=args.duration)
+        recording = record(args.output, args.topics, duration=args.duration, stop=stop)
     except (ValueError, OSError) as exc:      # FileExistsError too
         return fail('psl record', exc, 2)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     for topic, count in recording.counts.items():
         lost = recording.lost[topic]
         print(f'{topic:30s} {count}' + (f'  ({lost} lost)' if lost else ''))

@@ -6,8 +6,10 @@ The memory-node cases start one skill_memory process (the session's ROS_DOMAIN_I
 and a namespace of its own; ended by PID); the no-graph cases use a namespace nothing serves.
 """
 import os
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -224,3 +226,30 @@ def test_a_node_that_cannot_start_says_why_in_one_line(broken_task, tmp_path):
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 1
     assert_one_line(done, 'SimNode: cannot start', "joint 'joint2'")
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+def test_psl_record_ends_with_a_complete_bag_on_a_signal_even_from_a_script(tmp_path, sig):
+    """A recorder a script starts in the background inherits SIGINT ignored; Ctrl-C (SIGINT)
+    and SIGTERM both end it normally, with the bag's metadata written."""
+    from psl_ros.bag_recorder import read_bag_summary
+
+    def ignore_sigint():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    process = subprocess.Popen(PSL + ['record', '-o', str(tmp_path / 'bag'), '/psl_no_topic'],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=ignore_sigint)
+    try:
+        deadline = time.monotonic() + 30
+        while not (tmp_path / 'bag').exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.5)
+        process.send_signal(sig)
+        out, err = process.communicate(timeout=30)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert process.returncode == 0, err
+    assert (tmp_path / 'bag' / 'metadata.yaml').is_file()
+    assert all(count == 0 for _, count in read_bag_summary(tmp_path / 'bag').values())
