@@ -409,7 +409,7 @@ def _learn_in_graph(args, task, out: Path, stop: threading.Event, progress) -> i
                 strategy=args.strategy, num_tasks=args.tasks,
                 max_rollouts_per_task=args.budget, seed=args.seed, mode='graph',
                 output_dir=str(out), task_selection=args.task_selection,
-                continue_from=args.continue_from or '')
+                num_test=args.test_tasks, continue_from=args.continue_from or '')
             try:
                 result = client.learner.result(handle, stop=stop)
             except Stopped:

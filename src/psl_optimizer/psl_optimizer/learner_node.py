@@ -186,6 +186,9 @@ class LearnerNode(Node):
             raise ValueError(f'unknown strategy {goal.strategy!r}; known: '
                              f'{", ".join(STRATEGIES)}')
         p = self.get_parameter
+        if goal.num_test > p('max_tasks').value:
+            raise ValueError(f'num_test must be at most {p("max_tasks").value} (the '
+                             f"learner's max_tasks), got {goal.num_test}")
         if not 1 <= goal.num_tasks <= p('max_tasks').value:
             raise ValueError(f'num_tasks must be between 1 and {p("max_tasks").value} (the '
                              f"learner's max_tasks), got {goal.num_tasks}")
@@ -200,7 +203,8 @@ class LearnerNode(Node):
             popsize=p('popsize').value, sigma0=p('sigma0').value,
             cost_weight=p('cost_weight').value)
         settings = LearnSettings(strategy=goal.strategy, num_tasks=int(goal.num_tasks),
-                                 seed=int(goal.seed), num_test=p('test_tasks').value,
+                                 seed=int(goal.seed),
+                                 num_test=int(goal.num_test) or p('test_tasks').value,
                                  search=search, task_selection=goal.task_selection or 'random',
                                  continue_from=goal.continue_from)
         out = Path(goal.output_dir or Path(p('output_root').value)
