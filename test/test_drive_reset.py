@@ -73,3 +73,30 @@ def test_teleport_resets_jump(tmp_path, wait_until):
     assert np.abs(np.diff(q, axis=0)).max() > 0.5
     assert to_ns(second.evaluation.stamp) == to_ns(first.evaluation.stamp) + \
         first.evaluation.num_steps * task.control_period_ns
+
+
+def test_a_homing_that_does_not_settle_names_the_joint(tmp_path):
+    """A tolerance no arm meets in a 10 ms settle: the rollout fails with the joint, where it
+    is and the fix; nothing is evaluated."""
+    import yaml
+    default = load_task(TASK)
+    data = yaml.safe_load(default.path.read_text())
+    data.update(name='impatient', model=str(default.model_path),
+                homing={'reset': 'drive', 'settle_time': 0.01, 'tolerance': 1e-9,
+                        'max_velocity': 3.0, 'max_acceleration': 30.0})
+    path = tmp_path / 'impatient.yaml'
+    path.write_text(yaml.safe_dump(data))
+    task = load_task(str(path))
+    g = Graph(task=str(path), log_dir=tmp_path / 'logs',
+              nodes=tuple(n for n in NODES if n[0] not in ('skill_memory', 'learner')))
+    try:
+        g.start()
+        g.wait_ready(timeout=60)
+        with RosClient() as client:
+            result = client.rollout(str(path), task.tau_default,
+                                    policy_for(task).default_theta, timeout=120)
+    finally:
+        g.stop()
+    assert not result.success
+    assert 'homing did not settle: joint' in result.message
+    assert 'tolerance 1e-09' in result.message and 'homing.settle_time' in result.message

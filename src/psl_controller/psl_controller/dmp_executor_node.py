@@ -254,7 +254,7 @@ class DMPExecutor(Node):
         if reset not in RESETS:
             raise ValueError(f'parameter reset must be one of {", ".join(RESETS)} or empty, '
                              f'got {reset!r}')
-        self._set_gains(run.task)
+        self._set_gains(run)
         if reset == 'drive':
             self._home(run)
         if changes:
@@ -280,16 +280,19 @@ class DMPExecutor(Node):
             raise
         return response
 
-    def _set_gains(self, task: TaskDefinition) -> None:
+    def _set_gains(self, run: _Rollout) -> None:
         """The controller's gains := the task's (``controller.kp/kd``) when they differ from
         the gains it runs (at first: those of the task it was started with): two tasks of
         different gains share one running controller. Gains set by hand (``pd_controller``
-        parameters) stay as long as the rollouts' tasks have the same gains."""
+        parameters) stay as long as the rollouts' tasks have the same gains. A task of
+        another robot is refused by the simulator first (a probe), with its reason."""
+        task = run.task
         wanted = (tuple(task.controller.kp.tolist()), tuple(task.controller.kd.tolist()))
         if self._gains is None:
             self._gains = self._controller_task_gains()
         if wanted == self._gains:
             return
+        self._probe(run.goal)          # the simulator runs this task's robot, or says why not
         future = self.controller_parameters.set_parameters([
             Parameter('kp', value=list(wanted[0])), Parameter('kd', value=list(wanted[1]))])
         response = wait_for(future, 10.0, 'pd_controller/set_parameters')
@@ -353,7 +356,7 @@ class DMPExecutor(Node):
         response = self._call(self.reset_client,
                               ResetTask.Request(task=goal.task, tau=goal.tau, mode='probe'))
         if not response.success and not quiet:
-            raise ValueError(f'homing: {response.message}')
+            raise ValueError(response.message)
         return response
 
     def _await_evaluation(self, goal_handle, task: TaskDefinition,
