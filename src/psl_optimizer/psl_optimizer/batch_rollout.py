@@ -128,8 +128,12 @@ class BatchRollouts(Rollouts):
         references = [self.policy.reference(theta, tau) for theta, tau in zip(thetas, taus)]
         results: list[RolloutResult | None] = [None] * len(thetas)
         safe = []
-        for i, (reference, tau) in enumerate(zip(references, taus)):
-            verdict = self.safety.check(tau, reference.q, reference.qd)
+        lengths = {len(r.q) for r in references}
+        verdicts = (self.safety.screen(taus, np.stack([r.q for r in references]),
+                                       np.stack([r.qd for r in references]))
+                    if len(lengths) == 1 else
+                    [self.safety.check(tau, r.q, r.qd) for r, tau in zip(references, taus)])
+        for i, verdict in enumerate(verdicts):
             if verdict.safe:
                 safe.append(i)
             else:          # not executed: the penalty and the reason

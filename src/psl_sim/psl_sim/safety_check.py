@@ -80,6 +80,24 @@ class SafetyCheck:
     def checks_dynamics(self) -> bool:
         return bool(np.isfinite(self.spec.torque_share))
 
+    @property
+    def ranges_only(self) -> bool:
+        """True when the task sets no limit beyond the default (finite, inside the ranges)."""
+        s = self.spec
+        return (not np.isfinite(s.max_velocity) and not np.isfinite(s.max_acceleration)
+                and not self.checks_dynamics and self._replay is None)
+
+    def screen(self, taus: np.ndarray, q: np.ndarray, qd: np.ndarray) -> list[Verdict]:
+        """`check` of a population, references q, qd (B, T, n) on instances taus (B, E): the
+        same verdicts. With the default limits the candidates that pass (nearly all) are found
+        in one vectorised pass; only the others get the detailed `check` for their reason."""
+        if not self.ranges_only:
+            return [self.check(tau, qb, qdb) for tau, qb, qdb in zip(taus, q, qd)]
+        passes = (np.isfinite(q).all(axis=(1, 2)) & np.isfinite(qd).all(axis=(1, 2))
+                  & (q >= self.low).all(axis=(1, 2)) & (q <= self.high).all(axis=(1, 2)))
+        return [SAFE if ok else self.check(tau, qb, qdb)
+                for ok, tau, qb, qdb in zip(passes, taus, q, qd)]
+
     def check(self, tau: np.ndarray, q: np.ndarray, qd: np.ndarray) -> Verdict:
         """The verdict on a reference q, qd (T, n) for the (valid) task instance tau."""
         s, names = self.spec, self.arm.joint_names

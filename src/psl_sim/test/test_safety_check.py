@@ -203,3 +203,19 @@ def test_an_arm_folded_onto_itself_is_refused(tmp_path):
 def test_bad_safety_sections_are_refused(tmp_path, section, words):
     with pytest.raises(TaskError, match=words):
         variant(tmp_path, section)
+
+
+@pytest.mark.parametrize('safety', [{}, {'max_velocity': 2.0}])
+def test_screening_a_population_gives_the_verdicts_of_one_by_one(tmp_path, safety):
+    """The vectorised pass (default limits) and the detailed check agree on every member."""
+    task = variant(tmp_path, safety)
+    check = SafetyCheck(ArmModel(task))
+    rng = np.random.default_rng(4)
+    q, qd = sine(task, 0.1, 1.0)
+    qs = np.stack([q + rng.normal(0.0, s, q.shape) for s in (0.0, 0.5, 2.0, 4.0)])
+    qs[1, 30, 2] = np.nan
+    qds = np.stack([qd] * 4) * np.array([1.0, 1.0, 3.0, 0.5])[:, None, None]
+    taus = np.tile(task.tau_default, (4, 1))
+    screened = check.screen(taus, qs, qds)
+    assert screened == [check.check(tau, a, b) for tau, a, b in zip(taus, qs, qds)]
+    assert any(v.safe for v in screened) and not all(v.safe for v in screened)
