@@ -36,7 +36,8 @@ class EpisodeStats:
 
 
 def measure(task_name: str = 'reach_over_obstacle', rollouts: int = 10,
-            round_trips: int = 2000, realtime_seconds: float = 60.0) -> dict:
+            round_trips: int = 2000, realtime_seconds: float = 60.0, busy: int = 0,
+            realtime_priority: int = 0) -> dict:
     """Round trip, lockstep and (realtime_seconds > 0) realtime figures of one run.
 
     Raises:
@@ -83,12 +84,15 @@ def measure(task_name: str = 'reach_over_obstacle', rollouts: int = 10,
     report['lockstep']['step_ms'] = step_ms
     report['lockstep']['step_over_round_trip'] = step_ms / report['round_trip_ms']['p50']
     if realtime_seconds > 0:
-        report['realtime'] = _realtime(task, realtime_seconds)
+        report['realtime'] = _realtime(task, realtime_seconds, busy, realtime_priority)
     return report
 
 
-def _realtime(task, seconds: float) -> dict:
-    """One realtime episode of `seconds` (simulator and controller only): deadline misses."""
+def _realtime(task, seconds: float, busy: int = 0, priority: int = 0) -> dict:
+    """One realtime episode of `seconds` (simulator and controller only), with `busy` cores
+    kept busy and the loop at SCHED_FIFO `priority` (0: normal): deadline misses, and the CPU
+    the two nodes used per second of the episode (the pacing's cost)."""
+    from psl_bench.recording import busy_cores
     from psl_ros.client import RosClient
     from psl_ros.graph import Graph
     from psl_sim.task import task_id
@@ -96,8 +100,10 @@ def _realtime(task, seconds: float) -> dict:
     graph = Graph(task=task_id(task), mode='realtime',
                   nodes=(('sim', 'psl_sim', 'sim'),
                          ('pd_controller', 'psl_controller', 'pd_controller')),
-                  extra_params={'sim': {'episode_duration': seconds}})
-    with graph, RosClient() as client:
+                  extra_params={'sim': {'episode_duration': seconds,
+                                        'realtime_priority': priority},
+                                'pd_controller': {'realtime_priority': priority}})
+    with graph, RosClient() as client, busy_cores(busy):
         stats = EpisodeStats(client.node)
         if not client.reset_client.wait_for_service(timeout_sec=30):
             raise RuntimeError('realtime simulator did not come up')
@@ -107,16 +113,30 @@ def _realtime(task, seconds: float) -> dict:
                 raise RuntimeError('controller did not come up')
             time.sleep(0.1)
         time.sleep(1.0)
+        cpu_before = {p.name: _cpu_seconds(p.pid) for p in graph.processes}
         response = client.reset(task_id(task), task.tau_default)
         if not response.success:
             raise RuntimeError(response.message)
         if not stats.event.wait(timeout=seconds * 1.5 + 30):
             raise RuntimeError('the realtime episode did not end')
+        cpu = {p.name: _cpu_seconds(p.pid) - cpu_before[p.name] for p in graph.processes}
+        scheduling = next((line.split('realtime loop: ', 1)[1] for p in graph.processes
+                           for line in p.tail(50).splitlines() if 'realtime loop: ' in line),
+                          'unknown')
     done = stats.done[-1]
     misses, total = int(done['deadline_misses']), int(done['steps'])
+    wall = float(done['wall_time_s'])
     return {'rate_hz': task.control_rate, 'seconds': seconds, 'steps': total,
             'deadline_misses': misses, 'miss_fraction': misses / total,
-            'wall_time_s': float(done['wall_time_s'])}
+            'wall_time_s': wall, 'busy_cores': busy, 'scheduling': scheduling,
+            'cpu_share': {name: value / wall for name, value in cpu.items()}}
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time [s] of a process so far (/proc/PID/stat)."""
+    with open(f'/proc/{pid}/stat') as f:
+        fields = f.read().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
 
 
 def format_report(report: dict) -> str:
@@ -128,7 +148,10 @@ def format_report(report: dict) -> str:
              f"{ls['rollout_wall_s_median']:.2f} s for {ls['steps_per_episode']} steps"]
     if 'realtime' in report:
         r = report['realtime']
-        lines.append(f"realtime {r['rate_hz']:.0f} Hz over {r['seconds']:.0f} s: "
+        cpu = ', '.join(f'{name} {100 * share:.0f} %' for name, share in
+                        r.get('cpu_share', {}).items())
+        lines.append(f"realtime {r['rate_hz']:.0f} Hz over {r['seconds']:.0f} s, "
+                     f"{r.get('busy_cores', 0)} cores kept busy, loop {r.get('scheduling')}: "
                      f"{r['deadline_misses']} misses of {r['steps']} steps "
-                     f"({100 * r['miss_fraction']:.2f} %)")
+                     f"({100 * r['miss_fraction']:.2f} %); CPU of a core: {cpu}")
     return '\n'.join(lines) + '\n'

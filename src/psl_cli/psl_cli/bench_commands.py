@@ -49,6 +49,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument('--round-trips', type=positive_int, default=2000)
     p.add_argument('--realtime-seconds', type=float, default=60.0,
                    help='length of the realtime episode (0 skips it)')
+    p.add_argument('--busy', type=non_negative_int, default=0,
+                   help='cores kept busy by spinning processes during the realtime episode')
+    p.add_argument('--realtime-priority', type=non_negative_int, default=0,
+                   help='SCHED_FIFO priority of the realtime loop and the controller (0: '
+                   'normal scheduling; applied only where the machine allows it)')
     p = bench('rollout', 'batch-mode steps/s beside raw mujoco.rollout')
     p.add_argument('--population', type=positive_int, default=32)
     p.add_argument('--repeats', type=positive_int, default=7)
@@ -140,7 +145,8 @@ def _file(path: str | None) -> Path | None:
 
 def _graph(args) -> tuple[dict, str]:
     from psl_bench import graph
-    report = graph.measure(args.task, args.rollouts, args.round_trips, args.realtime_seconds)
+    report = graph.measure(args.task, args.rollouts, args.round_trips, args.realtime_seconds,
+                           busy=args.busy, realtime_priority=args.realtime_priority)
     return report, graph.format_report(report)
 
 

@@ -29,6 +29,7 @@ from psl_ros import names
 from psl_ros.hot_path import HotPath
 from psl_ros.node_main import run_node
 from psl_ros.qos import RELIABLE
+from psl_ros.realtime import raise_priority
 from psl_ros.stamps import to_ns
 from psl_sim.task import load_task
 
@@ -91,6 +92,11 @@ class PDController(Node):
         self.pub_reference = self.create_publisher(JointState, names.REFERENCE, RELIABLE)
         # one thread serves both, the trajectory first when both are ready: a trajectory
         # published before an episode starts is in place for the episode's first state
+        self.declare_parameter('realtime_priority', 0, ParameterDescriptor(
+            description='SCHED_FIFO priority of the thread that answers the states (1..99) '
+                        'if the machine allows it; 0 = normal scheduling', read_only=True))
+        # the hot path's thread inherits the scheduling of the thread that starts it
+        scheduling = raise_priority(self.get_parameter('realtime_priority').value)
         self.hot_path = HotPath(self)
         self.hot_path.subscribe(JointTrajectory, names.JOINT_TRAJECTORY, self.on_trajectory,
                                 RELIABLE)
@@ -99,7 +105,7 @@ class PDController(Node):
         law = self.law
         self.get_logger().info(
             f'PD + feed-forward controller, kp={law.kp.tolist()} kd={law.kd.tolist()} '
-            f'limits={law.torque_low.tolist()}..{law.torque_high.tolist()}')
+            f'limits={law.torque_low.tolist()}..{law.torque_high.tolist()}; {scheduling}')
 
     def _law(self, values: dict) -> PDLaw:
         """The law with the given parameter values ([0.0] = the task's); ValueError if one is

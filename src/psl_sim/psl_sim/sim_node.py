@@ -50,6 +50,7 @@ from psl_sim.arm_model import ArmModel
 from psl_sim.scene import PATH_SHAPE, Scene, Shape, ShapeKind
 from psl_ros import names
 from psl_ros.graph import SIM_MODES
+from psl_ros.realtime import raise_priority, sleep_until
 RESET_MODES = ('teleport', 'drive', 'probe')     # ResetTask.mode
 from psl_ros.hot_path import HotPath
 from psl_ros.node_main import run_node
@@ -114,6 +115,12 @@ class SimNode(Node):
         self.declare_parameter('scene_rate', 30.0, ParameterDescriptor(
             description='scene markers per second of simulated time while someone subscribes '
                         '[Hz]; 0 = only at resets and episode ends'))
+        self.declare_parameter('realtime_priority', 0, ParameterDescriptor(
+            description='realtime: SCHED_FIFO priority of the control loop (1..99) if the '
+                        'machine allows it; 0 = normal scheduling', read_only=True))
+        self.declare_parameter('spin_margin', 0.0002, ParameterDescriptor(
+            description='realtime: the loop sleeps until this long before each deadline [s], '
+                        'then spins to it', read_only=True))
         self.mode = self.get_parameter('mode').value
         if self.mode not in SIM_MODES:
             raise ValueError(f'mode must be one of {SIM_MODES}, got {self.mode!r}')
@@ -269,6 +276,9 @@ class SimNode(Node):
             self._publish_status(done)
 
     def _realtime_loop(self) -> None:
+        scheduling = raise_priority(self.get_parameter('realtime_priority').value)
+        self.get_logger().info(f'realtime loop: {scheduling}')
+        margin = self.get_parameter('spin_margin').value
         next_tick = time.perf_counter()
         while not self._stop.is_set():
             with self._lock:
@@ -282,11 +292,10 @@ class SimNode(Node):
                     self.pending = None
                     self._advance(command)
             next_tick += period
-            delay = next_tick - time.perf_counter()
-            if delay > 0:
-                time.sleep(delay)
-            elif delay < -period:      # fell behind by more than a period: don't burst
-                next_tick = time.perf_counter()
+            if next_tick - time.perf_counter() < -period:   # fell behind by more than a
+                next_tick = time.perf_counter()             # period: don't burst
+            else:
+                sleep_until(next_tick, margin)
 
     def _publish_status(self, done: int) -> None:
         """Episode progress on /diagnostics: about every tenth of the episode and at its end
