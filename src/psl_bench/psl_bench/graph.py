@@ -37,7 +37,7 @@ class EpisodeStats:
 
 def measure(task_name: str = 'reach_over_obstacle', rollouts: int = 10,
             round_trips: int = 2000, realtime_seconds: float = 60.0, busy: int = 0,
-            realtime_priority: int = 0) -> dict:
+            realtime_priority: int = 0, spin_margin: float = 0.0002) -> dict:
     """Round trip, lockstep and (realtime_seconds > 0) realtime figures of one run.
 
     Raises:
@@ -84,11 +84,13 @@ def measure(task_name: str = 'reach_over_obstacle', rollouts: int = 10,
     report['lockstep']['step_ms'] = step_ms
     report['lockstep']['step_over_round_trip'] = step_ms / report['round_trip_ms']['p50']
     if realtime_seconds > 0:
-        report['realtime'] = _realtime(task, realtime_seconds, busy, realtime_priority)
+        report['realtime'] = _realtime(task, realtime_seconds, busy, realtime_priority,
+                                       spin_margin)
     return report
 
 
-def _realtime(task, seconds: float, busy: int = 0, priority: int = 0) -> dict:
+def _realtime(task, seconds: float, busy: int = 0, priority: int = 0,
+              spin_margin: float = 0.0002) -> dict:
     """One realtime episode of `seconds` (simulator and controller only), with `busy` cores
     kept busy and the loop at SCHED_FIFO `priority` (0: normal): deadline misses, and the CPU
     the two nodes used per second of the episode (the pacing's cost)."""
@@ -101,7 +103,8 @@ def _realtime(task, seconds: float, busy: int = 0, priority: int = 0) -> dict:
                   nodes=(('sim', 'psl_sim', 'sim'),
                          ('pd_controller', 'psl_controller', 'pd_controller')),
                   extra_params={'sim': {'episode_duration': seconds,
-                                        'realtime_priority': priority},
+                                        'realtime_priority': priority,
+                                        'spin_margin': spin_margin},
                                 'pd_controller': {'realtime_priority': priority}})
     with graph, RosClient() as client, busy_cores(busy):
         stats = EpisodeStats(client.node)
@@ -129,6 +132,7 @@ def _realtime(task, seconds: float, busy: int = 0, priority: int = 0) -> dict:
     return {'rate_hz': task.control_rate, 'seconds': seconds, 'steps': total,
             'deadline_misses': misses, 'miss_fraction': misses / total,
             'wall_time_s': wall, 'busy_cores': busy, 'scheduling': scheduling,
+            'spin_margin_s': spin_margin,
             'cpu_share': {name: value / wall for name, value in cpu.items()}}
 
 
@@ -151,7 +155,8 @@ def format_report(report: dict) -> str:
         cpu = ', '.join(f'{name} {100 * share:.0f} %' for name, share in
                         r.get('cpu_share', {}).items())
         lines.append(f"realtime {r['rate_hz']:.0f} Hz over {r['seconds']:.0f} s, "
-                     f"{r.get('busy_cores', 0)} cores kept busy, loop {r.get('scheduling')}: "
+                     f"{r.get('busy_cores', 0)} cores kept busy, loop {r.get('scheduling')}, "
+                     f"spin margin {1e3 * r.get('spin_margin_s', 0):.1f} ms: "
                      f"{r['deadline_misses']} misses of {r['steps']} steps "
                      f"({100 * r['miss_fraction']:.2f} %); CPU of a core: {cpu}")
     return '\n'.join(lines) + '\n'

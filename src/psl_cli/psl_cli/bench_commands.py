@@ -54,6 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument('--realtime-priority', type=non_negative_int, default=0,
                    help='SCHED_FIFO priority of the realtime loop and the controller (0: '
                    'normal scheduling; applied only where the machine allows it)')
+    p.add_argument('--spin-margin', type=float, default=0.0002,
+                   help='the realtime loop sleeps until this long before each deadline, then '
+                   'spins [s]; 0 = sleep only')
     p = bench('rollout', 'batch-mode steps/s beside raw mujoco.rollout')
     p.add_argument('--population', type=positive_int, default=32)
     p.add_argument('--repeats', type=positive_int, default=7)
@@ -146,7 +149,8 @@ def _file(path: str | None) -> Path | None:
 def _graph(args) -> tuple[dict, str]:
     from psl_bench import graph
     report = graph.measure(args.task, args.rollouts, args.round_trips, args.realtime_seconds,
-                           busy=args.busy, realtime_priority=args.realtime_priority)
+                           busy=args.busy, realtime_priority=args.realtime_priority,
+                           spin_margin=args.spin_margin)
     return report, graph.format_report(report)
 
 
