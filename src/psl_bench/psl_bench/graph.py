@@ -37,7 +37,7 @@ class EpisodeStats:
 
 def measure(task_name: str = 'reach_over_obstacle', rollouts: int = 10,
             round_trips: int = 2000, realtime_seconds: float = 60.0, busy: int = 0,
-            realtime_priority: int = 0, spin_margin: float = 0.0002) -> dict:
+            realtime_priority: int = 0, spin_margin: float = 0.0) -> dict:
     """Round trip, lockstep and (realtime_seconds > 0) realtime figures of one run.
 
     Raises:
@@ -90,7 +90,7 @@ def measure(task_name: str = 'reach_over_obstacle', rollouts: int = 10,
 
 
 def _realtime(task, seconds: float, busy: int = 0, priority: int = 0,
-              spin_margin: float = 0.0002) -> dict:
+              spin_margin: float = 0.0) -> dict:
     """One realtime episode of `seconds` (simulator and controller only), with `busy` cores
     kept busy and the loop at SCHED_FIFO `priority` (0: normal): deadline misses, and the CPU
     the two nodes used per second of the episode (the pacing's cost)."""

@@ -54,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument('--realtime-priority', type=non_negative_int, default=0,
                    help='SCHED_FIFO priority of the realtime loop and the controller (0: '
                    'normal scheduling; applied only where the machine allows it)')
-    p.add_argument('--spin-margin', type=float, default=0.0002,
+    p.add_argument('--spin-margin', type=float, default=0.0,
                    help='the realtime loop sleeps until this long before each deadline, then '
                    'spins [s]; 0 = sleep only')
     p = bench('rollout', 'batch-mode steps/s beside raw mujoco.rollout')

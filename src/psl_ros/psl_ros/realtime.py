@@ -7,7 +7,10 @@ delays the control loop's wake-up and the controller's answer by microseconds ra
 scheduler slice. Every thread that gets it must block between periods (sleep, wait-set), never
 spin without end. `sleep_until` paces a loop: sleep until ``margin`` s before the deadline (the
 kernel's wake-up is late by tens of microseconds), then spin to it — the spin costs about
-``margin / period`` of a core. Imports no ROS.
+``margin / period`` of a core. On the 2-core machine of docs/benchmarks.md neither lowered the
+deadline misses with a core kept busy (a FIFO loop that spins even raised them: the DDS threads
+that bring the commands run at normal priority and wait for it), so the nodes use neither
+unless asked. Imports no ROS.
 """
 from __future__ import annotations
 

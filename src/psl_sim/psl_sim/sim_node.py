@@ -118,9 +118,10 @@ class SimNode(Node):
         self.declare_parameter('realtime_priority', 0, ParameterDescriptor(
             description='realtime: SCHED_FIFO priority of the control loop (1..99) if the '
                         'machine allows it; 0 = normal scheduling', read_only=True))
-        self.declare_parameter('spin_margin', 0.0002, ParameterDescriptor(
+        self.declare_parameter('spin_margin', 0.0, ParameterDescriptor(
             description='realtime: the loop sleeps until this long before each deadline [s], '
-                        'then spins to it', read_only=True))
+                        'then spins to it (0: sleep only; docs/benchmarks.md measured no gain)',
+            read_only=True))
         self.mode = self.get_parameter('mode').value
         if self.mode not in SIM_MODES:
             raise ValueError(f'mode must be one of {SIM_MODES}, got {self.mode!r}')
