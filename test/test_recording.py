@@ -16,7 +16,7 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from ruamel.yaml import YAML
 
-from psl_bench.recording import busy_cores
+from psl_bench.busy_cores import busy_cores
 from psl_controller.pd_law import law_for
 from psl_controller.policy import policy_for
 from psl_ros.bag_recorder import LOSS_KEY, read_bag_summary, record

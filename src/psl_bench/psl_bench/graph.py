@@ -94,7 +94,7 @@ def _realtime(task, seconds: float, busy: int = 0, priority: int = 0,
     """One realtime episode of `seconds` (simulator and controller only), with `busy` cores
     kept busy and the loop at SCHED_FIFO `priority` (0: normal): deadline misses, and the CPU
     the two nodes used per second of the episode (the pacing's cost)."""
-    from psl_bench.recording import busy_cores
+    from psl_bench.busy_cores import busy_cores
     from psl_ros.client import RosClient
     from psl_ros.graph import Graph
     from psl_sim.task import task_id

@@ -11,17 +11,15 @@ from __future__ import annotations
 
 import os
 import statistics
-import subprocess
-import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
+from psl_bench.busy_cores import busy_cores
 from psl_bench.graph import EpisodeStats
 from psl_ros import names
 
@@ -36,21 +34,6 @@ RECORDER_TIMEOUT = 60.0  # [s] for the recorder to take what the last rollout pu
 
 def _absolute(topic: str) -> str:
     return '/' + topic.lstrip('/')
-
-
-@contextmanager
-def busy_cores(count: int) -> Iterator[list[int]]:
-    """`count` processes that each keep a core busy (``while True: pass``); yields their PIDs
-    and ends exactly those (SIGKILL by PID) on leaving."""
-    processes = []
-    try:
-        for _ in range(count):
-            processes.append(subprocess.Popen([sys.executable, '-c', 'while True: pass']))
-        yield [p.pid for p in processes]
-    finally:
-        for process in processes:
-            process.kill()
-            process.wait()
 
 
 def loop_messages(num_steps: int, rollouts: int,

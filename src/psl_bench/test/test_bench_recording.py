@@ -3,7 +3,8 @@ import os
 
 import pytest
 
-from psl_bench.recording import busy_cores, format_report, loop_messages
+from psl_bench.busy_cores import busy_cores
+from psl_bench.recording import format_report, loop_messages
 from psl_ros.graph import pid_alive
 
 
