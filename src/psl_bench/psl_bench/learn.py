@@ -268,6 +268,9 @@ def format_table(report: dict) -> str:
                      f"{cell(row, 'zero_shot_reward', 3)} | {cell(row, 'train_seconds', 1)} |")
     t, rows = report['targets'], report['strategies']
     lines.append('')
+    lines.append('training wall time per rollout: ' + ', '.join(
+        f"{name} {1e3 * row['train_seconds']['mean'] / max(row['total_rollouts']['mean'], 1):.1f} ms"
+        for name, row in rows.items() if 'train_seconds' in row and 'total_rollouts' in row))
     lines.append('safety check, candidates refused (not executed) per session: ' + ', '.join(
         f"{name} {cell(row, 'refused', 1)} of {row['total_rollouts']['mean']:.0f}"
         for name, row in rows.items() if 'refused' in row))
