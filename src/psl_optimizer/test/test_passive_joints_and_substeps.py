@@ -176,14 +176,19 @@ def test_bad_driven_joints_are_named(tmp_path, joints, words):
         ArmModel(write(tmp_path, data))
 
 
-def test_a_ball_joint_cannot_be_driven(tmp_path):
-    data = task_data()
-    data['robot']['joints'] = ['shoulder', 'elbow', 'ball']
+def driving_one_more(data: dict, joint: str) -> dict:
+    """The task data with `joint` driven too: one more entry in postures, gains and rows."""
+    data['robot']['joints'] = data['robot']['joints'] + [joint]
     for key in ('start_posture', 'goal_posture'):
         data[key] = data[key] + [0.0]
     for key in ('kp', 'kd'):
         data['controller'][key] = data['controller'][key] + [1.0]
     data['demonstration']['positions'] = [r + [0.0] for r in data['demonstration']['positions']]
+    return data
+
+
+def test_a_ball_joint_cannot_be_driven(tmp_path):
+    data = driving_one_more(task_data(), 'ball')
     (tmp_path / 'arm.xml').write_text(MJCF.format(timestep=0.002).replace(
         '<joint name="swing" type="hinge" axis="0 -1 0" damping="0.01"/>',
         '<joint name="ball" type="ball"/>'))
@@ -194,13 +199,7 @@ def test_a_ball_joint_cannot_be_driven(tmp_path):
 
 
 def test_a_servo_on_a_driven_joint_is_named_by_its_joint(tmp_path):
-    data = task_data(joints=('shoulder', 'elbow'))
-    data['robot']['joints'] = ['shoulder', 'elbow', 'finger']
-    for key in ('start_posture', 'goal_posture'):
-        data[key] = data[key] + [0.0]
-    for key in ('kp', 'kd'):
-        data['controller'][key] = data['controller'][key] + [1.0]
-    data['demonstration']['positions'] = [r + [0.0] for r in data['demonstration']['positions']]
+    data = driving_one_more(task_data(), 'finger')
     with pytest.raises(TaskError, match="on joint finger.*not plain joint motors"):
         ArmModel(write(tmp_path, data))
 
