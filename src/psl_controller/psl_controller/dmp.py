@@ -256,13 +256,53 @@ class DMP:
             t_end: end time in seconds (>= 0); default ``duration``.
         """
         grid = self._grid_response(dt, t_end)
-        offset = self._y0 - self._goal  # (n_dims,)
-        theta_t = self._theta.T  # (K, n_dims)
-        y = self._goal + grid.free[:, POS, None] * offset + grid.gain[:, POS, :] @ theta_t
-        yd = grid.free[:, VEL, None] * offset + grid.gain[:, VEL, :] @ theta_t
-        ydd = (self._ks_eff * (self._goal - y) - self._kd_eff * yd
-               + self._b[VEL] * (grid.forcing_basis @ theta_t))  # (N+1, n_dims)
+        y, yd, ydd = self._response(grid, self._theta[None], self._goal[None])
+        return DMPTrajectory(t=grid.t.copy(), y=y[0], yd=yd[0], ydd=ydd[0])
+
+    def integrate_population(self, dt: float, thetas: np.ndarray,
+                             t_end: float | None = None) -> DMPTrajectory:
+        """`integrate` for B thetas at once (the DMP's own theta is not changed): y, yd, ydd
+        of shape (B, N+1, n_dims), row b bit for bit `integrate` after ``set_theta(thetas[b])``.
+
+        Args:
+            dt: step in seconds (> 0).
+            thetas: (B, num_parameters), each laid out as `set_theta` takes it.
+            t_end: end time in seconds (>= 0); default ``duration``.
+
+        Raises:
+            ValueError: thetas not (B, num_parameters) or not finite, or the errors of
+            `integrate`.
+        """
+        thetas = np.asarray(thetas, dtype=float)
+        if thetas.ndim != 2 or thetas.shape[1] != self.num_parameters:
+            raise ValueError(f'thetas must be (B, {self.num_parameters}), got {thetas.shape}')
+        if not np.all(np.isfinite(thetas)):
+            raise ValueError('thetas must be finite (found NaN or inf)')
+        weights = thetas[:, :self.num_weights].reshape(len(thetas), self._n_dims, self.n_basis)
+        goals = (thetas[:, self.num_weights:] if self._learn_goal
+                 else np.broadcast_to(self._goal, (len(thetas), self._n_dims)))
+        grid = self._grid_response(dt, t_end)
+        y, yd, ydd = self._response(grid, weights, goals)
         return DMPTrajectory(t=grid.t.copy(), y=y, yd=yd, ydd=ydd)
+
+    def _response(self, grid: '_GridResponse', weights: np.ndarray,
+                  goals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """y, yd, ydd (B, N+1, n_dims) on the grid for weights (B, n_dims, K) and goals
+        (B, n_dims): the affine solution ``y = y_free + G theta`` and eq. 2.23 for ydd.
+
+        Computed with the population's dimensions side by side, (N+1, B n_dims), so every
+        product is one matrix product and every sum runs along long rows; the results are
+        views in (B, N+1, n_dims) order."""
+        count = len(weights)
+        goal = goals.reshape(1, -1)  # (1, B n_dims)
+        offset = (self._y0 - goals).reshape(1, -1)
+        theta_t = weights.reshape(-1, self.n_basis).T  # (K, B n_dims)
+        y = goal + grid.free[:, POS, None] * offset + grid.gain[:, POS, :] @ theta_t
+        yd = grid.free[:, VEL, None] * offset + grid.gain[:, VEL, :] @ theta_t
+        ydd = (self._ks_eff * (goal - y) - self._kd_eff * yd
+               + self._b[VEL] * (grid.forcing_basis @ theta_t))  # (N+1, B n_dims)
+        return tuple(np.ascontiguousarray(x.reshape(len(x), count, self._n_dims)
+                                          .transpose(1, 0, 2)) for x in (y, yd, ydd))
 
     def integrate_goal_change(self, dt: float, t_switch: float, new_goal,
                               t_end: float | None = None) -> DMPTrajectory:

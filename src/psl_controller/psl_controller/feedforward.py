@@ -61,6 +61,20 @@ class FeedForward:
         """
         return self.design(t) @ self._weights(theta_d).T
 
+    def signal_population(self, theta_ds: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """`signal` of each row of theta_ds (B, num_parameters), bit for bit: (B, T, n_joints).
+
+        Raises:
+            ValueError: theta_ds of the wrong shape or not finite.
+        """
+        theta_ds = np.asarray(theta_ds, dtype=float)
+        if theta_ds.ndim != 2:
+            raise ValueError(f'theta_ds must be (B, {self.num_parameters}), got {theta_ds.shape}')
+        weights = np.stack([self._weights(theta_d) for theta_d in theta_ds])   # (B, n, K)
+        signal = self.design(t) @ weights.reshape(-1, self.n_basis).T        # (T, B n)
+        return np.ascontiguousarray(
+            signal.reshape(len(signal), len(theta_ds), self._n_joints).transpose(1, 0, 2))
+
     def fit(self, t: np.ndarray, u: np.ndarray, regularization: float = 1e-9) -> np.ndarray:
         """Least-squares projection of torques u (T, n_joints) sampled at t (T,) onto the basis:
         ``min ||Phi theta_j - u_j||^2 + regularization ||theta_j||^2`` per joint.

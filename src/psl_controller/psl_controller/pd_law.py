@@ -54,6 +54,7 @@ class PDLaw:
                              f'{arrays["torque_high"]}')
         for name, value in arrays.items():
             object.__setattr__(self, name, value)
+        object.__setattr__(self, '_tiles', {})
 
     @classmethod
     def symmetric(cls, kp, kd, torque_limit) -> 'PDLaw':
@@ -75,13 +76,31 @@ class PDLaw:
 
         Inputs are not checked (this runs on every control step): shapes (..., n) that
         broadcast, finite values; a message boundary validates them first."""
-        u = self.kp * (q_ref - q) + self.kd * (qd_ref - qd) + u_ffwd
-        return np.clip(u, self.torque_low, self.torque_high)
+        kp, kd, low, high = self._per_element(q, qd, q_ref, qd_ref, u_ffwd)
+        u = kp * (q_ref - q) + kd * (qd_ref - qd) + u_ffwd
+        return np.clip(u, low, high)
 
     def actuator_control(self, q_ref, qd_ref, u_ffwd) -> np.ndarray:
         """The state-independent part of the law, Kp q_ref + Kd qd_ref + u_ffwd (..., n): the
         control signal of a MuJoCo general actuator realising it (see `actuator_bias`)."""
-        return self.kp * q_ref + self.kd * qd_ref + u_ffwd
+        kp, kd, _, _ = self._per_element(q_ref, qd_ref, u_ffwd)
+        return kp * q_ref + kd * qd_ref + u_ffwd
+
+    def _per_element(self, *arrays) -> tuple[np.ndarray, ...]:
+        """kp, kd, torque_low, torque_high laid out to the shape the arrays broadcast to:
+        the vectors themselves for one state, full arrays for a trajectory or population
+        (numpy multiplies full arrays several times faster than it broadcasts a short joint
+        axis; the values, and so the results, are the same). A few shapes are kept."""
+        shape = np.broadcast_shapes(*(np.shape(a) for a in arrays))
+        if len(shape) < 2:
+            return self.kp, self.kd, self.torque_low, self.torque_high
+        tiles = self._tiles
+        if shape not in tiles:
+            if len(tiles) >= 8:
+                tiles.clear()
+            tiles[shape] = tuple(np.broadcast_to(v, shape).copy() for v in
+                                 (self.kp, self.kd, self.torque_low, self.torque_high))
+        return tiles[shape]
 
     def actuator_bias(self) -> np.ndarray:
         """Affine bias parameters [b_0, b_1, b_2] = [0, -Kp, -Kd] per joint (n, 3): with gain 1

@@ -170,6 +170,39 @@ class TaskPolicy:
         traj = movement.integrate(dt, self.task.num_steps_of(tau) * dt)
         return self._reference_of(traj, theta, feedforward, dt)
 
+    def references(self, thetas: np.ndarray, taus: np.ndarray) -> list[Reference]:
+        """`reference` of each row of thetas (B, F) on its task instance taus (B, E), bit for
+        bit: a DMP in joint space integrates the rollouts of one duration as one population
+        (`DMP.integrate_population`, `FeedForward.signal_population`); other movements go one
+        by one. Raises what `reference` raises, naming the row."""
+        thetas = np.asarray(thetas, dtype=float)
+        if thetas.ndim != 2 or len(thetas) != len(taus):
+            raise ValueError(f'thetas must be (B, {self.num_parameters}) with one task '
+                             f'instance per row, got {thetas.shape} and {len(taus)}')
+        if self.task.policy.kind != 'dmp' or self.ik is not None:
+            return [self.reference(theta, tau) for theta, tau in zip(thetas, taus)]
+        for b, theta in enumerate(thetas):
+            try:
+                self.check_theta(theta)
+            except ValueError as exc:
+                raise ValueError(f'theta {b}: {exc}') from None
+        dt = self.task.control_period
+        rows: dict[tuple[float, int], list[int]] = {}
+        for b, tau in enumerate(taus):
+            key = (self.task.duration_of(tau), self.task.num_steps_of(tau))
+            rows.setdefault(key, []).append(b)
+        references: list[Reference | None] = [None] * len(thetas)
+        for (duration, num_steps), index in rows.items():
+            movement, feedforward = self._for_duration(duration)
+            group = thetas[index]
+            traj = movement.integrate_population(dt, group[:, self.kinematics], num_steps * dt)
+            u_ffwd = (feedforward.signal_population(group[:, self.dynamics], traj.t)
+                      if feedforward is not None else np.zeros_like(traj.y))
+            for i, b in enumerate(index):
+                references[b] = Reference(t=traj.t, q=traj.y[i], qd=traj.yd[i],
+                                          u_ffwd=u_ffwd[i])
+        return references
+
     def reference_with_new_goal(self, theta: np.ndarray, tau: np.ndarray | None,
                                 t_switch: float, new_goal) -> Reference:
         """`reference` with a goal change: the same trajectory up to ``t_switch`` (seconds

@@ -68,6 +68,10 @@ def test_a_population_of_trajectories_equals_the_law_state_by_state():
             np.testing.assert_array_equal(
                 batch[b, k], pd.torque(q[b, k], qd[b, k], q_ref[b, k], qd_ref[b, k],
                                        u_ffwd[b, k]))
+            np.testing.assert_array_equal(
+                pd.actuator_control(q_ref, qd_ref, u_ffwd)[b, k],
+                pd.actuator_control(q_ref[b, k], qd_ref[b, k], u_ffwd[b, k]))
+    assert np.any(batch == 4.0) and np.any(batch == -2.0)      # the limits were reached
 
 
 def test_the_actuator_split_is_the_law():

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import weakref
 
 import mujoco
 import numpy as np
@@ -37,6 +38,7 @@ from psl_sim.task import TaskDefinition
 
 FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
 CONTROL = mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_MOCAP_POS
+CHUNK = 32        # rollouts per mujoco.rollout call of the pipeline (`BatchRollouts._run`)
 
 
 def batch_model(task: TaskDefinition, law: PDLaw, geometry: RewardGeometry,
@@ -77,21 +79,24 @@ class BatchRollouts(Rollouts):
         self.joint_of_actuator = np.argsort(self.arm.actuator_ids)
         self.model = batch_model(task, self.law, self.geometry, self.joint_of_actuator)
         self.datas = [mujoco.MjData(self.model) for _ in range(max(1, n_threads))]
-        data = self.datas[0]
+        # a thread pool of its own, kept from call to call (ended with this object)
+        self.pool = mj_rollout.Rollout(nthread=len(self.datas) if len(self.datas) > 1 else 0)
+        weakref.finalize(self, self.pool.close)
+        self._scratch = data = mujoco.MjData(self.model)   # for this thread, beside the physics
         mujoco.mj_resetData(self.model, data)
         data.qpos[self.arm.qpos_adr] = task.start_posture
         self.initial_state = np.empty(mujoco.mj_stateSize(self.model, FULL))
         mujoco.mj_getState(self.model, data, self.initial_state, FULL)
         self.mocap_template = data.mocap_pos.copy()          # (n_mocap, 3)
 
-    def controls(self, references: list[Reference], taus: np.ndarray) -> np.ndarray:
-        """(B, N+1, nu + 3 n_mocap): the law's control of each reference, then the mocap
-        positions of each (validated) task instance."""
-        ctrl = np.stack([self.law.actuator_control(r.q, r.qd, r.u_ffwd)
-                         for r in references])[..., self.joint_of_actuator]   # (B, N+1, nu)
+    def controls(self, q_ref: np.ndarray, qd_ref: np.ndarray, u_ffwd: np.ndarray,
+                 taus: np.ndarray) -> np.ndarray:
+        """(B, N+1, nu + 3 n_mocap): the law's control of the references q_ref, qd_ref, u_ffwd
+        (B, N+1, n), then the mocap positions of each (validated) task instance."""
+        ctrl = self.law.actuator_control(q_ref, qd_ref, u_ffwd)[..., self.joint_of_actuator]
         mocap = np.empty((len(taus), self.model.nmocap, 3))
+        data = self._scratch
         for b, tau in enumerate(taus):
-            data = self.datas[0]
             data.mocap_pos[:] = self.mocap_template
             self.arm.move_bodies(tau, data)
             mocap[b] = data.mocap_pos
@@ -109,7 +114,7 @@ class BatchRollouts(Rollouts):
         for tau in taus:
             if tuple(tau) not in copies:
                 model = copy.copy(self.model)
-                self.arm.apply_tau(tau, self.datas[0], model)
+                self.arm.apply_tau(tau, self._scratch, model)
                 copies[tuple(tau)] = model
         return [copies[tuple(tau)] for tau in taus]
 
@@ -125,49 +130,57 @@ class BatchRollouts(Rollouts):
     def run(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
         """Roll out thetas (B, F) on task instances taus (B, E) or one tau (E,)."""
         thetas, taus = self._inputs(thetas, taus)
-        references = [self.policy.reference(theta, tau) for theta, tau in zip(thetas, taus)]
+        references = self.policy.references(thetas, taus)
         results: list[RolloutResult | None] = [None] * len(thetas)
-        safe = []
-        lengths = {len(r.q) for r in references}
-        verdicts = (self.safety.screen(taus, np.stack([r.q for r in references]),
-                                       np.stack([r.qd for r in references]))
-                    if len(lengths) == 1 else
-                    [self.safety.check(tau, r.q, r.qd) for r, tau in zip(references, taus)])
-        for i, verdict in enumerate(verdicts):
-            if verdict.safe:
-                safe.append(i)
-            else:          # not executed: the penalty and the reason
-                results[i] = refused_result(verdict.reason,
-                                            verdict.penalty(self.task.safety.penalty),
-                                            verdict.violation)
-        steps = np.array([self.task.num_steps_of(taus[i]) for i in safe], dtype=int)
-        # instances of different durations: one mujoco.rollout per episode length
-        for n in np.unique(steps):
-            index = [i for i, k in zip(safe, steps) if k == n]
-            for i, result in zip(index, self._run([references[i] for i in index],
-                                                  taus[index])):
-                results[i] = result
+        lengths = np.array([len(r.t) for r in references])
+        # instances of different durations: one population per episode length
+        for length in np.unique(lengths):
+            index = np.flatnonzero(lengths == length)
+            group = [references[i] for i in index]
+            stacked = tuple(np.stack([getattr(r, field) for r in group])
+                            for field in ('q', 'qd', 'u_ffwd'))      # each (B, N+1, n)
+            verdicts = self.safety.screen(taus[index], stacked[0], stacked[1])
+            for i, verdict in zip(index, verdicts):
+                if not verdict.safe:         # not executed: the penalty and the reason
+                    results[i] = refused_result(verdict.reason,
+                                                verdict.penalty(self.task.safety.penalty),
+                                                verdict.violation)
+            safe = np.array([verdict.safe for verdict in verdicts])
+            if safe.any():
+                chosen = [r for r, ok in zip(group, safe) if ok]
+                for i, result in zip(index[safe], self._run(
+                        chosen, taus[index[safe]], *(a[safe] for a in stacked))):
+                    results[i] = result
         return self._count(results)
 
-    def _run(self, references: list[Reference], taus: np.ndarray) -> list[RolloutResult]:
-        """The rollouts of checked references whose episodes have the same length."""
+    def _run(self, references: list[Reference], taus: np.ndarray, q_ref: np.ndarray,
+             qd_ref: np.ndarray, u_ffwd: np.ndarray) -> list[RolloutResult]:
+        """The rollouts of checked references whose episodes have the same length, their
+        arrays stacked (B, N+1, n)."""
         if self.arm.n_substeps > 1:
             return self._run_held(references, taus)
-        control = self.controls(references, taus)
-        # N+1 steps: the sensors of step k see state k, so step N gives state N's sensors;
-        # the state after that extra step is not used.
-        state, sensors = mj_rollout.rollout(self.models(taus), self.datas,
-                                            self.initial_state[None], control,
-                                            control_spec=CONTROL)
+        control = self.controls(q_ref, qd_ref, u_ffwd, taus)
+        state, sensors = self._simulate(self.models(taus), control)
+        return self._results(references, taus, q_ref, qd_ref, u_ffwd, state, sensors)
+
+    def _simulate(self, models: mujoco.MjModel | list[mujoco.MjModel],
+                  control: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """States and sensors (B, N+1, ...) of `mujoco.rollout` on the controls (its threads
+        use `datas`). N+1 steps: the sensors of step k see state
+        k, so step N gives state N's sensors; the state after that extra step is not used."""
+        return self.pool.rollout(models, self.datas, self.initial_state[None], control,
+                                 control_spec=CONTROL)
+
+    def _results(self, references: list[Reference], taus: np.ndarray, q_ref: np.ndarray,
+                 qd_ref: np.ndarray, u_ffwd: np.ndarray, state: np.ndarray,
+                 sensors: np.ndarray) -> list[RolloutResult]:
+        """The measured rollouts and their rewards from `_simulate`'s states and sensors."""
         n, count = len(self.arm.joint_names), len(references)
         qpos = state[:, :, 1 + self.arm.qpos_adr]                    # states 1..N+1
         qvel = state[:, :, 1 + self.model.nq + self.arm.dof_adr]
         q = np.concatenate([np.broadcast_to(self.task.start_posture, (count, 1, n)),
                             qpos[:, :-1]], axis=1)                   # S_0..S_N
         qd = np.concatenate([np.zeros((count, 1, n)), qvel[:, :-1]], axis=1)
-        q_ref = np.stack([r.q for r in references])                 # (B, N+1, n)
-        qd_ref = np.stack([r.qd for r in references])
-        u_ffwd = np.stack([r.u_ffwd for r in references])
         # torque applied in step k: the law on state k (the actuator's force, clipped alike)
         u = self.law.torque(q, qd, q_ref, qd_ref, u_ffwd)
         torque = np.concatenate([np.zeros((count, 1, n)), u[:, :-1]], axis=1)

@@ -66,7 +66,10 @@ class RewardGeometry:
     def read(self, sensordata: np.ndarray) -> Measurements:
         """The measurements in sensor data (B, T, nsensordata) of a model with the sensors."""
         first, n_pairs = self.first, len(self.pairs)
-        distance = sensordata[:, :, first:first + n_pairs].min(axis=2) if n_pairs else None
+        distance = None
+        for pair in range(first, first + n_pairs):     # the nearest pair (exact, as a min)
+            column = sensordata[:, :, pair]
+            distance = column.copy() if distance is None else np.minimum(distance, column)
         ee = first + n_pairs
         return Measurements(end_effector=sensordata[:, :, ee:ee + 3],
                             end_effector_quat=sensordata[:, :, ee + 3:ee + 7],
