@@ -262,3 +262,36 @@ def test_both_modes_follow_a_changed_law(client, graph_matches_batch, task, thet
     default_batch = graph_matches_batch(task, task.tau_default, strong)[1]
     assert np.abs(batch_changed.q - default_batch.q).max() > 1e-3
     assert np.abs(batch_changed.torque).max() <= limit.max() + 1e-12
+
+
+def test_the_simulator_reports_where_a_step_goes(client, task, theta, wait_until):
+    """With each episode's end the simulator reports the medians of its step phases; the
+    command's way from the controller is part of the wait for it, and the phases together fit
+    in a step of the episode's own rate."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from psl_ros import names
+    from psl_ros.qos import RELIABLE
+    reports = []
+
+    def on_diagnostics(msg):
+        for status in msg.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if values.get('steps_done') == values.get('steps') and 'step_wait_us' in values:
+                reports.append(values)
+    sub = client.node.create_subscription(DiagnosticArray, names.DIAGNOSTICS, on_diagnostics,
+                                          RELIABLE)
+    try:
+        assert wait_until(lambda: sub.get_publisher_count() >= 1, 10.0)
+        time.sleep(0.5)
+        assert client.rollout(TASK, task.tau_default, theta).success
+        assert wait_until(lambda: reports, 10.0)
+    finally:
+        client.node.destroy_subscription(sub)
+    report = reports[-1]
+    us = {k[len('step_'):-len('_us')]: float(v) for k, v in report.items()
+          if k.startswith('step_')}
+    assert set(us) == {'wait', 'command_transport', 'physics', 'state', 'extras'}
+    assert all(v > 0 for v in us.values()), us
+    assert us['command_transport'] <= us['wait']
+    per_step_us = 1e6 / float(report['steps_per_second'])
+    assert us['wait'] + us['physics'] + us['state'] <= 1.5 * per_step_us, (us, per_step_us)

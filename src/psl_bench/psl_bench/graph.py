@@ -1,8 +1,9 @@
 """``psl bench graph``: the robot loop through the real node graph.
 
 Lockstep control steps per second (the simulator's own end-of-episode figures on
-/diagnostics) beside the bare publish/answer round trip between two processes measured in the
-same run (`psl_bench.round_trip`), and the deadline misses of the realtime mode over one long
+/diagnostics, with the medians of its step phases) beside the bare publish/answer round trip
+between two processes measured in the same run, in chunks between the rollouts
+(`psl_bench.round_trip`), and the deadline misses of the realtime mode over one long
 episode (simulator and controller only).
 """
 from __future__ import annotations
@@ -14,7 +15,7 @@ import time
 
 import numpy as np
 
-from psl_bench.round_trip import measure_round_trip
+from psl_bench.round_trip import RoundTrip
 from psl_ros import names
 
 
@@ -53,23 +54,27 @@ def measure(task_name: str = 'reach_over_obstacle', rollouts: int = 10,
     rng = np.random.default_rng(0)
     report: dict = {'task': task.name, 'machine_cores': os.cpu_count()}
 
-    rtt = measure_round_trip(round_trips)
-    report['round_trip_ms'] = {'p50': 1e3 * statistics.median(rtt),
-                               'p99': 1e3 * float(np.percentile(rtt, 99)), 'n': len(rtt)}
-
-    with Graph(task=task_id(task), mode='lockstep') as graph:
+    # the anchor in chunks between the rollouts, so that a drifting machine moves both alike
+    chunk = max(1, round_trips // max(1, rollouts))
+    rtt, chunk_medians = [], []
+    with Graph(task=task_id(task), mode='lockstep') as graph, RoundTrip() as round_trip:
         graph.wait_ready()
         with RosClient() as client:
             stats = EpisodeStats(client.node)
             time.sleep(0.5)
             rollout_wall = []
             for _ in range(rollouts):
+                times = round_trip.measure(chunk)
+                rtt += times
+                chunk_medians.append(statistics.median(times))
                 start = time.perf_counter()
                 result = client.rollout(task_id(task), task.sample_tau(rng), theta)
                 rollout_wall.append(time.perf_counter() - start)
                 if not result.success:
                     raise RuntimeError(result.message)
             time.sleep(0.5)
+    report['round_trip_ms'] = {'p50': 1e3 * statistics.median(rtt),
+                               'p99': 1e3 * float(np.percentile(rtt, 99)), 'n': len(rtt)}
     rates = [float(s['steps_per_second']) for s in stats.done]
     steps = task.num_steps
     report['lockstep'] = {
@@ -80,9 +85,20 @@ def measure(task_name: str = 'reach_over_obstacle', rollouts: int = 10,
         'rollout_overhead_s_median': (statistics.median(rollout_wall)
                                       - steps / statistics.median(rates)),
     }
+    # where a step goes, the simulator's medians (`psl_ros.step_timing`), median over episodes
+    phases = sorted({k for s in stats.done for k in s if k.startswith('step_')})
+    report['lockstep']['phases_us'] = {
+        k[len('step_'):-len('_us')]: statistics.median(float(s[k]) for s in stats.done if k in s)
+        for k in phases}
     step_ms = 1e3 / report['lockstep']['steps_per_second_median']
     report['lockstep']['step_ms'] = step_ms
     report['lockstep']['step_over_round_trip'] = step_ms / report['round_trip_ms']['p50']
+    report['lockstep']['ceiling_ratio'] = report['round_trip_ms']['p50'] / step_ms
+    # each episode against the round trips measured just before it (when every episode's
+    # report arrived; otherwise the ratio of the medians)
+    report['lockstep']['ceiling_ratio_paired_median'] = (
+        statistics.median(rt * rate for rt, rate in zip(chunk_medians, rates))
+        if len(rates) == len(chunk_medians) else report['lockstep']['ceiling_ratio'])
     if realtime_seconds > 0:
         report['realtime'] = _realtime(task, realtime_seconds, busy, realtime_priority,
                                        spin_margin)
@@ -148,8 +164,13 @@ def format_report(report: dict) -> str:
     lines = [f"bare round trip (2 processes): p50 {rt['p50']:.3f} ms  p99 {rt['p99']:.3f} ms",
              f"lockstep: {ls['steps_per_second_median']:.0f} steps/s median "
              f"(min {ls['steps_per_second_min']:.0f}) = {ls['step_ms']:.3f} ms/step = "
-             f"{ls['step_over_round_trip']:.2f} round trips; rollout wall "
+             f"{ls['step_over_round_trip']:.2f} round trips (ratio to the one-round-trip ceiling "
+             f"{ls['ceiling_ratio']:.2f}, paired median {ls['ceiling_ratio_paired_median']:.2f}); "
+             "rollout wall "
              f"{ls['rollout_wall_s_median']:.2f} s for {ls['steps_per_episode']} steps"]
+    if ls.get('phases_us'):
+        lines.append('  per step (simulator, median us): ' + ', '.join(
+            f'{phase} {us:.0f}' for phase, us in ls['phases_us'].items()))
     if 'realtime' in report:
         r = report['realtime']
         cpu = ', '.join(f'{name} {100 * share:.0f} %' for name, share in

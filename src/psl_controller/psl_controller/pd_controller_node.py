@@ -90,6 +90,8 @@ class PDController(Node):
 
         self.pub_command = self.create_publisher(Float64MultiArray, names.EFFORT_COMMAND, RELIABLE)
         self.pub_reference = self.create_publisher(JointState, names.REFERENCE, RELIABLE)
+        # one message each, refilled every step (publish copies it)
+        self._command, self._reference = Float64MultiArray(), JointState()
         # one thread serves both, the trajectory first when both are ready: a trajectory
         # published before an episode starts is in place for the episode's first state
         self.declare_parameter('realtime_priority', 0, ParameterDescriptor(
@@ -169,11 +171,11 @@ class PDController(Node):
                 self._load_trajectory()
         q = np.asarray(msg.position, dtype=float)
         qd = np.asarray(msg.velocity, dtype=float)
-        if q.shape != (self.n_joints,) or qd.shape != q.shape or list(msg.name) != self.joint_names:
+        if q.shape != (self.n_joints,) or qd.shape != q.shape or msg.name != self.joint_names:
             self.get_logger().warning('joint_states does not match the robot joints',
                                       throttle_duration_sec=1.0)
             return
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qd))):
+        if not (np.isfinite(q).all() and np.isfinite(qd).all()):
             self.get_logger().warning('no command: joint_states holds NaN or inf',
                                       throttle_duration_sec=1.0)
             return
@@ -188,8 +190,10 @@ class PDController(Node):
                 self.hold = q.copy()
             q_ref, qd_ref, u_ffwd = self.hold, np.zeros_like(q), np.zeros_like(q)
         u = self.law.torque(q, qd, q_ref, qd_ref, u_ffwd)
-        self.pub_command.publish(Float64MultiArray(data=u.tolist()))
-        ref = JointState()
+        command = self._command
+        command.data = u.tolist()
+        self.pub_command.publish(command)
+        ref = self._reference
         ref.header.stamp = msg.header.stamp
         ref.name = self.joint_names
         ref.position, ref.velocity, ref.effort = q_ref.tolist(), qd_ref.tolist(), u_ffwd.tolist()

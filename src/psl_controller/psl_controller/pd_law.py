@@ -76,23 +76,26 @@ class PDLaw:
 
         Inputs are not checked (this runs on every control step): shapes (..., n) that
         broadcast, finite values; a message boundary validates them first."""
-        kp, kd, low, high = self._per_element(q, qd, q_ref, qd_ref, u_ffwd)
-        u = kp * (q_ref - q) + kd * (qd_ref - qd) + u_ffwd
+        error, error_d = np.subtract(q_ref, q), np.subtract(qd_ref, qd)
+        kp, kd, low, high = self._per_element(error, error_d, u_ffwd)
+        u = kp * error + kd * error_d + u_ffwd
         return np.clip(u, low, high)
 
     def actuator_control(self, q_ref, qd_ref, u_ffwd) -> np.ndarray:
         """The state-independent part of the law, Kp q_ref + Kd qd_ref + u_ffwd (..., n): the
         control signal of a MuJoCo general actuator realising it (see `actuator_bias`)."""
+        q_ref, qd_ref = np.asarray(q_ref), np.asarray(qd_ref)
         kp, kd, _, _ = self._per_element(q_ref, qd_ref, u_ffwd)
         return kp * q_ref + kd * qd_ref + u_ffwd
 
-    def _per_element(self, *arrays) -> tuple[np.ndarray, ...]:
-        """kp, kd, torque_low, torque_high laid out to the shape the arrays broadcast to:
-        the vectors themselves for one state, full arrays for a trajectory or population
-        (numpy multiplies full arrays several times faster than it broadcasts a short joint
-        axis; the values, and so the results, are the same). A few shapes are kept."""
-        shape = np.broadcast_shapes(*(np.shape(a) for a in arrays))
-        if len(shape) < 2:
+    def _per_element(self, a: np.ndarray, b: np.ndarray, c) -> tuple[np.ndarray, ...]:
+        """kp, kd, torque_low, torque_high laid out to the shape of arrays a, b and c when
+        they share one of two or more dimensions (a trajectory, a population): numpy multiplies
+        full arrays several times faster than it broadcasts a short joint axis, and the values,
+        so the results, are the same. Otherwise (one state, mixed shapes) the vectors
+        themselves. A few shapes are kept."""
+        shape = a.shape
+        if len(shape) < 2 or b.shape != shape or np.shape(c) != shape:
             return self.kp, self.kd, self.torque_low, self.torque_high
         tiles = self._tiles
         if shape not in tiles:

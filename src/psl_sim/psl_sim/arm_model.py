@@ -261,7 +261,10 @@ class ArmModel:
         return self.data.qvel[self.dof_adr].copy()
 
     def end_effector_pose(self) -> tuple[np.ndarray, np.ndarray]:
-        """Position (3,) and orientation quaternion (w, x, y, z) of the end-effector site."""
+        """Position (3,) and orientation quaternion (w, x, y, z) of the end-effector site in
+        the current state. After `mj_step` the data's poses are still those of the state before
+        the step, so this runs a kinematics pass first (it changes nothing the next step uses)."""
+        mujoco.mj_kinematics(self.model, self.data)
         quat = np.empty(4)
         mujoco.mju_mat2Quat(quat, self.data.site_xmat[self.ee_site])
         return self.data.site_xpos[self.ee_site].copy(), quat

@@ -51,13 +51,20 @@ from psl_sim.scene import PATH_SHAPE, Scene, Shape, ShapeKind
 from psl_ros import names
 from psl_ros.graph import SIM_MODES
 from psl_ros.realtime import raise_priority, sleep_until
-RESET_MODES = ('teleport', 'drive', 'probe')     # ResetTask.mode
 from psl_ros.hot_path import HotPath
 from psl_ros.node_main import run_node
 from psl_ros.qos import LATCHED, RELIABLE
 from psl_ros.service import create_service
 from psl_ros.stamps import NS_PER_S, time_msg
+from psl_ros.step_timing import StepTiming
 from psl_sim.task import TaskError, load_task, task_id
+
+RESET_MODES = ('teleport', 'drive', 'probe')     # ResetTask.mode
+# phases of a lockstep step: the wait from sending a state to its answer's callback (the
+# controller and both transports; of it, the command's way from the controller's publish to
+# the callback), the physics, building and sending the state, then the rest (clock, pose,
+# scene, status: done while the controller works)
+STEP_PHASES = ('wait', 'command_transport', 'physics', 'state', 'extras')
 
 MARKER_TYPES = {ShapeKind.SPHERE: Marker.SPHERE, ShapeKind.CYLINDER: Marker.CYLINDER,
                 ShapeKind.CUBE: Marker.CUBE, ShapeKind.TRIANGLE_LIST: Marker.TRIANGLE_LIST,
@@ -139,6 +146,7 @@ class SimNode(Node):
         self._ee_path: list[np.ndarray] = []            # end effector at the scene ticks
 
         self.pub_joints = self.create_publisher(JointState, names.JOINT_STATES, RELIABLE)
+        self._joint_state = JointState()
         self.pub_pose = self.create_publisher(PoseStamped, names.EE_POSE, RELIABLE)
         self.pub_clock = self.create_publisher(Clock, names.CLOCK, RELIABLE)
         self.pub_task = self.create_publisher(TaskInstance, names.TASK_INSTANCE, LATCHED)
@@ -151,6 +159,9 @@ class SimNode(Node):
         # dropped, by the publisher's source timestamp (the same wall clock on this machine)
         self._state_wall_ns = self._episode_wall_ns = 0
         self.stale_commands = 0
+        # where each lockstep step's time goes, reported with the episode's end (StepTiming)
+        self.timing = StepTiming(STEP_PHASES)
+        self._published_ns = 0      # perf_counter_ns when the last state was sent
         self.episodes = 0           # episodes started since the node started (resets)
         self.hot_path.subscribe(Float64MultiArray, names.EFFORT_COMMAND, self.on_command,
                                 RELIABLE, info=True)
@@ -229,6 +240,7 @@ class SimNode(Node):
             self.steps_left = num_steps
             self.episode = {'t0': self.t_ns, 'misses': 0, 'start': time.perf_counter(),
                             'steps': num_steps}
+            self.timing.clear()
             self.pub_task.publish(TaskInstance(
                 stamp=time_msg(self.t_ns), task=task_id(arm.task), tau=tau.tolist(),
                 num_steps=num_steps, control_period=arm.task.control_period,
@@ -243,9 +255,10 @@ class SimNode(Node):
 
     # -- commands -----------------------------------------------------------------------
     def on_command(self, msg: Float64MultiArray, info: dict | None = None) -> None:
+        arrived = time.perf_counter_ns()
         command = np.asarray(msg.data, dtype=float)
         n = len(self.arm.joint_names)
-        if command.shape != (n,) or not np.all(np.isfinite(command)):
+        if command.shape != (n,) or not np.isfinite(command).all():
             self.get_logger().warning(
                 f'refused effort_command: expected {n} finite torques, got '
                 f'{len(command)} value(s){"" if np.all(np.isfinite(command)) else " with NaN/inf"}',
@@ -260,19 +273,25 @@ class SimNode(Node):
                 self.stale_commands += 1            # an answer to an earlier state
                 return
             if self.mode == 'lockstep':
+                self.timing.add('wait', arrived - self._published_ns)
+                if published:
+                    self.timing.add('command_transport', time.time_ns() - published)
                 self._advance(command)
             else:
                 self.pending = command
 
     def _advance(self, command: np.ndarray) -> None:
         """One control period with the given torques, then publish the new state."""
+        start = time.perf_counter_ns()
         self.applied = self.arm.step(command)
+        self.timing.add('physics', time.perf_counter_ns() - start)
         self.t_ns += self.arm.task.control_period_ns
         self.steps_left -= 1
         self._publish_state()
         if self.steps_left == 0 or self.t_ns >= self._scene_due_ns:
             self._scene_tick(always=self.steps_left == 0)
         done = self.episode['steps'] - self.steps_left
+        self.timing.add('extras', time.perf_counter_ns() - self._published_ns)
         if self.steps_left == 0 or done % max(1, self.episode['steps'] // 10) == 0:
             self._publish_status(done)
 
@@ -312,16 +331,19 @@ class SimNode(Node):
                 ('steps_done', done), ('steps', ep['steps']), ('episodes', self.episodes),
                 ('deadline_misses', ep['misses']), ('stale_commands', self.stale_commands),
                 ('wall_time_s', f'{wall:.6f}'),
-                ('steps_per_second', f'{done / wall:.1f}'))])
+                ('steps_per_second', f'{done / wall:.1f}'))]
+            + ([KeyValue(key=f'step_{phase}_us', value=f'{us:.1f}')
+                for phase, us in self.timing.medians_us().items()] if done == ep['steps'] else []))
         diag = DiagnosticArray(status=[status])
         diag.header.stamp = time_msg(self.t_ns)
         self.pub_diag.publish(diag)
 
     # -- state --------------------------------------------------------------------------
     def _publish_state(self) -> None:
+        start = time.perf_counter_ns()
         t = time_msg(self.t_ns)
         arm = self.arm
-        js = JointState()
+        js = self._joint_state              # one message, refilled (publish copies it)
         js.header.stamp = t
         js.name = arm.joint_names
         js.position = arm.q.tolist()
@@ -331,6 +353,9 @@ class SimNode(Node):
         # records them) are built and sent
         self._state_wall_ns = time.time_ns()
         self.pub_joints.publish(js)
+        self._published_ns = time.perf_counter_ns()
+        if self.steps_left < self.episode.get('steps', 0):     # not the episode's first state
+            self.timing.add('state', self._published_ns - start)
         # building and serialising a message costs more than asking whether anyone listens
         if self.pub_clock.get_subscription_count():
             self.pub_clock.publish(Clock(clock=t))

@@ -4,6 +4,7 @@ against closed-form planar kinematics and capsule geometry, plus dm_control-styl
 
 import textwrap
 
+import mujoco
 import numpy as np
 import pytest
 import yaml
@@ -546,3 +547,19 @@ def test_forcerange_and_joint_actuatorfrcrange_narrow_the_torque_limits(tmp_path
     applied = arm.step(np.array([0.0, -50.0, 50.0, 0.0]))
     np.testing.assert_array_equal(applied, [0.0, -12.0, 5.0, 0.0])
     np.testing.assert_allclose(arm.data.qfrc_actuator[arm.dof_adr], applied, atol=1e-12)
+
+
+def test_end_effector_pose_is_that_of_the_current_state(arm, task):
+    """After steps, the pose is the kinematics of the joint angles the arm has now (on a data
+    of its own), not of the state before the last step."""
+    arm.reset(task.tau_default)
+    for _ in range(30):
+        arm.step(np.full(task.n_joints, 0.5 * TORQUE_LIMIT))
+    position, quat = arm.end_effector_pose()
+    data = mujoco.MjData(arm.model)
+    data.qpos[:] = arm.data.qpos
+    mujoco.mj_kinematics(arm.model, data)
+    np.testing.assert_allclose(position, data.site_xpos[arm.ee_site], rtol=0, atol=1e-12)
+    expected = np.empty(4)
+    mujoco.mju_mat2Quat(expected, data.site_xmat[arm.ee_site])
+    np.testing.assert_allclose(quat, expected, rtol=0, atol=1e-12)
