@@ -21,7 +21,10 @@ deviation, min, max):
   the same skill map);
 - ``zero_shot_success`` and ``zero_shot_reward``: PS(tau) executed once on each held-out
   instance after the last training task;
-- ``train_seconds``: wall time of the training tasks (sum of the per-task seconds).
+- ``train_seconds``: wall time of the training tasks (sum of the per-task seconds);
+- ``session_seconds`` and ``simulation_share``: wall time of the whole session (training and
+  held-out tasks) and the share of it spent in the simulation
+  (`BatchRollouts.simulation_seconds`); not for reused sessions.
 Plain Python, no ROS.
 """
 from __future__ import annotations
@@ -29,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import tempfile
+import time
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -146,6 +150,7 @@ def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None
                          f'num_test={num_test}')
     base = LearnSettings()
     skill = base.skill if readout is None else dataclasses.replace(base.skill, readout=readout)
+    import cma  # noqa: F401 - policy_search imports it on first use: not in a session's time
     task = load_task(task_name)
     rollouts = BatchRollouts(task)
     temporary = tempfile.TemporaryDirectory(prefix='psl-bench-learn-') if out is None else None
@@ -165,9 +170,15 @@ def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None
                                     row['skill_map'])
                 reused = _reusable(folder, settings)
                 if not reused:
+                    start, simulated = time.perf_counter(), rollouts.simulation_seconds
                     Learner(task, settings, folder, rollouts=rollouts).run()
+                    session = time.perf_counter() - start
                 record = read_run(folder, after)
                 record['reused'] = reused
+                if not reused:     # the session's wall time and its share spent simulating
+                    record['session_seconds'] = session
+                    record['simulation_share'] = (rollouts.simulation_seconds
+                                                  - simulated) / session
                 runs[seed][name] = record
                 if progress is not None:
                     progress(f"seed {seed} {row['strategy']} ({row['skill_map']}): "
@@ -225,6 +236,9 @@ def _aggregate(runs: dict[int, dict[str, dict]], rows: dict[str, dict]) -> dict:
             row['speedup'] = over_seeds([runs[seed][scratch]['late_rollouts'] /
                                          runs[seed][name]['late_rollouts'] for seed in runs])
         row['fulfilled_tasks'] = over_seeds([r['fulfilled_tasks'] for r in records])
+        for key in ('session_seconds', 'simulation_share'):    # not for reused sessions
+            if all(key in r for r in records):
+                row[key] = over_seeds([r[key] for r in records])
         result[name] = row
     return result
 
@@ -271,6 +285,11 @@ def format_table(report: dict) -> str:
     lines.append('training wall time per rollout: ' + ', '.join(
         f"{name} {1e3 * row['train_seconds']['mean'] / max(row['total_rollouts']['mean'], 1):.1f} ms"
         for name, row in rows.items() if 'train_seconds' in row and 'total_rollouts' in row))
+    if any('session_seconds' in row for row in rows.values()):
+        lines.append('session wall time (training and held-out tasks), of it simulating: '
+                     + ', '.join(f"{name} {row['session_seconds']['mean']:.1f} s, "
+                                 f"{100 * row['simulation_share']['mean']:.0f} %"
+                                 for name, row in rows.items() if 'session_seconds' in row))
     lines.append('safety check, candidates refused (not executed) per session: ' + ', '.join(
         f"{name} {cell(row, 'refused', 1)} of {row['total_rollouts']['mean']:.0f}"
         for name, row in rows.items() if 'refused' in row))

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import time
 import weakref
 
 import mujoco
@@ -82,6 +83,7 @@ class BatchRollouts(Rollouts):
         # a thread pool of its own, kept from call to call (ended with this object)
         self.pool = mj_rollout.Rollout(nthread=len(self.datas) if len(self.datas) > 1 else 0)
         weakref.finalize(self, self.pool.close)
+        self.simulation_seconds = 0.0      # wall time spent simulating, over all calls
         self._scratch = data = mujoco.MjData(self.model)   # for this thread, beside the physics
         mujoco.mj_resetData(self.model, data)
         data.qpos[self.arm.qpos_adr] = task.start_posture
@@ -168,8 +170,12 @@ class BatchRollouts(Rollouts):
         """States and sensors (B, N+1, ...) of `mujoco.rollout` on the controls (its threads
         use `datas`). N+1 steps: the sensors of step k see state
         k, so step N gives state N's sensors; the state after that extra step is not used."""
-        return self.pool.rollout(models, self.datas, self.initial_state[None], control,
-                                 control_spec=CONTROL)
+        start = time.perf_counter()
+        try:
+            return self.pool.rollout(models, self.datas, self.initial_state[None], control,
+                                     control_spec=CONTROL)
+        finally:
+            self.simulation_seconds += time.perf_counter() - start
 
     def _results(self, references: list[Reference], taus: np.ndarray, q_ref: np.ndarray,
                  qd_ref: np.ndarray, u_ffwd: np.ndarray, state: np.ndarray,
@@ -200,6 +206,7 @@ class BatchRollouts(Rollouts):
         qd = np.empty_like(q)
         torque = np.zeros_like(q)
         sensors = np.empty((len(taus), n_steps, self.held_model.nsensordata))
+        start = time.perf_counter()          # the stepping with its law counts as simulation
         for b, (reference, tau) in enumerate(zip(references, taus)):
             model = self.held_model
             if arm.changes_model:               # a task parameter changes the model (a mass)
@@ -219,6 +226,7 @@ class BatchRollouts(Rollouts):
                 mujoco.mj_step(model, data, nstep=n_sub - 1)
                 if k + 1 < n_steps:
                     torque[b, k + 1] = u
+        self.simulation_seconds += time.perf_counter() - start
         q_ref = np.stack([r.q for r in references])
         evaluations = self.reward.evaluate(q, torque, q_ref, self.geometry.read(sensors), taus)
         return [RolloutResult(evaluation=evaluations[b], q=q[b], torque=torque[b],
