@@ -30,6 +30,7 @@ Plain Python, no ROS.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import json
 import tempfile
 import time
@@ -150,7 +151,7 @@ def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None
                          f'num_test={num_test}')
     base = LearnSettings()
     skill = base.skill if readout is None else dataclasses.replace(base.skill, readout=readout)
-    import cma  # noqa: F401 - policy_search imports it on first use: not in a session's time
+    importlib.import_module('cma')    # policy_search imports it on first use: not in a session
     task = load_task(task_name)
     rollouts = BatchRollouts(task)
     temporary = tempfile.TemporaryDirectory(prefix='psl-bench-learn-') if out is None else None
