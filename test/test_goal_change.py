@@ -137,7 +137,7 @@ def test_a_goal_change_in_the_action_goal_ends_at_the_new_goal(client, recorder,
     # lockstep is deterministic: batch mode with the same reference and goal agrees
     from psl_optimizer.batch_rollout import BatchRollouts
     batch = BatchRollouts(task)
-    monkeypatch.setattr(batch.policy, 'reference', lambda theta, tau: expected)
+    monkeypatch.setattr(batch.policy, 'references', lambda thetas, taus: [expected] * len(thetas))
     q_batch = batch.run(theta[None], tau)[0].q
     assert np.abs(q - q_batch).max() < Q_TOLERANCE
 

@@ -24,7 +24,7 @@ deviation, min, max):
 - ``train_seconds``: wall time of the training tasks (sum of the per-task seconds);
 - ``session_seconds`` and ``simulation_share``: wall time of the whole session (training and
   held-out tasks) and the share of it spent in the simulation
-  (`BatchRollouts.simulation_seconds`); not for reused sessions.
+  (`BatchRollouts.simulation_seconds`), kept in the run folder (``bench_session.json``).
 Plain Python, no ROS.
 """
 from __future__ import annotations
@@ -43,6 +43,7 @@ from psl_bench.stats import over_seeds
 from psl_optimizer.metrics import METRICS_FILE, read_metrics
 
 TARGETS = {'speedup': 5.0, 'zero_shot_success': 0.8}   # bootstrap vs scratch; every strategy
+SESSION_FILE = 'bench_session.json'   # a run folder's session and simulation time
 METRICS = ('total_rollouts', 'late_rollouts', 'speedup', 'zero_shot_success',
            'zero_shot_reward', 'train_seconds', 'refused')
 
@@ -76,7 +77,11 @@ def read_run(folder: Path, after: int) -> dict:
         raise ValueError(f'{folder}: {len(metrics.tasks)} tasks, need more than after={after}')
     rollouts = [t.rollouts for t in metrics.tasks]
     summary = metrics.summary
+    timing = folder / SESSION_FILE      # absent for runs kept from before the bench wrote it
+    timed = json.loads(timing.read_text()) if timing.is_file() else {}
     return {
+        **{key: float(timed[key]) for key in ('session_seconds', 'simulation_share')
+           if key in timed},
         'folder': str(folder),
         'seed': metrics.seed,
         'strategy': metrics.strategy,
@@ -174,12 +179,13 @@ def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None
                     start, simulated = time.perf_counter(), rollouts.simulation_seconds
                     Learner(task, settings, folder, rollouts=rollouts).run()
                     session = time.perf_counter() - start
+                    # the session's wall time and its share spent simulating, kept beside
+                    # its metrics for a later reuse
+                    (folder / SESSION_FILE).write_text(json.dumps({
+                        'session_seconds': session,
+                        'simulation_share': (rollouts.simulation_seconds - simulated) / session}))
                 record = read_run(folder, after)
                 record['reused'] = reused
-                if not reused:     # the session's wall time and its share spent simulating
-                    record['session_seconds'] = session
-                    record['simulation_share'] = (rollouts.simulation_seconds
-                                                  - simulated) / session
                 runs[seed][name] = record
                 if progress is not None:
                     progress(f"seed {seed} {row['strategy']} ({row['skill_map']}): "
@@ -237,7 +243,7 @@ def _aggregate(runs: dict[int, dict[str, dict]], rows: dict[str, dict]) -> dict:
             row['speedup'] = over_seeds([runs[seed][scratch]['late_rollouts'] /
                                          runs[seed][name]['late_rollouts'] for seed in runs])
         row['fulfilled_tasks'] = over_seeds([r['fulfilled_tasks'] for r in records])
-        for key in ('session_seconds', 'simulation_share'):    # not for reused sessions
+        for key in ('session_seconds', 'simulation_share'):    # not for runs of old folders
             if all(key in r for r in records):
                 row[key] = over_seeds([r[key] for r in records])
         result[name] = row

@@ -15,6 +15,9 @@ def test_learn_reuses_finished_runs_and_refuses_other_settings(tmp_path, capsys)
     assert main(argv) == 0
     first = json.loads(capsys.readouterr().out)
     assert not any(run['reused'] for runs in first['runs'].values() for run in runs.values())
+    for row in first['strategies'].values():      # the session's share spent simulating
+        assert 0.0 < row['simulation_share']['mean'] <= 1.0
+        assert row['session_seconds']['mean'] >= row['train_seconds']['mean']
     assert main(argv) == 0
     again = json.loads(capsys.readouterr().out)
     assert all(run['reused'] for runs in again['runs'].values() for run in runs.values())
