@@ -22,6 +22,8 @@ import subprocess
 import time
 from pathlib import Path
 
+from psl_ros.shared_memory import remove_stale
+
 LOG_ROOT_VARIABLE = 'PSL_LOG_DIR'       # environment: where the graphs' log folders go
 DEFAULT_LOG_ROOT = Path('log') / 'graph'  # ... when unset: relative to the working directory
 SIM_MODES = ('lockstep', 'realtime')     # how the simulator advances (psl_sim/sim_node.py)
@@ -168,6 +170,7 @@ class Graph:
 
     def start(self) -> list[NodeProcess]:
         self.log_dir.mkdir(parents=True, exist_ok=True)
+        remove_stale()          # shared memory that nodes which died (SIGKILL) left behind
         try:
             for label, name, package, executable, namespace in self._plan():
                 cmd = [str(find_executable(package, executable)), '--ros-args']
@@ -200,6 +203,7 @@ class Graph:
         remember the old one). Their logs go on in the same files. Returns the new ones."""
         old = [p for p in self.processes if p.worker == worker]
         _end(old, timeout=3.0)
+        remove_stale()          # what the dead node left in shared memory
         new = [self._spawn(p.name, p.cmd, worker, mode='ab') for p in old]
         self.processes = [p for p in self.processes if p.worker != worker] + new
         return new
@@ -208,6 +212,7 @@ class Graph:
         """End the rest of a rollout worker's nodes; the graph goes on without it."""
         old = [p for p in self.processes if p.worker == worker]
         _end(old, timeout=3.0)
+        remove_stale()          # what the dead node left in shared memory
         self.processes = [p for p in self.processes if p.worker != worker]
 
     def dead(self) -> list[NodeProcess]:

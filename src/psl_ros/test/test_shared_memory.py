@@ -1,0 +1,102 @@
+"""Stale Fast DDS shared-memory files go; those of live owners, young ones, links stay."""
+import fcntl
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from psl_ros.shared_memory import SHM_DIR, remove_stale
+
+HOLD = ('import fcntl, os, sys, time; fd = os.open(sys.argv[1], os.O_RDWR); '
+        'fcntl.flock(fd, fcntl.LOCK_EX); print("held", flush=True); time.sleep(60)')
+
+
+def _participant(directory: Path, name: str) -> list[Path]:
+    files = [directory / f'fastrtps_{name}', directory / f'fastrtps_{name}_el',
+             directory / f'sem.fastrtps_{name}_mutex']
+    for path in files:
+        path.write_bytes(b'\0' * 64)
+    return files
+
+
+def test_only_files_whose_lock_nobody_holds_are_removed(tmp_path):
+    stale = _participant(tmp_path, 'dead0001')
+    alive = _participant(tmp_path, 'live0001')
+    young = _participant(tmp_path, 'young001')
+    outside = tmp_path / 'elsewhere'
+    outside.write_bytes(b'keep')
+    (tmp_path / 'fastrtps_link_el').symlink_to(outside)
+    other = tmp_path / 'unrelated_el'
+    other.write_bytes(b'')
+    old = time.time() - 60
+    for path in stale + alive + [other]:
+        os.utime(path, (old, old))
+    holder = subprocess.Popen([sys.executable, '-c', HOLD, str(alive[1])],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == 'held'
+        removed = remove_stale(tmp_path, min_age=10.0)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert removed == sorted(p.name for p in stale)
+    assert not any(p.exists() for p in stale)
+    assert all(p.exists() for p in alive + young + [other, outside])
+    assert (tmp_path / 'fastrtps_link_el').is_symlink()
+    # once its holder has gone, the live one is stale too (the young one still is young)
+    assert remove_stale(tmp_path, min_age=10.0) == sorted(p.name for p in alive)
+    assert remove_stale(tmp_path / 'missing') == []
+
+
+NODE = ('import rclpy, time; rclpy.init(); node = rclpy.create_node("shm_test"); '
+        'print("up", flush=True); time.sleep(60)')
+
+
+def _start_node() -> tuple[subprocess.Popen, set[str]]:
+    before = set(os.listdir(SHM_DIR))
+    process = subprocess.Popen([sys.executable, '-c', NODE], stdout=subprocess.PIPE, text=True,
+                               start_new_session=True)
+    assert process.stdout.readline().strip() == 'up'
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        segments = {f for f in set(os.listdir(SHM_DIR)) - before
+                    if f.startswith('fastrtps_') and not f.startswith('fastrtps_port')
+                    and not f.endswith('_el')}
+        if segments:
+            return process, segments
+        time.sleep(0.1)
+    raise AssertionError('the node made no shared-memory segment')
+
+
+def test_a_killed_nodes_segment_is_removed_a_live_ones_stays():
+    live, live_segments = _start_node()
+    killed, killed_segments = _start_node()
+    try:
+        killed.send_signal(signal.SIGKILL)
+        killed.wait()
+        assert all((SHM_DIR / s).exists() for s in killed_segments)     # left behind
+        removed = remove_stale(min_age=0.0)
+        assert killed_segments <= set(removed)
+        assert not any((SHM_DIR / s).exists() for s in killed_segments)
+        assert all((SHM_DIR / s).exists() for s in live_segments)
+        assert not set(removed) & live_segments
+        fd = os.open(SHM_DIR / f'{next(iter(live_segments))}_el', os.O_RDWR)
+        try:                                    # its owner still holds its lock
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                raise AssertionError('the live node does not hold its lock')
+            except BlockingIOError:
+                pass
+        finally:
+            os.close(fd)
+    finally:
+        for process in (live, killed):
+            if process.poll() is None:
+                process.send_signal(signal.SIGINT)
+                try:
+                    process.wait(timeout=5)
+                except subprocess.TimeoutExpired:
+                    process.kill()
+                    process.wait()
