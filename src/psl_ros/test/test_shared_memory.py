@@ -50,6 +50,7 @@ def test_only_files_whose_lock_nobody_holds_are_removed(tmp_path):
     assert remove_stale(tmp_path / 'missing') == []
 
 
+MIN_AGE = 1.0    # [s] files younger than this stay
 NODE = ('import rclpy, time; rclpy.init(); node = rclpy.create_node("shm_test"); '
         'print("up", flush=True); time.sleep(60)')
 
@@ -77,7 +78,8 @@ def test_a_killed_nodes_segment_is_removed_a_live_ones_stays():
         killed.send_signal(signal.SIGKILL)
         killed.wait()
         assert all((SHM_DIR / s).exists() for s in killed_segments)     # left behind
-        removed = remove_stale(min_age=0.0)
+        time.sleep(MIN_AGE)      # a participant starting now elsewhere is younger: left alone
+        removed = remove_stale(min_age=MIN_AGE)
         assert killed_segments <= set(removed)
         assert not any((SHM_DIR / s).exists() for s in killed_segments)
         assert all((SHM_DIR / s).exists() for s in live_segments)
