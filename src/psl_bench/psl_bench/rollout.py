@@ -18,7 +18,7 @@ def measure(task_name: str = 'reach_over_obstacle', population: int = 32,
     ratios) and the milliseconds per population of each part of batch mode."""
     from mujoco import rollout as mj_rollout
 
-    from psl_optimizer.batch_rollout import CONTROL, BatchRollouts
+    from psl_optimizer.batch_rollout import CONTROL, BatchRollouts, stacked
     from psl_sim.task import load_task
 
     if population < 1 or repeats < 1:
@@ -29,9 +29,6 @@ def measure(task_name: str = 'reach_over_obstacle', population: int = 32,
     default = batch.policy.default_theta
     thetas = default + rng.normal(0.0, 0.1 * np.abs(default).max(), (population, default.size))
     taus = np.array([task.sample_tau(rng) for _ in range(population)])
-    def stacked(references):
-        return tuple(np.stack([getattr(r, f) for r in references]) for f in ('q', 'qd', 'u_ffwd'))
-
     control = batch.controls(*stacked(batch.policy.references(thetas, taus)), taus)
     steps = population * control.shape[1]
     raw, full, refs, ctrls = [], [], [], []

@@ -292,7 +292,7 @@ class DMP:
 
         Computed with the population's dimensions side by side, (N+1, B n_dims), so every
         product is one matrix product and every sum runs along long rows; the results are
-        views in (B, N+1, n_dims) order."""
+        then laid out (B, N+1, n_dims), contiguous."""
         count = len(weights)
         goal = goals.reshape(1, -1)  # (1, B n_dims)
         offset = (self._y0 - goals).reshape(1, -1)

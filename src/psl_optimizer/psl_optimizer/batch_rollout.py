@@ -39,7 +39,12 @@ from psl_sim.task import TaskDefinition
 
 FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
 CONTROL = mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_MOCAP_POS
-CHUNK = 32        # rollouts per mujoco.rollout call of the pipeline (`BatchRollouts._run`)
+
+
+def stacked(references: list[Reference]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """q, qd and u_ffwd of references of one episode length, each stacked (B, N+1, n)."""
+    return tuple(np.stack([getattr(r, field) for r in references])
+                 for field in ('q', 'qd', 'u_ffwd'))
 
 
 def batch_model(task: TaskDefinition, law: PDLaw, geometry: RewardGeometry,
@@ -139,9 +144,8 @@ class BatchRollouts(Rollouts):
         for length in np.unique(lengths):
             index = np.flatnonzero(lengths == length)
             group = [references[i] for i in index]
-            stacked = tuple(np.stack([getattr(r, field) for r in group])
-                            for field in ('q', 'qd', 'u_ffwd'))      # each (B, N+1, n)
-            verdicts = self.safety.screen(taus[index], stacked[0], stacked[1])
+            arrays = stacked(group)                                  # each (B, N+1, n)
+            verdicts = self.safety.screen(taus[index], arrays[0], arrays[1])
             for i, verdict in zip(index, verdicts):
                 if not verdict.safe:         # not executed: the penalty and the reason
                     results[i] = refused_result(verdict.reason,
@@ -151,7 +155,7 @@ class BatchRollouts(Rollouts):
             if safe.any():
                 chosen = [r for r, ok in zip(group, safe) if ok]
                 for i, result in zip(index[safe], self._run(
-                        chosen, taus[index[safe]], *(a[safe] for a in stacked))):
+                        chosen, taus[index[safe]], *(a[safe] for a in arrays))):
                     results[i] = result
         return self._count(results)
 
@@ -160,7 +164,7 @@ class BatchRollouts(Rollouts):
         """The rollouts of checked references whose episodes have the same length, their
         arrays stacked (B, N+1, n)."""
         if self.arm.n_substeps > 1:
-            return self._run_held(references, taus)
+            return self._run_held(references, taus, q_ref)
         control = self.controls(q_ref, qd_ref, u_ffwd, taus)
         state, sensors = self._simulate(self.models(taus), control)
         return self._results(references, taus, q_ref, qd_ref, u_ffwd, state, sensors)
@@ -168,8 +172,8 @@ class BatchRollouts(Rollouts):
     def _simulate(self, models: mujoco.MjModel | list[mujoco.MjModel],
                   control: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """States and sensors (B, N+1, ...) of `mujoco.rollout` on the controls (its threads
-        use `datas`). N+1 steps: the sensors of step k see state
-        k, so step N gives state N's sensors; the state after that extra step is not used."""
+        use `datas`). N+1 steps: the sensors of step k see state k, so step N gives state N's
+        sensors; the state after that extra step is not used."""
         start = time.perf_counter()
         try:
             return self.pool.rollout(models, self.datas, self.initial_state[None], control,
@@ -194,7 +198,8 @@ class BatchRollouts(Rollouts):
         return [RolloutResult(evaluation=evaluations[b], q=q[b], torque=torque[b],
                               reference=references[b]) for b in range(len(references))]
 
-    def _run_held(self, references: list[Reference], taus: np.ndarray) -> list[RolloutResult]:
+    def _run_held(self, references: list[Reference], taus: np.ndarray,
+                  q_ref: np.ndarray) -> list[RolloutResult]:
         """A task whose control period spans several physics steps: the law's torque of state
         k is held over the period's `ArmModel.n_substeps` steps, as in the graph (the
         simulator's `ArmModel.step`). The law in the actuator would act on every physics
@@ -227,7 +232,6 @@ class BatchRollouts(Rollouts):
                 if k + 1 < n_steps:
                     torque[b, k + 1] = u
         self.simulation_seconds += time.perf_counter() - start
-        q_ref = np.stack([r.q for r in references])
         evaluations = self.reward.evaluate(q, torque, q_ref, self.geometry.read(sensors), taus)
         return [RolloutResult(evaluation=evaluations[b], q=q[b], torque=torque[b],
                               reference=references[b]) for b in range(len(taus))]
