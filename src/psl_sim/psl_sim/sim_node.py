@@ -135,7 +135,11 @@ class SimNode(Node):
         self._lock = threading.Lock()
         self._arms: dict[Path, ArmModel] = {}      # by task YAML
         self.arm = self._arm(self.get_parameter('task').value)
-        self.t_ns = 0                 # simulation time, monotonic over episodes
+        # simulation time, monotonic over episodes; it starts one control period in, since a
+        # stamp of zero means "the next episode / the next state" to the controller and the
+        # evaluator (the first episode's replacement trajectories and goal changes need its
+        # start to be a real time)
+        self.t_ns = self.arm.task.control_period_ns
         self.steps_left = 0           # control periods left in the episode; 0 = paused
         self.applied = np.zeros(len(self.arm.joint_names))
         self.pending: np.ndarray | None = None   # command answering the last state
