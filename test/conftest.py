@@ -91,7 +91,7 @@ def graph_matches_batch(client):
             lambda m: states.__setitem__(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, m),
             QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE))
         try:
-            client.wait_for_subscribers(['joint_states'])
+            client.wait_for_subscribers(['joint_states'], subscriptions=[sub])
             result = client.rollout(task_id(task), tau, theta)
             assert result.success, result.message
             stamp = result.evaluation.stamp

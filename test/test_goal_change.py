@@ -67,7 +67,8 @@ class Recorder:
             TaskInstance, 'task_instance', self.on_task,
             QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)))
-        client.wait_for_subscribers(['joint_states', 'reference', 'task_instance'])
+        client.wait_for_subscribers(['joint_states', 'reference', 'task_instance'],
+                                    subscriptions=self.subscriptions)
 
     def on_task(self, msg) -> None:
         self.episodes.append(stamp_ns(msg.stamp))

@@ -170,7 +170,8 @@ def test_recorded_bag_reads_back(client, task, theta, tmp_path, reference_result
     probes = count_messages(client.node, expected, delivered)
     recorder.start()
     try:
-        client.wait_for_subscribers(topics, extra=2)           # the recorder and the probes
+        client.wait_for_subscribers(topics, extra=2,           # the recorder and the probes
+                                    subscriptions=probes)
         result = client.rollout(TASK, task.tau_default, theta)
         # the rollout is over, its last messages may still be on their way (a reliable
         # reader that missed a sample gets it on the writer's next heartbeat): stop the
@@ -281,8 +282,7 @@ def test_the_simulator_reports_where_a_step_goes(client, task, theta, wait_until
     sub = client.node.create_subscription(DiagnosticArray, names.DIAGNOSTICS, on_diagnostics,
                                           RELIABLE)
     try:
-        assert wait_until(lambda: sub.get_publisher_count() >= 1, 10.0)
-        time.sleep(0.5)
+        client.wait_for_subscribers([names.DIAGNOSTICS], subscriptions=[sub])
         assert client.rollout(TASK, task.tau_default, theta).success
         assert wait_until(lambda: reports, 10.0)
     finally:

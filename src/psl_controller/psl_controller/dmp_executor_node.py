@@ -58,6 +58,7 @@ from psl_msgs.msg import GoalUpdate, RolloutEvaluation
 from psl_msgs.srv import GoalChange, ResetTask
 from psl_ros import names
 from psl_ros.futures import wait_for
+from psl_ros.matching import MatchReport
 from psl_ros.node_main import run_node
 from psl_ros.qos import RELIABLE, SERVICES
 from psl_ros.stamps import duration_msg, time_msg, to_ns
@@ -121,18 +122,19 @@ class DMPExecutor(Node):
             description="how an episode begins: teleport | drive ('' = the task's "
                         'homing.reset)'))
         group = ReentrantCallbackGroup()
-        self.pub_trajectory = self.create_publisher(JointTrajectory, names.JOINT_TRAJECTORY,
-                                                     RELIABLE)
+        self.matches = MatchReport(self)        # what the loop's endpoints matched
+        self.pub_trajectory = self.matches.create_publisher(JointTrajectory,
+                                                            names.JOINT_TRAJECTORY, RELIABLE)
         self.reset_client = self.create_client(ResetTask, names.RESET, callback_group=group,
                                                qos_profile=SERVICES)
-        self.create_subscription(RolloutEvaluation, names.ROLLOUT_EVALUATION, self.on_evaluation,
-                                 RELIABLE, callback_group=group)
+        self.matches.create_subscription(RolloutEvaluation, names.ROLLOUT_EVALUATION,
+                                         self.on_evaluation, RELIABLE, callback_group=group)
         self.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self.on_diagnostics, 10,
                                  callback_group=group)
         self.goal_change_client = self.create_client(GoalChange, names.GOAL_CHANGE,
                                                      callback_group=group, qos_profile=SERVICES)
-        self.create_subscription(GoalUpdate, names.GOAL_UPDATE, self.on_goal_update, 10,
-                                 callback_group=group)
+        self.matches.create_subscription(GoalUpdate, names.GOAL_UPDATE, self.on_goal_update,
+                                         10, callback_group=group)
         self._rollout_lock = threading.Lock()
         self._safety_checks: dict = {}          # task path -> SafetyCheck
         # gains per task: the controller gets a rollout's task's gains when they differ from

@@ -62,7 +62,8 @@ class FeedForward:
         return self.design(t) @ self._weights(theta_d).T
 
     def signal_population(self, theta_ds: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """`signal` of each row of theta_ds (B, num_parameters), bit for bit: (B, T, n_joints).
+        """`signal` of each row of theta_ds (B, num_parameters) within rounding (one product
+        of another shape: BLAS may sum it in another order, by CPU): (B, T, n_joints).
 
         Raises:
             ValueError: theta_ds of the wrong shape or not finite.

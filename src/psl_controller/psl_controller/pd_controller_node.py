@@ -27,6 +27,7 @@ from psl_controller.pd_law import PDLaw, law_for
 from psl_controller.trajectory_sampling import SampledTrajectory
 from psl_ros import names
 from psl_ros.hot_path import HotPath
+from psl_ros.matching import MatchReport
 from psl_ros.node_main import run_node
 from psl_ros.qos import RELIABLE
 from psl_ros.realtime import raise_priority
@@ -88,8 +89,10 @@ class PDController(Node):
         self.served_ns: int | None = None     # time of the last state served, from start_ns
         self.hold: np.ndarray | None = None
 
-        self.pub_command = self.create_publisher(Float64MultiArray, names.EFFORT_COMMAND, RELIABLE)
-        self.pub_reference = self.create_publisher(JointState, names.REFERENCE, RELIABLE)
+        self.matches = MatchReport(self)        # what the loop's endpoints matched
+        self.pub_command = self.matches.create_publisher(Float64MultiArray, names.EFFORT_COMMAND,
+                                                         RELIABLE)
+        self.pub_reference = self.matches.create_publisher(JointState, names.REFERENCE, RELIABLE)
         # one message each, refilled every step (publish copies it)
         self._command, self._reference = Float64MultiArray(), JointState()
         # one thread serves both, the trajectory first when both are ready: a trajectory
@@ -100,9 +103,10 @@ class PDController(Node):
         # the hot path's thread inherits the scheduling of the thread that starts it
         scheduling = raise_priority(self.get_parameter('realtime_priority').value)
         self.hot_path = HotPath(self)
-        self.hot_path.subscribe(JointTrajectory, names.JOINT_TRAJECTORY, self.on_trajectory,
-                                RELIABLE)
-        self.hot_path.subscribe(JointState, names.JOINT_STATES, self.on_state, RELIABLE)
+        self.matches.subscribe(self.hot_path, JointTrajectory, names.JOINT_TRAJECTORY,
+                               self.on_trajectory, RELIABLE)
+        self.matches.subscribe(self.hot_path, JointState, names.JOINT_STATES, self.on_state,
+                               RELIABLE)
         self.hot_path.start()
         law = self.law
         self.get_logger().info(

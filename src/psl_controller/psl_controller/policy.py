@@ -171,10 +171,10 @@ class TaskPolicy:
         return self._reference_of(traj, theta, feedforward, dt)
 
     def references(self, thetas: np.ndarray, taus: np.ndarray) -> list[Reference]:
-        """`reference` of each row of thetas (B, F) on its task instance taus (B, E), bit for
-        bit: a DMP in joint space integrates the rollouts of one duration as one population
-        (`DMP.integrate_population`, `FeedForward.signal_population`); other movements go one
-        by one. Raises what `reference` raises, naming the row."""
+        """`reference` of each row of thetas (B, F) on its task instance taus (B, E), within
+        rounding: a DMP in joint space integrates the rollouts of one duration as one
+        population (`DMP.integrate_population`, `FeedForward.signal_population`); other
+        movements go one by one. Raises what `reference` raises, naming the row."""
         thetas = np.asarray(thetas, dtype=float)
         if thetas.ndim != 2 or len(thetas) != len(taus):
             raise ValueError(f'thetas must be (B, {self.num_parameters}) with one task '

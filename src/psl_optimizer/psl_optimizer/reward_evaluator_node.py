@@ -31,6 +31,7 @@ from psl_msgs.srv import GoalChange
 from psl_optimizer.reward import Reward
 from psl_ros import names
 from psl_ros.hot_path import HotPath
+from psl_ros.matching import MatchReport
 from psl_ros.node_main import run_node
 from psl_ros.qos import LATCHED, RELIABLE, WHOLE_EPISODE
 from psl_ros.service import create_service
@@ -59,12 +60,16 @@ class RewardEvaluator(Node):
         self.next_goal: GoalUpdate | None = None            # for the next episode announced
         self.goal_changes: dict[int, GoalUpdate] = {}       # by episode start [ns]
         self.evaluated_ns = -1                              # start of the last episode scored
-        self.pub = self.create_publisher(RolloutEvaluation, names.ROLLOUT_EVALUATION, RELIABLE)
+        self.matches = MatchReport(self)        # what the loop's endpoints matched
+        self.pub = self.matches.create_publisher(RolloutEvaluation, names.ROLLOUT_EVALUATION,
+                                                 RELIABLE)
         create_service(self, GoalChange, '~/goal_change', self.on_goal_change)
         self.hot_path = HotPath(self, pause=TAKE_PAUSE)
-        self.hot_path.subscribe(TaskInstance, names.TASK_INSTANCE, self.on_task, LATCHED)
-        self.hot_path.subscribe(JointState, names.JOINT_STATES, self.on_state, WHOLE_EPISODE)
-        self.hot_path.subscribe(JointState, names.REFERENCE, self.on_reference, WHOLE_EPISODE)
+        for msg_type, topic, callback, qos in (
+                (TaskInstance, names.TASK_INSTANCE, self.on_task, LATCHED),
+                (JointState, names.JOINT_STATES, self.on_state, WHOLE_EPISODE),
+                (JointState, names.REFERENCE, self.on_reference, WHOLE_EPISODE)):
+            self.matches.subscribe(self.hot_path, msg_type, topic, callback, qos)
         self.hot_path.start()
         self.get_logger().info('evaluating episodes announced on task_instance')
 

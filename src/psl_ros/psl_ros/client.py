@@ -35,6 +35,7 @@ from psl_msgs.srv import (AddSample, CompletePattern, CreateSkill, LoadMemory, Q
 from psl_ros import names
 from psl_ros.action_client import ActionClient
 from psl_ros.futures import wait_for
+from psl_ros.matching import PUBLISHER, SUBSCRIPTION, MatchedEndpoints
 from psl_ros.qos import SERVICES
 from psl_ros.stamps import time_msg
 
@@ -184,11 +185,39 @@ class RolloutClient:
         self.reset_client = node.create_client(ResetTask, names.under(worker, names.RESET),
                                                callback_group=callback_group,
                                                qos_profile=SERVICES)
+        self._callback_group = callback_group
+        self._matched: MatchedEndpoints | None = None
         self._ready = False      # the loop was seen complete once
         self._goal_publisher = None
 
+    @property
+    def matched(self) -> MatchedEndpoints:
+        """The worker's nodes' reports of what their endpoints matched (`psl_ros.matching`),
+        subscribed to on first use."""
+        if self._matched is None:
+            self._matched = MatchedEndpoints(self.node, self.worker, self._callback_group)
+        return self._matched
+
+    def topic(self, name: str) -> str:
+        """The resolved name of one of the worker's topics."""
+        return self.node.resolve_topic_name(names.under(self.worker, name))
+
+    def unmatched(self, topic: str, subscribers: int, publishers: int = 1) -> str:
+        """'' when `topic` (resolved) has `publishers` publishers that report (`matched`)
+        each having matched at least `subscribers` subscriptions; else what is missing."""
+        reports = self.matched.counts(PUBLISHER, topic)
+        short = {node: n for node, n in reports.items() if n < subscribers}
+        if len(reports) < publishers or short:
+            return (f'{topic} ({len(reports)}/{publishers} publishers matched '
+                    f'{subscribers} subscribers{": " if short else ""}'
+                    + ', '.join(f'{node} {n}' for node, n in short.items()) + ')')
+        return ''
+
     def missing_endpoints(self) -> str:
-        """What the worker's loop still lacks, as text ('' when complete)."""
+        """What the worker's loop still lacks, as text ('' when complete): the action server,
+        the reset service, and for every topic of the loop its endpoints discovered and
+        matched on both sides (each publisher has matched every subscriber of the loop, each
+        subscription every publisher)."""
         missing = []
         if not self.rollout_client.server_is_ready():
             missing.append(f'{self.node.resolve_service_name(self.name)} action server')
@@ -196,26 +225,29 @@ class RolloutClient:
             missing.append(f'{self.node.resolve_service_name(self.reset_client.srv_name)} '
                            'service')
         for topic, (pubs, subs) in names.LOOP_TOPICS.items():
-            topic = self.node.resolve_topic_name(names.under(self.worker, topic))
+            topic = self.topic(topic)
             p, s = self.node.count_publishers(topic), self.node.count_subscribers(topic)
             if p < pubs or s < subs:
                 missing.append(f'{topic} ({p}/{pubs} publishers, {s}/{subs} subscribers)')
-        return ', '.join(missing)
+                continue
+            missing.append(self.unmatched(topic, subs, pubs))
+            readers = self.matched.counts(SUBSCRIPTION, topic)
+            if len(readers) < subs or any(n < pubs for n in readers.values()):
+                missing.append(f'{topic} ({len(readers)}/{subs} subscriptions matched {pubs} '
+                               'publishers)')
+        return ', '.join(filter(None, missing))
 
     def ready(self, timeout: float) -> bool:
-        """True when the action server, the reset service and every topic of the loop have
-        their endpoints discovered (waits up to about `timeout` s)."""
+        """True when the action server, the reset service and every topic of the loop are
+        matched (`missing_endpoints`; waits up to about `timeout` s)."""
         deadline = time.monotonic() + timeout
 
         def left() -> float:
             return max(0.0, deadline - time.monotonic())
-        if not (wait_for_server(self.rollout_client, timeout)
+        return (wait_for_server(self.rollout_client, timeout)
                 and wait_for_service(self.reset_client, left())
                 and wait_until(lambda: not self.missing_endpoints(), left(),
-                               self.node.context)):
-            return False
-        time.sleep(0.2)   # discovery seen from here; give the pairwise matching a moment
-        return True
+                               self.node.context))
 
     def wait_until_ready(self, timeout: float) -> None:
         """Block until `ready`; TimeoutError naming what is missing after `timeout` s."""
@@ -265,18 +297,20 @@ class RolloutClient:
         the rollout that runs (`episode_ns`: its first state's time in ns, 0 = whichever
         runs) to `goal` from `time_from_start` s on, or later if the episode has nearly
         passed that time; the rollout's result message and evaluation (``goal_change_time``)
-        say what it did. The first call waits for the executor's subscription to be matched
-        (TimeoutError after `timeout` s)."""
-        new = self._goal_publisher is None
-        if new:
+        say what it did. Each call waits until the publisher and the executor's subscription
+        have matched each other (TimeoutError after `timeout` s)."""
+        if self._goal_publisher is None:
             self._goal_publisher = self.node.create_publisher(
                 GoalUpdate, names.under(self.worker, names.GOAL_UPDATE), 10)
         publisher = self._goal_publisher
-        if not wait_until(lambda: publisher.get_subscription_count() > 0, timeout,
-                          self.node.context):
-            raise TimeoutError(f'no dmp_executor subscribes to {publisher.topic_name}')
-        if new:
-            time.sleep(0.2)    # matched from here; give the executor's side a moment (`ready`)
+        topic = publisher.topic_name
+
+        def matched() -> bool:    # both halves: ours, and the executor's (its report)
+            readers = self.matched.counts(SUBSCRIPTION, topic)
+            return (publisher.get_subscription_count() > 0 and bool(readers)
+                    and min(readers.values()) >= self.node.count_publishers(topic))
+        if not wait_until(matched, timeout, self.node.context):
+            raise TimeoutError(f'no dmp_executor has matched {topic} within {timeout:g} s')
         publisher.publish(GoalUpdate(stamp=time_msg(int(episode_ns)), goal=_floats(goal),
                                      time_from_start=float(time_from_start)))
 
@@ -369,18 +403,30 @@ class RosClient:
     def missing_endpoints(self) -> str:
         return self.worker.missing_endpoints()
 
-    def wait_for_subscribers(self, topics, extra: int = 1, timeout: float = 15.0) -> None:
-        """Wait until each topic of the loop has `extra` more subscribers than the graph's
-        own (e.g. a recorder that just started); raise TimeoutError otherwise."""
+    def wait_for_subscribers(self, topics, extra: int = 1, timeout: float = 15.0,
+                             subscriptions=()) -> None:
+        """Wait until the graph's publisher of each topic has matched `extra` subscriptions
+        more than the graph's own (`names.OWN_SUBSCRIBERS`: e.g. a recorder that just
+        started, or this client's `subscriptions`), and each of `subscriptions` (rclpy
+        Subscriptions of this client) has matched those publishers: from then on every
+        message published reaches them. Raises TimeoutError naming what is missing."""
         deadline = time.monotonic() + timeout
         for topic in topics:
-            want = names.LOOP_TOPICS.get(topic.lstrip('/'), (0, 0))[1] + extra
-            while self.node.count_subscribers(topic) < want:
-                if time.monotonic() > deadline:
-                    raise TimeoutError(f'{topic} has {self.node.count_subscribers(topic)} '
-                                       f'subscribers, expected {want}')
-                time.sleep(0.05)
-        time.sleep(0.3)   # seen from here; give the pairwise matching a moment
+            resolved = self.node.resolve_topic_name(topic)
+            want = names.OWN_SUBSCRIBERS.get(
+                topic, names.OWN_SUBSCRIBERS.get(topic.lstrip('/'), 0)) + extra
+            mine = [s for s in subscriptions if s.topic_name == resolved]
+
+            def missing() -> str:
+                gap = self.worker.unmatched(resolved, want)
+                publishers = len(self.worker.matched.counts(PUBLISHER, resolved))
+                short = [s for s in mine if s.get_publisher_count() < publishers]
+                return gap or (f'{resolved}: a subscription of this client matched '
+                               f'{short[0].get_publisher_count()} of {publishers} publishers'
+                               if short else '')
+            if not wait_until(lambda: not missing(), max(0.0, deadline - time.monotonic()),
+                              self.context):
+                raise TimeoutError(f'not matched within {timeout:g} s: {missing()}')
 
     def send_learn_goal(self, timeout: float = 30.0, feedback=None, **fields):
         """`LearnClient.send_goal`."""

@@ -37,15 +37,25 @@ from rclpy.type_support import check_is_valid_msg_type
 class _Subscription:
     """One subscription of the loop: its rcl handle, what to take and whom to call."""
 
-    __slots__ = ('handle', 'msg_type', 'callback', 'topic', 'raw', 'info', 'event',
-                 'on_lost', 'event_index')
+    __slots__ = ('handle', 'msg_type', 'callback', 'topic', 'raw', 'info', 'events')
 
     def __init__(self, handle, msg_type: type, callback: Callable, topic: str, raw: bool,
-                 info: bool, event, on_lost: Callable | None):
+                 info: bool, events: list[_Event]):
         self.handle, self.msg_type, self.callback, self.topic = handle, msg_type, callback, topic
         self.raw, self.info = raw, info
-        self.event, self.on_lost = event, on_lost    # message-lost event handle, or None
-        self.event_index = -1                        # in the current wait set
+        self.events = events
+
+
+class _Event:
+    """An event of a subscription (message lost, matched) and whom to call with its status."""
+
+    __slots__ = ('handle', 'callback', 'what', 'index')
+
+    def __init__(self, subscription, event_type, callback: Callable, what: str):
+        with subscription:
+            self.handle = _rclpy.EventHandle(subscription, event_type)
+        self.callback, self.what = callback, what
+        self.index = -1                              # in the current wait set
 
 
 class HotPath:
@@ -71,7 +81,8 @@ class HotPath:
 
     def subscribe(self, msg_type: type, topic: str, callback: Callable[..., None],
                   qos: QoSProfile, *, raw: bool = False, info: bool = False,
-                  message_lost: Callable[[Any], None] | None = None) -> Any:
+                  message_lost: Callable[[Any], None] | None = None,
+                  matched: Callable[[Any], None] | None = None) -> Any:
         """Add a subscription; a running loop takes it up at once.
 
         Args:
@@ -85,6 +96,8 @@ class HotPath:
             info: Also pass the message info.
             message_lost: Called with the rmw message-lost status (``total_count``,
                 ``total_count_change``) whenever the middleware reports lost messages.
+            matched: Called with the rmw matched status (``current_count``, ...) whenever
+                the subscription matches or loses a publisher (`psl_ros.matching`).
 
         Returns:
             The rcl subscription handle (``get_publisher_count()``, ``get_topic_name()``).
@@ -94,14 +107,14 @@ class HotPath:
         with self._node.handle:
             handle = _rclpy.Subscription(self._node.handle, msg_type, topic,
                                          qos.get_c_qos_profile())
-        event = None
-        if message_lost is not None:
-            with handle:
-                event = _rclpy.EventHandle(
-                    handle, QoSSubscriptionEventType.RCL_SUBSCRIPTION_MESSAGE_LOST)
+        events = [_Event(handle, event_type, call, what) for event_type, call, what in (
+            (QoSSubscriptionEventType.RCL_SUBSCRIPTION_MESSAGE_LOST, message_lost,
+             'message-lost'),
+            (QoSSubscriptionEventType.RCL_SUBSCRIPTION_MATCHED, matched, 'matched'))
+            if call is not None]
         with self._lock:
             self._subs = self._subs + (_Subscription(handle, msg_type, callback, topic, raw,
-                                                     info, event, message_lost),)
+                                                     info, events),)
         if self._thread is not None:
             self._guard.trigger_guard_condition()    # the loop rebuilds its wait set
         return handle
@@ -118,14 +131,14 @@ class HotPath:
                 if subs is not self._subs:
                     with self._lock:
                         subs = self._subs
-                    with_events = tuple(s for s in subs if s.event is not None)
-                    wait_set = _rclpy.WaitSet(len(subs), 1, 0, 0, 0, len(with_events),
+                    events = tuple((sub, event) for sub in subs for event in sub.events)
+                    wait_set = _rclpy.WaitSet(len(subs), 1, 0, 0, 0, len(events),
                                               self._node.context.handle)
                 wait_set.clear_entities()
                 for sub in subs:
                     wait_set.add_subscription(sub.handle)
-                for sub in with_events:
-                    sub.event_index = wait_set.add_event(sub.event)
+                for _, event in events:
+                    event.index = wait_set.add_event(event.handle)
                 wait_set.add_guard_condition(self._guard)
                 wait_set.wait(-1)
             except Exception:  # noqa: BLE001 - the context was shut down: end quietly
@@ -134,9 +147,9 @@ class HotPath:
             for sub in subs:
                 if sub.handle.pointer in ready:
                     self._take_all(sub, logger)
-            for sub in with_events:
-                if wait_set.is_ready('event', sub.event_index):
-                    self._take_event(sub, logger)
+            for sub, event in events:
+                if wait_set.is_ready('event', event.index):
+                    self._take_event(sub, event, logger)
             if self._pause:
                 self._stop.wait(self._pause)
 
@@ -156,14 +169,14 @@ class HotPath:
                 logger.error(f'{sub.topic} callback failed: {exc!r}')
 
     @staticmethod
-    def _take_event(sub: _Subscription, logger) -> None:
-        status = sub.event.take_event()
+    def _take_event(sub: _Subscription, event: _Event, logger) -> None:
+        status = event.handle.take_event()
         if status is None:
             return
         try:
-            sub.on_lost(status)
+            event.callback(status)
         except Exception as exc:  # noqa: BLE001 - a callback bug must not end the loop
-            logger.error(f'{sub.topic} message-lost callback failed: {exc!r}')
+            logger.error(f'{sub.topic} {event.what} callback failed: {exc!r}')
 
     def stop(self, drain: bool = False) -> None:
         """End the thread and destroy the subscriptions (idempotent).
@@ -188,11 +201,11 @@ class HotPath:
             for sub in subs:
                 try:
                     self._take_all(sub, logger)
-                    if sub.event is not None:
-                        self._take_event(sub, logger)
+                    for event in sub.events:
+                        self._take_event(sub, event, logger)
                 except Exception:  # noqa: BLE001 - the context was shut down: nothing left
                     break
         for sub in subs:
-            if sub.event is not None:
-                sub.event.destroy_when_not_in_use()
+            for event in sub.events:
+                event.handle.destroy_when_not_in_use()
             sub.handle.destroy_when_not_in_use()

@@ -16,6 +16,8 @@ ROLLOUT_EVALUATION = 'rollout_evaluation'   # psl_msgs/RolloutEvaluation, the ev
 EE_POSE = 'ee_pose'                     # geometry_msgs/PoseStamped, the simulator
 SCENE = 'scene'                         # visualization_msgs/MarkerArray (latched), the simulator
 GOAL_UPDATE = 'goal_update'             # psl_msgs/GoalUpdate: a live new goal for the executor
+MATCHED_ENDPOINTS = 'matched_endpoints'  # diagnostic_msgs/DiagnosticStatus (latched), every
+                                        # loop node: what its endpoints matched (psl_ros.matching)
 CLOCK = '/clock'
 DIAGNOSTICS = '/diagnostics'
 WORLD_FRAME = 'world'                   # frame_id of ee_pose and of the scene's markers
@@ -31,6 +33,9 @@ SKILL_MEMORY = 'skill_memory'           # the memory node: services skill_memory
 # topic -> (publishers, subscribers) one rollout worker's loop has before its first episode
 LOOP_TOPICS = {JOINT_STATES: (1, 2), EFFORT_COMMAND: (1, 1), REFERENCE: (1, 1),
                TASK_INSTANCE: (1, 1), JOINT_TRAJECTORY: (1, 1), ROLLOUT_EVALUATION: (1, 1)}
+# topic -> subscribers a rollout worker's own nodes have on it, beyond LOOP_TOPICS (the
+# executor reads /diagnostics)
+OWN_SUBSCRIBERS = {**{topic: subs for topic, (_, subs) in LOOP_TOPICS.items()}, DIAGNOSTICS: 1}
 # what a recording of the loop holds (psl demo)
 RECORDED_TOPICS = (JOINT_STATES, EE_POSE, EFFORT_COMMAND, REFERENCE, JOINT_TRAJECTORY,
                    TASK_INSTANCE, ROLLOUT_EVALUATION, CLOCK, SCENE)

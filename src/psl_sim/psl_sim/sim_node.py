@@ -52,6 +52,7 @@ from psl_ros import names
 from psl_ros.graph import SIM_MODES
 from psl_ros.realtime import raise_priority, sleep_until
 from psl_ros.hot_path import HotPath
+from psl_ros.matching import MatchReport
 from psl_ros.node_main import run_node
 from psl_ros.qos import LATCHED, RELIABLE
 from psl_ros.service import create_service
@@ -149,13 +150,14 @@ class SimNode(Node):
         self._scene_due_ns = 0                          # next throttled scene publish
         self._ee_path: list[np.ndarray] = []            # end effector at the scene ticks
 
-        self.pub_joints = self.create_publisher(JointState, names.JOINT_STATES, RELIABLE)
+        self.matches = MatchReport(self)        # what the endpoints below matched
+        self.pub_joints = self.matches.create_publisher(JointState, names.JOINT_STATES, RELIABLE)
         self._joint_state = JointState()
-        self.pub_pose = self.create_publisher(PoseStamped, names.EE_POSE, RELIABLE)
-        self.pub_clock = self.create_publisher(Clock, names.CLOCK, RELIABLE)
-        self.pub_task = self.create_publisher(TaskInstance, names.TASK_INSTANCE, LATCHED)
-        self.pub_diag = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
-        self.pub_scene = self.create_publisher(MarkerArray, names.SCENE, LATCHED)
+        self.pub_pose = self.matches.create_publisher(PoseStamped, names.EE_POSE, RELIABLE)
+        self.pub_clock = self.matches.create_publisher(Clock, names.CLOCK, RELIABLE)
+        self.pub_task = self.matches.create_publisher(TaskInstance, names.TASK_INSTANCE, LATCHED)
+        self.pub_diag = self.matches.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
+        self.pub_scene = self.matches.create_publisher(MarkerArray, names.SCENE, LATCHED)
         self.hot_path = HotPath(self)
         # a command answers the state published last (lockstep) or one of this episode's
         # (realtime): one the controller published before that state answers an older one
@@ -167,8 +169,8 @@ class SimNode(Node):
         self.timing = StepTiming(STEP_PHASES)
         self._published_ns = 0      # perf_counter_ns when the last state was sent
         self.episodes = 0           # episodes started since the node started (resets)
-        self.hot_path.subscribe(Float64MultiArray, names.EFFORT_COMMAND, self.on_command,
-                                RELIABLE, info=True)
+        self.matches.subscribe(self.hot_path, Float64MultiArray, names.EFFORT_COMMAND,
+                               self.on_command, RELIABLE, info=True)
         self.hot_path.start()
         create_service(self, ResetTask, '~/reset', self.on_reset)
         if self.mode == 'realtime':

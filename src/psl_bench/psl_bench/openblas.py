@@ -1,0 +1,61 @@
+"""OpenBLAS kernels: which one this process runs, which ones this CPU can run, and the
+environment that makes a process take another, so that one machine can show what another
+CPU would compute.
+
+numpy and scipy ship OpenBLAS built for every x86-64 CPU kind (DYNAMIC_ARCH); at start it
+picks the kernels of the CPU it finds, or those named by ``OPENBLAS_CORETYPE``. The kernels
+block and sum matrix products in different orders, so a product of the same numbers can
+differ in its last bits from one CPU kind to another (measured: a learning session's results
+by up to 4.3e-11 relative after hundreds of rollouts, README "What is equal to what"). Used by the
+suite's kernel sweep (test_policy_population.py) and by scripts/learning_identity.py.
+"""
+from __future__ import annotations
+
+import os
+
+# kernel (as OpenBLAS names the one it took) -> the CPU flags it needs; a kernel the CPU
+# lacks would end the process with an illegal instruction
+KERNELS = {'Katmai': {'sse2'}, 'Nehalem': {'ssse3', 'sse4_2'}, 'Sandybridge': {'avx'},
+           'Haswell': {'avx2', 'fma'},
+           'SkylakeX': {'avx512f', 'avx512bw', 'avx512dq', 'avx512vl'}}
+
+
+def cpu_flags() -> set[str]:
+    """The CPU's feature flags (Linux /proc/cpuinfo; empty elsewhere)."""
+    try:
+        with open('/proc/cpuinfo') as f:
+            for line in f:
+                if line.startswith('flags'):
+                    return set(line.split(':', 1)[1].split())
+    except OSError:
+        pass
+    return set()
+
+
+def runnable_kernels() -> list[str]:
+    """The kernels of KERNELS this CPU has the instructions for, oldest first."""
+    flags = cpu_flags()
+    return [kernel for kernel, needs in KERNELS.items() if needs <= flags]
+
+
+def current_kernel() -> str:
+    """The kernel numpy's OpenBLAS runs in this process ('' if numpy has no OpenBLAS)."""
+    import numpy  # noqa: F401 - loads the library threadpoolctl inspects
+    from threadpoolctl import threadpool_info
+    kernels = sorted({i.get('architecture', '') for i in threadpool_info()
+                      if i.get('internal_api') == 'openblas'})
+    return kernels[0] if kernels else ''
+
+
+def environment(kernel: str) -> dict[str, str]:
+    """This process's environment with OpenBLAS told to take `kernel`.
+
+    Raises:
+        ValueError: an unknown kernel, or one this CPU cannot run.
+    """
+    if kernel not in KERNELS:
+        raise ValueError(f'unknown OpenBLAS kernel {kernel!r}: one of {", ".join(KERNELS)}')
+    if kernel not in runnable_kernels():
+        raise ValueError(f'this CPU cannot run the OpenBLAS kernel {kernel!r} (it lacks '
+                         f'{", ".join(sorted(KERNELS[kernel] - cpu_flags()))})')
+    return {**os.environ, 'OPENBLAS_CORETYPE': kernel}
