@@ -11,8 +11,10 @@ setup:
 demo: setup
 	@$(ENV) && psl demo
 
+# two workers (pytest-xdist), a file at a time each, each on its own ROS domain (conftest.py);
+# the order of the files and of the tests in them is shuffled (pytest-randomly)
 test: setup
-	@$(ENV) && python -m pytest
+	@$(ENV) && python -m pytest -n 2 --dist loadfile
 
 bench: setup
 	@$(ENV) && psl bench graph

@@ -1,24 +1,12 @@
-"""Integration tests: the nodes run as separate processes over real DDS.
+"""Integration tests: the nodes run as separate processes over real DDS, on the ROS domain
+of this test run (the root conftest.py)."""
+import time
 
-Every test session gets its own ROS_DOMAIN_ID (set before anything starts, inherited by
-every process a test starts) so concurrent runs on one machine do not see each other, and
-discovery stays on this machine.
-"""
-import os
+import numpy as np
+import pytest
 
-os.environ['ROS_DOMAIN_ID'] = os.environ.get('PSL_TEST_DOMAIN_ID', str(1 + os.getpid() % 100))
-os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-# the memory nodes the tests start keep their files under the system's temporary folder, where
-# every tmp_path lies (a memory node refuses paths outside its memory_dir)
-os.environ['PSL_MEMORY_DIR'] = __import__('tempfile').gettempdir()
-
-import time  # noqa: E402
-
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-
-from psl_ros.graph import Graph, pid_alive  # noqa: E402
-from psl_ros.client import RosClient, evaluation_dict  # noqa: E402
+from psl_ros.graph import Graph, pid_alive
+from psl_ros.client import RosClient, evaluation_dict
 
 # graph mode against batch mode: the same law on the same states, only the order of the
 # floating-point additions differs

@@ -1,22 +1,58 @@
 """`psl demo` (what `make demo` runs) end to end: the graph as processes, the demonstration and
 the learned skill on the same placements, a bag of the loop's topics, nothing left behind."""
+import os
 import re
+import signal
 import subprocess
 import sys
+import time
 
 from psl_ros import names
 from psl_ros.bag_recorder import read_bag_summary
-from psl_ros.graph import pid_alive
+from psl_ros.graph import NODES, NodeHandle
+
+DEMO_TIMEOUT = 600.0        # s, a backstop for the whole demo (it takes seconds)
 
 
 def test_the_demo_learns_records_and_ends_its_processes(tmp_path):
-    done = subprocess.run([sys.executable, '-m', 'psl_cli.main', 'demo', '--out',
-                           str(tmp_path), '--positions', '3'],
-                          capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stdout + done.stderr
-    out = done.stdout
-    pids = [int(pid) for pid in re.findall(r'\(pid (\d+)\)', out)]
-    assert len(pids) == 6 and not [pid for pid in pids if pid_alive(pid)]
+    log_path = tmp_path / 'demo.log'
+    with open(log_path, 'w') as log:
+        demo = subprocess.Popen([sys.executable, '-m', 'psl_cli.main', 'demo', '--out',
+                                 str(tmp_path), '--positions', '3'],
+                                stdout=log, stderr=subprocess.STDOUT, text=True,
+                                start_new_session=True)
+    nodes: list[NodeHandle] = []
+    try:
+        # its nodes, held from the moment it prints their PIDs (one line, flushed)
+        deadline = time.monotonic() + DEMO_TIMEOUT
+        while not nodes:
+            ended = demo.poll() is not None
+            started = re.search(r'^started (.*)\n', log_path.read_text(), re.MULTILINE)
+            if started:
+                nodes = [NodeHandle(label, int(pid), demo.pid) for label, pid in
+                         re.findall(r'(\S+) \(pid (\d+)\)', started.group(1))]
+            elif ended:
+                break
+            assert time.monotonic() < deadline, f'psl demo printed: {log_path.read_text()}'
+            time.sleep(0.05)
+        demo.wait(timeout=max(0.0, deadline - time.monotonic()))
+    finally:
+        try:
+            if demo.poll() is None:           # Ctrl-C: the demo ends its graph, then itself
+                os.killpg(demo.pid, signal.SIGINT)      # not reaped: its group still
+                try:
+                    demo.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    os.killpg(demo.pid, signal.SIGKILL)
+                    demo.wait()
+        finally:
+            left = [node.label for node in nodes if node.alive()]
+            for node in nodes:
+                node.kill()
+                node.close()
+    out = log_path.read_text()
+    assert demo.returncode == 0, out
+    assert len(nodes) == len(NODES) and not left, (left, out)
     demonstration = re.search(r'the demonstration policy .*: (\d) of 3 fulfilled', out)
     learned = re.search(r'the learned skill, .*: (\d) of 3 fulfilled', out)
     assert demonstration and learned, out

@@ -144,7 +144,11 @@ def test_a_goal_change_in_the_action_goal_ends_at_the_new_goal(client, recorder,
 
 
 def test_the_next_rollout_has_its_own_goal_again(client, task):
-    result = client.rollout(TASK, task.tau_default, policy_for(task).default_theta)
+    theta = policy_for(task).default_theta
+    changed = client.rollout(TASK, task.tau_default, theta, new_goal=NEW_GOAL,
+                             new_goal_time=SWITCH)
+    assert changed.success and changed.evaluation.goal_change_time == SWITCH
+    result = client.rollout(TASK, task.tau_default, theta)
     assert result.success, result.message
     assert result.message == 'rollout done'
     assert result.evaluation.goal_change_time == -1.0

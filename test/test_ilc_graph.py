@@ -34,7 +34,7 @@ def test_a_graph_mode_payload_session_runs_ilc_as_batch_mode_does(tmp_path):
         g.start()
         g.wait_ready(timeout=60)
         with RosClient() as client:
-            result = client.learn(timeout=600, task=TASK, strategy=SETTINGS.strategy,
+            result = client.learn(timeout=300, task=TASK, strategy=SETTINGS.strategy,
                                   num_tasks=SETTINGS.num_tasks,
                                   max_rollouts_per_task=SETTINGS.search.max_rollouts,
                                   seed=SETTINGS.seed, mode='graph',

@@ -3,8 +3,9 @@
 A session through the nodes must give what the same session in-process gives (the nodes are
 adapters, not a second algorithm); a SIGKILLed learner, restarted, resumes from its checkpoint
 to the same result; bad goals get a reason and the node keeps serving. (Graph mode:
-the last test, with a whole graph in the root namespace; the other tests run their nodes under
-their own namespace so the two learners never answer the same goal.)
+the tests with a whole graph in the root namespace; the other tests run their nodes under
+namespaces of their own so no two learners answer the same goal; no test depends on another's
+state or order.)
 """
 import json
 import os
@@ -16,7 +17,8 @@ import pytest
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from psl_ros.graph import NODES, Graph, pid_alive
-from psl_ros.client import RosClient
+from psl_ros import names
+from psl_ros.client import RolloutClient, RosClient
 from psl_controller.policy import policy_for
 from psl_memory.skill_memory import SkillMemory
 from psl_msgs.msg import RolloutEvaluation
@@ -33,6 +35,7 @@ LEARN_NODES = tuple(n for n in NODES if n[0] in ('skill_memory', 'learner'))
 RELIABLE = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
 LEARNER_ONLY = tuple(n for n in NODES if n[0] == 'learner')
 NAMESPACE = 'batch_learning'
+KILLED_NS = 'killed_learner'     # the killed learner's own nodes
 
 
 def settings(strategy: str, num_tasks: int, budget: int, seed: int) -> LearnSettings:
@@ -226,8 +229,45 @@ def test_a_cancelled_session_resumes_when_the_goal_comes_again(client, tmp_path)
     assert_same_session(metrics, in_process(s, tmp_path / 'reference'))
 
 
-def test_a_killed_learner_resumes_from_its_checkpoint(nodes, client, tmp_path):
-    """Kills the module's learner for good: keep this the last test that uses `nodes`."""
+def test_a_killed_learner_resumes_from_its_checkpoint(tmp_path):
+    """A memory and a learner of its own (its own namespace): the learner is SIGKILLed in a
+    session and started again."""
+    nodes = Graph(nodes=LEARN_NODES, namespace=KILLED_NS, log_dir=tmp_path / 'first_logs',
+                  extra_params={'skill_memory': MEMORY_PARAMS,
+                                'learner': learner_params(tmp_path / 'runs')})
+    try:
+        nodes.start()
+        with RosClient(KILLED_NS) as client:
+            assert client.memory('info', timeout=30).success
+            before, s, out = kill_the_learner_in_a_session(nodes, client, tmp_path)
+            restarted = Graph(nodes=LEARNER_ONLY, namespace=KILLED_NS,
+                              log_dir=tmp_path / 'logs',
+                              extra_params={'learner': learner_params(tmp_path / 'runs')})
+            try:
+                restarted.start()
+                # a new participant: the old one may still see the killed server until its
+                # lease ends
+                with RosClient(KILLED_NS) as fresh:
+                    result = fresh.learn(timeout=300, **goal(s, out))
+            finally:
+                stop(restarted)
+            held = num_samples(client)
+    finally:
+        stop(nodes)
+    assert result.success, result.message
+    metrics = json.loads((out / 'metrics.json').read_text())
+    # the tasks finished before the kill were kept, not redone
+    assert without_time(metrics['tasks'][:len(before)]) == without_time(before)
+    assert [r['seconds'] for r in metrics['tasks'][:len(before)]] == [r['seconds']
+                                                                     for r in before]
+    # and the whole session is the uninterrupted one
+    assert_same_session(metrics, in_process(s, tmp_path / 'reference'))
+    assert held == sum(r['fulfilled'] for r in metrics['tasks'])
+
+
+def kill_the_learner_in_a_session(nodes: Graph, client, tmp_path):
+    """Start a session on `nodes`' learner and SIGKILL it after two tasks; returns the tasks
+    its checkpoint holds, the settings and the output folder."""
     fresh_memory(client, tmp_path)
     s = settings('scratch', num_tasks=8, budget=60, seed=2)
     out = tmp_path / 'session'
@@ -242,29 +282,13 @@ def test_a_killed_learner_resumes_from_its_checkpoint(nodes, client, tmp_path):
             if done_at_kill >= 2:
                 break
         time.sleep(0.005)
+    # the learner is a child of this test, not yet reaped: the PID is still its own
     os.kill(learner.pid, signal.SIGKILL)
     learner.process.wait(timeout=10)
     before = json.loads(checkpoint.read_text())['tasks']
     assert 2 <= len(before) < s.num_tasks, 'the kill came too late to test a resume'
     del handle
-    restarted = Graph(nodes=LEARNER_ONLY, namespace=NAMESPACE, log_dir=tmp_path / 'logs',
-                      extra_params={'learner': learner_params(tmp_path / 'runs')})
-    try:
-        restarted.start()
-        # a new participant: the old one may still see the killed server until its lease ends
-        with RosClient(NAMESPACE) as fresh:
-            result = fresh.learn(timeout=300, **goal(s, out))
-    finally:
-        stop(restarted)
-    assert result.success, result.message
-    metrics = json.loads((out / 'metrics.json').read_text())
-    # the tasks finished before the kill were kept, not redone
-    assert without_time(metrics['tasks'][:len(before)]) == without_time(before)
-    assert [r['seconds'] for r in metrics['tasks'][:len(before)]] == [r['seconds']
-                                                                     for r in before]
-    # and the whole session is the uninterrupted one
-    assert_same_session(metrics, in_process(s, tmp_path / 'reference'))
-    assert num_samples(client) == sum(r['fulfilled'] for r in metrics['tasks'])
+    return before, s, out
 
 
 def test_graph_mode_learns_what_batch_mode_learns(tmp_path):
@@ -278,7 +302,7 @@ def test_graph_mode_learns_what_batch_mode_learns(tmp_path):
         with RosClient() as c:
             s = settings('bootstrap', num_tasks=2, budget=12, seed=3)
             feedback = []
-            result = c.learn(timeout=600, feedback=feedback.append,
+            result = c.learn(timeout=300, feedback=feedback.append,
                              **goal(s, tmp_path / 'graph', mode='graph'))
             assert result.success, result.message
             assert feedback
@@ -309,12 +333,13 @@ def test_two_rollout_workers_learn_what_batch_mode_learns(tmp_path, wait_until):
             subscriptions = [c.node.create_subscription(
                 RolloutEvaluation, f'/{worker}/rollout_evaluation', counter(worker), RELIABLE)
                 for worker in evaluations]
-            # every evaluator matched this client before the first rollout: none is missed
-            assert wait_until(lambda: all(sub.get_publisher_count() >= 1
-                                          for sub in subscriptions), 30.0), \
-                [sub.get_publisher_count() for sub in subscriptions]
+            # every evaluator matched this client before the first rollout (both halves):
+            # none is missed
+            for worker, sub in zip(evaluations, subscriptions):
+                RolloutClient(c.node, worker).wait_for_subscribers(
+                    [names.ROLLOUT_EVALUATION], subscriptions=[sub], timeout=30.0)
             s = settings('scratch', num_tasks=2, budget=22, seed=5)
-            result = c.learn(timeout=600, **goal(s, tmp_path / 'graph', mode='graph'))
+            result = c.learn(timeout=300, **goal(s, tmp_path / 'graph', mode='graph'))
             assert result.success, result.message
             metrics = json.loads(open(result.metrics_path).read())
             # one evaluation per training and per held-out rollout; the last ones may still

@@ -1,4 +1,8 @@
-"""The skill_memory node as a separate process: services, bad requests, concurrency, restart."""
+"""The skill_memory node as a separate process: services, bad requests, concurrency, restart.
+
+The tests share one node (module scope) and are independent of their order: each uses skills
+of its own name or the `curve` fixture's (made once if it is missing), and the test that
+kills a node kills one of its own."""
 import json
 import math
 import os
@@ -16,10 +20,17 @@ MEMORY_NODE = (('skill_memory', 'psl_memory', 'skill_memory'),)
 TASK_SKILL = 'reach_over_obstacle'
 
 
-def start_memory(log_dir, autosave):
-    graph = Graph(nodes=MEMORY_NODE, log_dir=log_dir,
+KILLED_NS = 'killed_memory'     # the killed node's namespace: apart from the module's node
+
+
+def start_memory(log_dir, autosave, namespace: str = ''):
+    graph = Graph(nodes=MEMORY_NODE, log_dir=log_dir, namespace=namespace,
                   extra_params={'skill_memory': {'autosave_path': str(autosave)}})
-    graph.start()
+    try:
+        graph.start()
+    except BaseException:
+        graph.stop()
+        raise
     return graph
 
 
@@ -47,6 +58,23 @@ def client(memory_node):
     with RosClient() as c:
         assert c.memory('info', timeout=30).success
         yield c
+
+
+def add_curve(client, skill: str) -> None:
+    """12 samples of theta = [sin 2 tau, tau^2, cos tau] on tau in [0, 1] into a new skill."""
+    for i, tau in enumerate(np.linspace(0.0, 1.0, 12)):
+        theta = [math.sin(2 * tau), tau ** 2, math.cos(tau)]
+        response = client.memory('add_sample', skill=skill, tau=[float(tau)], theta=theta)
+        assert response.success, response.message
+        assert response.num_samples == i + 1
+
+
+@pytest.fixture
+def curve(client) -> str:
+    """The skill `curve` (1 task parameter, 3 policy parameters), made if it is missing."""
+    if 'curve' not in info(client):
+        add_curve(client, 'curve')
+    return 'curve'
 
 
 def info(client) -> dict:
@@ -81,19 +109,15 @@ def test_a_task_skill_is_created_by_whoever_knows_the_task(client):
 
 def test_add_query_complete_round_trip(client):
     rng = np.random.default_rng(1)
-    taus = np.linspace(0.0, 1.0, 12)
-    for i, tau in enumerate(taus):
-        theta = [math.sin(2 * tau), tau ** 2, math.cos(tau)]
-        response = client.memory('add_sample', skill='curve', tau=[float(tau)], theta=theta)
-        assert response.success, response.message
-        assert response.num_samples == i + 1
+    add_curve(client, 'round_trip')
     tau = 0.45
-    response = client.memory('query', skill='curve', tau=[tau])
+    response = client.memory('query', skill='round_trip', tau=[tau])
     assert response.success
     assert np.allclose(response.theta, [math.sin(2 * tau), tau ** 2, math.cos(tau)], atol=0.05)
     # theta -> tau through the associative memory
     theta = [math.sin(2 * tau), tau ** 2, math.cos(tau)]
-    response = client.memory('complete', skill='curve', pattern=[float(rng.uniform())] + theta,
+    response = client.memory('complete', skill='round_trip',
+                             pattern=[float(rng.uniform())] + theta,
                              known=[False, True, True, True])
     assert response.success, response.message
     assert list(response.pattern[1:]) == theta                # clamped entries untouched
@@ -135,7 +159,8 @@ BAD_REQUESTS = [
 
 
 @pytest.mark.parametrize('service, fields, words', BAD_REQUESTS)
-def test_bad_requests_get_clear_errors_and_change_nothing(client, service, fields, words):
+def test_bad_requests_get_clear_errors_and_change_nothing(client, curve, service, fields,
+                                                          words):
     before = info(client)
     query_before = client.memory('query', skill='curve', tau=[0.3]).theta
     response = client.memory(service, **fields)
@@ -220,7 +245,7 @@ def test_corrupt_file_is_refused_and_memory_kept(client, tmp_path):
 
 
 def test_four_concurrent_clients_lose_no_sample(client):
-    start = info(client).get('concurrent', {}).get('num_samples', 0)
+    assert 'concurrent' not in info(client)
     per_client, errors = 15, []
 
     def work(k: int):
@@ -244,7 +269,7 @@ def test_four_concurrent_clients_lose_no_sample(client):
     for t in threads:
         t.join(timeout=120)
     assert not errors
-    assert info(client)['concurrent']['num_samples'] == start + 4 * per_client
+    assert info(client)['concurrent']['num_samples'] == 4 * per_client
 
 
 def test_ten_new_clients_under_load_lose_no_answer():
@@ -258,16 +283,25 @@ def test_ten_new_clients_under_load_lose_no_answer():
     assert report['samples_held'] == report['samples_expected'] == 1 + 2 * 50
 
 
-def test_killed_node_restarts_with_what_it_learned(memory_node, client, autosave, tmp_path):
-    before = info(client)
-    answer = client.memory('query', skill='curve', tau=[0.37])
-    assert autosave.is_file()
-    node = memory_node.processes[0]
-    os.kill(node.pid, signal.SIGKILL)
-    node.process.wait(timeout=10)
-    restarted = start_memory(tmp_path / 'logs', autosave)
+def test_killed_node_restarts_with_what_it_learned(tmp_path):
+    """A node of its own (its own namespace and autosave file), killed with SIGKILL and started
+    again: it answers as before."""
+    autosave = tmp_path / 'autosave.npz'
+    first = start_memory(tmp_path / 'logs', autosave, namespace=KILLED_NS)
     try:
-        with RosClient() as fresh:
+        with RosClient(KILLED_NS) as c:
+            add_curve(c, 'curve')
+            before = info(c)
+            answer = c.memory('query', skill='curve', tau=[0.37])
+        assert autosave.is_file()
+        node = first.processes[0]
+        os.kill(node.pid, signal.SIGKILL)       # a child of this test, not yet reaped: its own
+        node.process.wait(timeout=10)
+    finally:
+        stop(first)
+    restarted = start_memory(tmp_path / 'logs_again', autosave, namespace=KILLED_NS)
+    try:
+        with RosClient(KILLED_NS) as fresh:
             assert fresh.memory('info', timeout=30).success
             assert info(fresh) == before
             again = fresh.memory('query', skill='curve', tau=[0.37])

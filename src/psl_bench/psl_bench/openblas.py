@@ -40,7 +40,7 @@ def runnable_kernels() -> list[str]:
 
 def current_kernel() -> str:
     """The kernel numpy's OpenBLAS runs in this process ('' if numpy has no OpenBLAS)."""
-    import numpy  # noqa: F401 - loads the library threadpoolctl inspects
+    __import__('numpy')          # loads the library threadpoolctl inspects
     from threadpoolctl import threadpool_info
     kernels = sorted({i.get('architecture', '') for i in threadpool_info()
                       if i.get('internal_api') == 'openblas'})

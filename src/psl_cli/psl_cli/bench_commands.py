@@ -71,8 +71,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument('--clients', type=positive_int, default=8, help='querying client processes')
     p.add_argument('--adders', type=non_negative_int, default=2,
                    help='adding client processes')
-    p.add_argument('--calls', type=positive_int, default=1000,
+    p.add_argument('--calls', type=positive_int, default=500,
                    help='queries per client (adds: a fifth)')
+    p.add_argument('--samples', type=positive_int, default=200,
+                   help='samples in the skill before the load starts')
+    p.add_argument('--timeout', type=options.positive_float, default=5.0,
+                   help='seconds a call may wait for its answer before it counts as lost')
+    p.add_argument('--busy', type=non_negative_int, default=0,
+                   help='cores kept busy by spinning processes meanwhile')
+    p.add_argument('--log-dir', help="keep the skill memory's log here")
     p = bench('cli', 'a psl command that talks to the graph (psl memory info), end to end as '
               'a process: total, to the answer, after it; beside the call in this process',
               task=None)
@@ -168,7 +175,8 @@ def _memory(args) -> tuple[dict, str]:
 
 def _memory_load(args) -> tuple[dict, str]:
     from psl_bench import memory_load
-    report = memory_load.measure(args.clients, args.adders, args.calls)
+    report = memory_load.measure(args.clients, args.adders, args.calls, timeout=args.timeout,
+                                 busy=args.busy, samples=args.samples, log_dir=args.log_dir)
     return report, memory_load.format_report(report)
 
 

@@ -50,8 +50,10 @@ def run_demo(task: str, out: Path, positions: int = 5) -> int:
               flush=True)
         graph.wait_ready()
         stop = threading.Event()
+        recorded: dict[str, int] = {}       # messages per topic so far (the recorder's thread)
         recorder = threading.Thread(target=record, args=(bag, names.RECORDED_TOPICS),
-                                    kwargs={'stop': stop, 'discovery_timeout': 2.0})
+                                    kwargs={'stop': stop, 'discovery_timeout': 2.0,
+                                            'progress': lambda r: recorded.update(r.counts)})
         recorder.start()
         try:
             with RosClient() as client:
@@ -83,7 +85,12 @@ def run_demo(task: str, out: Path, positions: int = 5) -> int:
                         return 1
                     learned.append(evaluation_dict(result.evaluation))
         finally:
-            time.sleep(0.5)
+            # each rollout's evaluation, the last message of its episode, in the bag too
+            evaluation = '/' + names.ROLLOUT_EVALUATION
+            deadline = time.monotonic() + 10.0
+            while (recorded.get(evaluation, 0) < len(rows) + len(learned)
+                   and time.monotonic() < deadline and recorder.is_alive()):
+                time.sleep(0.01)
             stop.set()
             recorder.join()
     tau_names = definition.tau_names

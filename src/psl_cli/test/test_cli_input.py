@@ -3,9 +3,11 @@ when no graph is up (the line names what is missing) and when stdout is a closed
 
 Every command runs as its own process (``python -m psl_cli.main``), on files this test makes.
 The memory-node cases start one skill_memory process (the session's ROS_DOMAIN_ID, conftest.py,
-and a namespace of its own; ended by PID); the no-graph cases use a namespace nothing serves.
+and a namespace of its own; ended by PID); the no-graph cases use a namespace nothing serves;
+the recorder case publishes from a node of its own in this process (its own rclpy context).
 """
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -14,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from psl_ros.graph import Graph, pid_alive
+from psl_ros.graph import Graph
 
 PSL = [sys.executable, '-m', 'psl_cli.main']
 NOBODY = f'nobody_{os.getpid()}'           # a namespace no node serves
@@ -149,7 +151,12 @@ def closed_pipe_run(args, cwd) -> subprocess.CompletedProcess:
                                    text=True, cwd=cwd)
     finally:
         os.close(write)
-    _, stderr = process.communicate(timeout=120)
+    try:
+        _, stderr = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:            # timed out (or interrupted): ended by PID
+            process.kill()
+            process.wait()
     return subprocess.CompletedProcess(process.args, process.returncode, '', stderr)
 
 
@@ -174,7 +181,7 @@ def memory_folder(tmp_path_factory):
         yield folder
     finally:
         graph.stop()
-        assert not [p.name for p in graph.processes if pid_alive(p.pid)]
+        assert not [p.name for p in graph.processes if p.process.poll() is None]
 
 
 def test_loading_a_directory_says_it_is_one(memory_folder):
@@ -228,28 +235,57 @@ def test_a_node_that_cannot_start_says_why_in_one_line(broken_task, tmp_path):
     assert_one_line(done, 'SimNode: cannot start', "joint 'joint2'")
 
 
+RECORDED = 25          # messages the recorder test publishes
+
+
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
 def test_psl_record_ends_with_a_complete_bag_on_a_signal_even_from_a_script(tmp_path, sig):
     """A recorder a script starts in the background inherits SIGINT ignored; Ctrl-C (SIGINT)
-    and SIGTERM both end it normally, with the bag's metadata written."""
+    and SIGTERM both end it normally, with the bag's metadata written and every message it
+    has received in the bag (and in its report)."""
+    import rclpy
+    from rclpy.duration import Duration
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.signals import SignalHandlerOptions
+    from std_msgs.msg import String
+
     from psl_ros.bag_recorder import read_bag_summary
 
-    def ignore_sigint():
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-    process = subprocess.Popen(PSL + ['record', '-o', str(tmp_path / 'bag'), '/psl_no_topic'],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               preexec_fn=ignore_sigint)
+    topic, bag = f'/psl_record_test_{os.getpid()}', tmp_path / 'bag'
+    context = rclpy.Context()
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    node = process = None
     try:
-        deadline = time.monotonic() + 30
-        while not (tmp_path / 'bag').exists() and time.monotonic() < deadline:
-            time.sleep(0.05)
-        time.sleep(0.5)
+        # latched messages, there before the recorder: it takes them when it subscribes
+        node = rclpy.create_node(f'psl_record_test_{os.getpid()}', context=context)
+        publisher = node.create_publisher(String, topic, QoSProfile(
+            depth=RECORDED, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        for k in range(RECORDED):
+            publisher.publish(String(data=f'message {k}'))
+        # as a shell script's background job: SIGINT ignored (trap ''), through exec
+        process = subprocess.Popen(['sh', '-c', 'trap "" INT; exec "$@"', 'sh', *PSL,
+                                    'record', '-o', str(bag), topic],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        # the recorder is ready once it has subscribed (it sets its signal handlers before
+        # it makes the bag, which it does before it subscribes) and has acknowledged every
+        # message: what its subscription holds is in the bag however it ends
+        deadline = time.monotonic() + 60
+        while publisher.get_subscription_count() < 1:
+            assert process.poll() is None, process.communicate()
+            assert time.monotonic() < deadline, 'the recorder did not subscribe'
+            time.sleep(0.02)
+        assert publisher.wait_for_all_acked(Duration(seconds=30)), 'messages not acknowledged'
         process.send_signal(sig)
         out, err = process.communicate(timeout=30)
     finally:
-        if process.poll() is None:
+        if process is not None and process.poll() is None:
             process.kill()
             process.wait()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)
     assert process.returncode == 0, err
-    assert (tmp_path / 'bag' / 'metadata.yaml').is_file()
-    assert all(count == 0 for _, count in read_bag_summary(tmp_path / 'bag').values())
+    assert (bag / 'metadata.yaml').is_file()
+    assert read_bag_summary(bag) == {topic: ('std_msgs/msg/String', RECORDED)}, err
+    assert re.search(rf'^{re.escape(topic)}\s+{RECORDED}$', out, re.MULTILINE), out

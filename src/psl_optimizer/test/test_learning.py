@@ -86,7 +86,8 @@ def test_stopped_session_resumes_to_the_same_result(task, evaluator, finished, t
     assert without_time(resumed['tasks']) == without_time(full['tasks'])
     assert resumed['summary'] == full['summary']
     a, b = memory_arrays(tmp_path / 'memory.npz'), memory_arrays(full_out / 'memory.npz')
-    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+    assert a and a.keys() == b.keys(), (sorted(a), sorted(b))
+    assert all(np.array_equal(a[k], b[k]) for k in a)
 
 
 def test_a_killed_learner_process_resumes_from_its_checkpoint(finished, tmp_path):
@@ -96,26 +97,29 @@ def test_a_killed_learner_process_resumes_from_its_checkpoint(finished, tmp_path
            '--tasks', str(SETTINGS.num_tasks), '--seed', str(SETTINGS.seed),
            '--budget', str(SETTINGS.search.max_rollouts), '--test-tasks',
            str(SETTINGS.num_test), '--out', str(tmp_path)]
+    checkpoint = tmp_path / 'checkpoint.json'       # written atomically (os.replace)
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
     try:
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            checkpoint = tmp_path / 'checkpoint.json'
+        while time.monotonic() < deadline and proc.poll() is None:
             if checkpoint.is_file() and len(json.loads(checkpoint.read_text())['tasks']) >= 2:
                 break
             time.sleep(0.01)
-        os.kill(proc.pid, signal.SIGKILL)
     finally:
+        # its whole process group (its own session; the group's ID cannot be reused before
+        # the leader is reaped by the wait below)
         if proc.poll() is None:
-            os.kill(proc.pid, signal.SIGKILL)
+            os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
+    assert proc.returncode == -signal.SIGKILL, f'psl learn ended by itself ({proc.returncode})'
     done_before = len(json.loads((tmp_path / 'checkpoint.json').read_text())['tasks'])
     assert 2 <= done_before < SETTINGS.num_tasks, 'killed too late to test a resume'
     assert subprocess.run(cmd, capture_output=True, timeout=300).returncode == 0
     metrics = json.loads((tmp_path / 'metrics.json').read_text())
     assert without_time(metrics['tasks']) == without_time(full['tasks'])
     a, b = memory_arrays(tmp_path / 'memory.npz'), memory_arrays(full_out / 'memory.npz')
+    assert a and a.keys() == b.keys(), (sorted(a), sorted(b))
     assert all(np.array_equal(a[k], b[k]) for k in a)
 
 

@@ -78,31 +78,57 @@ class Stopped(Exception):
     """A wait ended because the caller's `stop` event was set (e.g. Ctrl-C)."""
 
 
+class ServerWatch:
+    """Whether an action server has gone: unseen for GONE_AFTER s (its process ended: Fast DDS
+    drops a dead participant after its lease, 4 s with the profile scripts/env.sh sets)."""
+
+    def __init__(self, action_client: ActionClient, what: str):
+        self.action_client, self.what = action_client, what
+        self._unseen_since: float | None = None
+
+    def check(self, doing: str) -> None:
+        """Raises RuntimeError when the server has gone while `doing`."""
+        if self.action_client.server_is_ready():
+            self._unseen_since = None
+            return
+        now = time.monotonic()
+        self._unseen_since = self._unseen_since or now
+        if now - self._unseen_since > GONE_AFTER:
+            raise RuntimeError(f'the action server {self.what} has gone (its node ended?) '
+                               f'{doing}')
+
+
 def send_goal(action_client: ActionClient, goal, timeout: float, what: str, feedback=None,
               resend: bool = False):
     """The goal handle of an accepted goal. With `resend`, a goal without a response after
     RESEND_AFTER s (doubling) is sent again: a server that could not answer a client it had not
     matched yet drops the goal unexecuted (rclpy's ActionServer returns before it executes),
-    so only a merely late answer runs a goal twice — for idempotent goals only.
+    so only a merely late answer runs a goal twice — for idempotent goals only. The wait ends
+    as soon as the server has gone (`ServerWatch`).
 
     Raises:
-        TimeoutError: no server, or no answer within `timeout`; RuntimeError: rejected.
+        TimeoutError: no server, or no answer within `timeout`; RuntimeError: rejected, or
+        the server has gone.
     """
     deadline = time.monotonic() + timeout
     if not wait_for_server(action_client, timeout):
         raise TimeoutError(f'the action server {what} is not available (waited '
                            f'{timeout:g} s)')
+    watch = ServerWatch(action_client, what)
     wait = RESEND_AFTER if resend else timeout
     while True:
         future = action_client.send_goal_async(goal, feedback_callback=feedback)
-        remaining = deadline - time.monotonic()
-        try:
-            handle = wait_for(future, max(0.01, min(wait, remaining)), f'{what} (goal)')
+        answered = threading.Event()
+        future.add_done_callback(lambda _: answered.set())
+        give_up = min(time.monotonic() + wait, deadline)
+        while not answered.wait(0.1) and time.monotonic() < give_up:
+            watch.check('while the goal was sent')
+        if answered.is_set():
+            handle = future.result()
             break
-        except TimeoutError:
-            if time.monotonic() >= deadline:
-                raise TimeoutError(f'no answer from {what} (goal) within {timeout:.0f} s') from None
-            wait *= 2
+        if time.monotonic() >= deadline:
+            raise TimeoutError(f'no answer from {what} (goal) within {timeout:.0f} s')
+        wait *= 2
     if not handle.accepted:
         raise RuntimeError(f'{what} rejected the goal (is it busy with another one?)')
     return handle
@@ -111,9 +137,8 @@ def send_goal(action_client: ActionClient, goal, timeout: float, what: str, feed
 def wait_for_result(action_client: ActionClient, handle, timeout: float, what: str,
                     stop=None):
     """The result of an accepted goal. The result is asked for again every RESULT_POLL s (an
-    answer can be lost like any), and the wait ends as soon as the server has been gone for
-    GONE_AFTER s (its process ended: Fast DDS drops a dead participant after its lease, 4 s
-    with the profile scripts/env.sh sets), or when `stop` (a threading.Event) is set.
+    answer can be lost like any), and the wait ends as soon as the server has gone
+    (`ServerWatch`), or when `stop` (a threading.Event) is set.
 
     Raises:
         TimeoutError: no result within `timeout`; RuntimeError: the server has gone;
@@ -122,13 +147,13 @@ def wait_for_result(action_client: ActionClient, handle, timeout: float, what: s
     deadline = time.monotonic() + timeout
     answered = threading.Event()
     futures = []
+    watch = ServerWatch(action_client, what)
 
     def ask() -> None:
         futures.append(handle.get_result_async())
         futures[-1].add_done_callback(lambda _: answered.set())
     ask()
     asked = time.monotonic()
-    gone_since = None
     while True:
         done = next((f for f in futures if f.done()), None)
         if done is not None:
@@ -138,13 +163,7 @@ def wait_for_result(action_client: ActionClient, handle, timeout: float, what: s
             raise TimeoutError(f'no answer from {what} (result) within {timeout:.0f} s')
         if stop is not None and stop.is_set():
             raise Stopped(f'{what}: stopped while waiting for the result')
-        if action_client.server_is_ready():
-            gone_since = None
-        else:
-            gone_since = gone_since or now
-            if now - gone_since > GONE_AFTER:
-                raise RuntimeError(f'the action server {what} has gone (its node ended?) '
-                                   'while the goal ran')
+        watch.check('while the goal ran')
         if now - asked > RESULT_POLL:
             ask()
             asked = now
@@ -199,8 +218,9 @@ class RolloutClient:
         return self._matched
 
     def topic(self, name: str) -> str:
-        """The resolved name of one of the worker's topics."""
-        return self.node.resolve_topic_name(names.under(self.worker, name))
+        """The resolved name of one of the worker's topics (an absolute name as it is)."""
+        return self.node.resolve_topic_name(name if name.startswith('/')
+                                            else names.under(self.worker, name))
 
     def unmatched(self, topic: str, subscribers: int, publishers: int = 1) -> str:
         """'' when `topic` (resolved) has `publishers` publishers that report (`matched`)
@@ -290,6 +310,31 @@ class RolloutClient:
         except BaseException:          # Ctrl-C, a timeout, a server gone: the goal ends too
             handle.cancel_goal_async()
             raise
+
+    def wait_for_subscribers(self, topics, extra: int = 1, timeout: float = 15.0,
+                             subscriptions=()) -> None:
+        """Wait until the graph's publisher of each topic has matched `extra` subscriptions
+        more than the graph's own (`names.OWN_SUBSCRIBERS`: e.g. a recorder that just
+        started, or this client's `subscriptions`), and each of `subscriptions` (rclpy
+        Subscriptions of this client) has matched those publishers: from then on every
+        message published reaches them. Raises TimeoutError naming what is missing."""
+        deadline = time.monotonic() + timeout
+        for topic in topics:
+            resolved = self.topic(topic)
+            want = names.OWN_SUBSCRIBERS.get(
+                topic, names.OWN_SUBSCRIBERS.get(topic.lstrip('/'), 0)) + extra
+            mine = [s for s in subscriptions if s.topic_name == resolved]
+
+            def missing() -> str:
+                gap = self.unmatched(resolved, want)
+                publishers = len(self.matched.counts(PUBLISHER, resolved))
+                short = [s for s in mine if s.get_publisher_count() < publishers]
+                return gap or (f'{resolved}: a subscription of this client matched '
+                               f'{short[0].get_publisher_count()} of {publishers} publishers'
+                               if short else '')
+            if not wait_until(lambda: not missing(), max(0.0, deadline - time.monotonic()),
+                              self.node.context):
+                raise TimeoutError(f'not matched within {timeout:g} s: {missing()}')
 
     def update_goal(self, goal, time_from_start: float, episode_ns: int = 0,
                     timeout: float = 5.0) -> None:
@@ -405,28 +450,8 @@ class RosClient:
 
     def wait_for_subscribers(self, topics, extra: int = 1, timeout: float = 15.0,
                              subscriptions=()) -> None:
-        """Wait until the graph's publisher of each topic has matched `extra` subscriptions
-        more than the graph's own (`names.OWN_SUBSCRIBERS`: e.g. a recorder that just
-        started, or this client's `subscriptions`), and each of `subscriptions` (rclpy
-        Subscriptions of this client) has matched those publishers: from then on every
-        message published reaches them. Raises TimeoutError naming what is missing."""
-        deadline = time.monotonic() + timeout
-        for topic in topics:
-            resolved = self.node.resolve_topic_name(topic)
-            want = names.OWN_SUBSCRIBERS.get(
-                topic, names.OWN_SUBSCRIBERS.get(topic.lstrip('/'), 0)) + extra
-            mine = [s for s in subscriptions if s.topic_name == resolved]
-
-            def missing() -> str:
-                gap = self.worker.unmatched(resolved, want)
-                publishers = len(self.worker.matched.counts(PUBLISHER, resolved))
-                short = [s for s in mine if s.get_publisher_count() < publishers]
-                return gap or (f'{resolved}: a subscription of this client matched '
-                               f'{short[0].get_publisher_count()} of {publishers} publishers'
-                               if short else '')
-            if not wait_until(lambda: not missing(), max(0.0, deadline - time.monotonic()),
-                              self.context):
-                raise TimeoutError(f'not matched within {timeout:g} s: {missing()}')
+        """`RolloutClient.wait_for_subscribers` on the rollout worker of this namespace."""
+        self.worker.wait_for_subscribers(topics, extra, timeout, subscriptions)
 
     def send_learn_goal(self, timeout: float = 30.0, feedback=None, **fields):
         """`LearnClient.send_goal`."""

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import select
 import signal
 import subprocess
 import time
@@ -50,6 +51,57 @@ def pid_alive(pid: int) -> bool:
             return f.read().rsplit(')', 1)[-1].split()[0] != 'Z'
     except OSError:
         return False
+
+
+class NodeHandle:
+    """A psl node that another process (psl up, psl demo) started and printed the PID of,
+    held by a pidfd from the moment the PID is read: checked then to be that process's child
+    running the node's executable, it can later be signalled and watched without ever
+    reaching another process that has reused the PID meanwhile."""
+
+    def __init__(self, label: str, pid: int, parent: int):
+        self.label, self.pid = label, pid
+        try:
+            self._fd = os.pidfd_open(pid)
+        except ProcessLookupError:          # ended and reaped already: nothing to hold
+            self._fd = None
+            return
+        try:
+            with open(f'/proc/{pid}/status') as f:
+                ppid = int(next(line for line in f if line.startswith('PPid:')).split()[1])
+            with open(f'/proc/{pid}/cmdline', 'rb') as f:
+                cmdline = f.read().decode(errors='replace').split('\0')
+        except OSError:
+            ppid, cmdline = None, []
+        # read with the pidfd held: if its process runs still, what was read was its own
+        if self.alive():
+            package, executable = next((p, e) for n, p, e in NODES
+                                       if n == label.rsplit('/', 1)[-1])
+            if ppid != parent or not any(arg.endswith(f'/lib/{package}/{executable}')
+                                         for arg in cmdline):
+                self.close()
+                raise AssertionError(f'pid {pid} is not {label} of pid {parent}: child of '
+                                     f'{ppid}, running {" ".join(cmdline)}')
+
+    def alive(self) -> bool:
+        """False once it has ended (a zombie not reaped yet has ended)."""
+        return (self._fd is not None
+                and not select.select([self._fd], [], [], 0)[0])    # readable: it ended
+
+    def kill(self, sig: int = signal.SIGKILL) -> bool:
+        """Send `sig`; False if the node had ended already."""
+        if self._fd is None:
+            return False
+        try:
+            signal.pidfd_send_signal(self._fd, sig)
+        except ProcessLookupError:
+            return False
+        return True
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 def log_root() -> Path:

@@ -18,8 +18,19 @@
   with rclpy's default keep-last 10 a client that falls behind while other clients are being
   answered loses its own answer among theirs and waits in vain. Measured with 8 querying and
   2 adding client processes (`psl bench memory-load`): 31 of 4,200 answers lost with the
-  default, on every run; none with this depth on the clients (the server's depth made no
-  difference).
+  default, on every run; none with depth 1,000 on the clients. The depth is how many answers
+  to *other* clients a client may fall behind (its process starved of CPU: each answer costs
+  it an executor turn, ~0.35 ms of Python) and still get its own; the skill memory answers
+  350-650 calls/s under that load, so 1,000 was 1.5-3 s, less than a call's timeout (5-10 s):
+  a client that was not run for 4 s lost its answer in 1 run of 6, one whose executor took
+  at most ~200 answers/s lost 1 of 100 calls in each of 5 runs (the requests executed, the
+  answers sent and pushed out of its reader). With 5,000: none lost in 6 and in 3 such runs
+  (the throttled client's answers all arrived, 3-5 of them after its 5 s timeout: slow, not
+  lost). 5,000 is 8-14 s of answers and Fast DDS's default `max_samples` (a deeper keep-last
+  history of a keyless topic would stop at 5,000 and behave like keep-all); a client further
+  behind than its timeout has failed anyway. Memory grows only with the answers held. On the
+  server, the same depth bounds how many answers a client's reader may leave unacknowledged
+  before the writer drops them.
 """
 from __future__ import annotations
 
@@ -29,5 +40,5 @@ RELIABLE = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
 WHOLE_EPISODE = QoSProfile(depth=20000, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
-SERVICES = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+SERVICES = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)

@@ -1,16 +1,48 @@
 """Stale Fast DDS shared-memory files go; those of live owners, young ones, links stay."""
 import fcntl
 import os
+import select
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from psl_ros.shared_memory import SHM_DIR, remove_stale
 
 HOLD = ('import fcntl, os, sys, time; fd = os.open(sys.argv[1], os.O_RDWR); '
         'fcntl.flock(fd, fcntl.LOCK_EX); print("held", flush=True); time.sleep(60)')
+
+
+def read_line(process: subprocess.Popen, timeout: float) -> str:
+    """The next line the process writes to its stdout pipe, or AssertionError after `timeout` s
+    (a process that hangs before it prints fails the test instead of blocking it)."""
+    ready, _, _ = select.select([process.stdout], [], [], timeout)
+    assert ready, f'no line from pid {process.pid} within {timeout} s'
+    return process.stdout.readline().strip()
+
+
+@pytest.fixture
+def started():
+    """The processes a test starts (append each one at once); ended by PID whatever happens:
+    SIGINT (a node leaves its shared memory in order), then SIGKILL."""
+    processes: list[subprocess.Popen] = []
+    try:
+        yield processes
+    finally:
+        for process in processes:
+            if process.poll() is None:
+                process.send_signal(signal.SIGINT)
+        for process in processes:
+            try:
+                process.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+            if process.stdout is not None:
+                process.stdout.close()
 
 
 def _participant(directory: Path, name: str) -> list[Path]:
@@ -36,11 +68,12 @@ def test_only_files_whose_lock_nobody_holds_are_removed(tmp_path):
     holder = subprocess.Popen([sys.executable, '-c', HOLD, str(alive[1])],
                               stdout=subprocess.PIPE, text=True)
     try:
-        assert holder.stdout.readline().strip() == 'held'
+        assert read_line(holder, 30.0) == 'held'
         removed = remove_stale(tmp_path, min_age=10.0)
     finally:
         holder.kill()
         holder.wait()
+        holder.stdout.close()
     assert removed == sorted(p.name for p in stale)
     assert not any(p.exists() for p in stale)
     assert all(p.exists() for p in alive + young + [other, outside])
@@ -55,11 +88,14 @@ NODE = ('import rclpy, time; rclpy.init(); node = rclpy.create_node("shm_test");
         'print("up", flush=True); time.sleep(60)')
 
 
-def _start_node() -> tuple[subprocess.Popen, set[str]]:
+def _start_node(started: list[subprocess.Popen]) -> tuple[subprocess.Popen, set[str]]:
+    """A node process (in `started` before anything can fail) and the shared-memory segments
+    it made."""
     before = set(os.listdir(SHM_DIR))
     process = subprocess.Popen([sys.executable, '-c', NODE], stdout=subprocess.PIPE, text=True,
                                start_new_session=True)
-    assert process.stdout.readline().strip() == 'up'
+    started.append(process)
+    assert read_line(process, 30.0) == 'up'
     deadline = time.monotonic() + 10
     while time.monotonic() < deadline:
         segments = {f for f in set(os.listdir(SHM_DIR)) - before
@@ -71,34 +107,38 @@ def _start_node() -> tuple[subprocess.Popen, set[str]]:
     raise AssertionError('the node made no shared-memory segment')
 
 
-def test_a_killed_nodes_segment_is_removed_a_live_ones_stays():
-    live, live_segments = _start_node()
-    killed, killed_segments = _start_node()
-    try:
-        killed.send_signal(signal.SIGKILL)
-        killed.wait()
-        assert all((SHM_DIR / s).exists() for s in killed_segments)     # left behind
-        time.sleep(MIN_AGE)      # a participant starting now elsewhere is younger: left alone
-        removed = remove_stale(min_age=MIN_AGE)
-        assert killed_segments <= set(removed)
-        assert not any((SHM_DIR / s).exists() for s in killed_segments)
-        assert all((SHM_DIR / s).exists() for s in live_segments)
-        assert not set(removed) & live_segments
-        fd = os.open(SHM_DIR / f'{next(iter(live_segments))}_el', os.O_RDWR)
-        try:                                    # its owner still holds its lock
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                raise AssertionError('the live node does not hold its lock')
-            except BlockingIOError:
-                pass
-        finally:
-            os.close(fd)
+def _older_than(paths: list[Path], age: float) -> bool:
+    """Every file's modification time (what remove_stale ages lock files by) lies more than
+    `age` s back."""
+    now = time.time()
+    return all(now - path.stat().st_mtime > age for path in paths)
+
+
+def test_a_killed_nodes_segment_is_removed_a_live_ones_stays(started):
+    live, live_segments = _start_node(started)
+    killed, killed_segments = _start_node(started)
+    killed.send_signal(signal.SIGKILL)
+    killed.wait()
+    assert all((SHM_DIR / s).exists() for s in killed_segments)     # left behind
+    # until its lock files are MIN_AGE old, remove_stale leaves them alone (as it does those
+    # of a participant starting now elsewhere): wait for that age, not for a guessed time
+    locks = [SHM_DIR / f'{s}_el' for s in killed_segments]
+    deadline = time.monotonic() + MIN_AGE + 30.0
+    while not _older_than(locks, MIN_AGE):
+        assert time.monotonic() < deadline, 'the lock files do not age'
+        time.sleep(0.05)
+    removed = remove_stale(min_age=MIN_AGE)
+    assert killed_segments <= set(removed)
+    assert not any((SHM_DIR / s).exists() for s in killed_segments)
+    assert all((SHM_DIR / s).exists() for s in live_segments)
+    assert not set(removed) & live_segments
+    assert live.poll() is None
+    fd = os.open(SHM_DIR / f'{next(iter(live_segments))}_el', os.O_RDWR)
+    try:                                    # its owner still holds its lock
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            raise AssertionError('the live node does not hold its lock')
+        except BlockingIOError:
+            pass
     finally:
-        for process in (live, killed):
-            if process.poll() is None:
-                process.send_signal(signal.SIGINT)
-                try:
-                    process.wait(timeout=5)
-                except subprocess.TimeoutExpired:
-                    process.kill()
-                    process.wait()
+        os.close(fd)

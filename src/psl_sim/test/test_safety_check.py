@@ -118,10 +118,14 @@ def test_the_torque_along_the_reference_is_mass_times_acceleration(tmp_path):
     assert verdict.violation == pytest.approx(24.0 / 15.0 - 1.0, rel=1e-9)
 
 
-@pytest.mark.parametrize('corner', [(0.0, 0.0), (1.0, 1.0), (0.5, 1.0)])
-def test_collisions_agree_with_the_reward_geometrys_replay(tmp_path, corner):
+# (obstacle_x, obstacle_height) in units of their ranges, and whether the demonstration
+# enters the pillar there: clear over the low one, into the high one (link3, by 65 and 45 mm)
+@pytest.mark.parametrize('corner, collides', [((0.0, 0.0), False), ((1.0, 1.0), True),
+                                              ((0.5, 1.0), True)])
+def test_collisions_agree_with_the_reward_geometrys_replay(tmp_path, corner, collides):
     """The demonstration on a low and a high pillar: refused exactly when the reward
-    geometry's replay (a second implementation: distance sensors) finds a penetration."""
+    geometry's replay (a second implementation: distance sensors) finds a penetration, and
+    both find the one the corner has."""
     task = variant(tmp_path, {'collisions': True, 'replay_period': 0.002})
     arm = ArmModel(task)
     from psl_controller.policy import policy_for     # the policy is one layer up: test only
@@ -130,8 +134,9 @@ def test_collisions_agree_with_the_reward_geometrys_replay(tmp_path, corner):
     reference = policy.reference(policy.default_theta, tau)
     verdict = SafetyCheck(arm).check(tau, reference.q, reference.qd)
     distance = RewardGeometry(arm).replay(reference.q[None], tau[None]).distance[0]
-    assert verdict.safe == (distance.min() >= 0.0)
-    if not verdict.safe:
+    assert (distance.min() < 0.0) == collides, distance.min()
+    assert verdict.safe == (not collides), verdict.reason
+    if collides:
         assert 'enters obstacle' in verdict.reason
         assert verdict.violation == pytest.approx(-distance.min(), abs=1e-9)
 
