@@ -1,9 +1,15 @@
-"""Matched-endpoint reports (psl_ros.matching) between two DDS participants: the report
-follows the publisher's matches as they come and go, and once it says a new subscription is
-matched, the very next message reaches it."""
+"""DDS matching between participants in one process.
+
+Matched-endpoint reports (psl_ros.matching): the report follows a publisher's matches as they
+come and go, and once it says a new subscription is matched, the very next message reaches it.
+
+Services that do not lose their answers (psl_ros.service, psl_ros.qos.SERVICES): an answer the server cannot send yet (its client is not
+matched) waits without stalling the other clients and is sent once the client is matched, and
+a client that falls behind the answers to the other clients still gets its own."""
 import os
 import threading
 import time
+import warnings
 
 import pytest
 
@@ -12,24 +18,35 @@ os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 import rclpy  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from rclpy.service import Service  # noqa: E402
+from std_srvs.srv import SetBool  # noqa: E402
+
+from psl_ros import service as psl_service  # noqa: E402
+from psl_ros.matching import PUBLISHER, SUBSCRIPTION, MatchedEndpoints, MatchReport  # noqa: E402,E501
+from psl_ros.qos import RELIABLE, SERVICES  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
-from psl_ros.matching import PUBLISHER, SUBSCRIPTION, MatchedEndpoints, MatchReport  # noqa: E402
-from psl_ros.qos import RELIABLE  # noqa: E402
-
-TOPIC = f'psl_matching_test_{os.getpid()}'
+NAME = f'psl_service_test_{os.getpid()}'
+REPORTED = f'psl_matching_test_{os.getpid()}'
 WAIT = 20.0     # s, deadline for discovery on a loaded machine
 
 
 class Participant:
-    """A node in a context of its own (its own DDS participant), spun in a thread."""
+    """A node in a context of its own (its own DDS participant), spun in a thread unless
+    `spin` is False (then `start_spinning` later)."""
 
-    def __init__(self, name: str):
+    def __init__(self, name: str, spin: bool = True):
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = Node(name, context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
+        self.thread = None
+        if spin:
+            self.start_spinning()
+
+    def start_spinning(self):
         self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
 
@@ -43,10 +60,150 @@ class Participant:
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
-        self.thread.join(timeout=2.0)
+        if self.thread is not None:
+            self.thread.join(timeout=2.0)
 
 
-def wait_for(condition, timeout=WAIT) -> bool:
+@pytest.fixture
+def participants():
+    made = []
+
+    def make(name: str, spin: bool = True) -> Participant:
+        made.append(Participant(name, spin))
+        return made[-1]
+    yield make
+    for p in reversed(made):
+        p.close()
+
+
+def serve(server: Participant, taken: list) -> None:
+    """A SetBool service through psl_ros.service: answers 'yes' to data=True, 'no' to False,
+    and notes every request it takes."""
+    def callback(request, response):
+        taken.append(request.data)
+        response.success, response.message = True, 'yes' if request.data else 'no'
+        return response
+    psl_service.create_service(server.node, SetBool, NAME, callback)
+
+
+def ready(client) -> bool:
+    deadline = time.monotonic() + WAIT
+    while not client.service_is_ready():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def call(client, data: bool, timeout: float = 10.0):
+    """The response, or None after `timeout` s."""
+    done = threading.Event()
+    future = client.call_async(SetBool.Request(data=data))
+    future.add_done_callback(lambda _: done.set())
+    return future.result() if done.wait(timeout) else None
+
+
+def test_an_answer_waiting_for_its_client_does_not_stall_the_others(participants):
+    """A client whose response reader the server never matches (it asks for TRANSIENT_LOCAL,
+    the server offers VOLATILE) stands for one the server matches late. Before: the server
+    tried again for 2 s with the GIL held, every other client waited that long, then the
+    answer was dropped."""
+    taken = []
+    server = participants('answering')
+    serve(server, taken)
+    late = participants('unmatched')
+    late_client = late.node.create_client(SetBool, NAME, qos_profile=QoSProfile(
+        depth=10, reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    other = participants('other')
+    other_client = other.node.create_client(SetBool, NAME, qos_profile=SERVICES)
+    assert ready(other_client)
+    assert call(other_client, False).message == 'no'
+
+    # it never counts as ready (its reader is not matched): it asks until its request
+    # writer has matched the server's reader and the server has taken a request
+    late_futures = []
+    deadline = time.monotonic() + WAIT
+    while True not in taken:
+        assert time.monotonic() < deadline, 'the server never took a late request'
+        late_futures.append(late_client.call_async(SetBool.Request(data=True)))
+        time.sleep(0.2)
+    times = []
+    end = time.monotonic() + 3.0      # longer than the old 2 s of attempts
+    while time.monotonic() < end:
+        start = time.monotonic()
+        assert call(other_client, False).message == 'no'
+        times.append(time.monotonic() - start)
+    assert max(times) < 1.0, f'an answer waited {max(times):.2f} s behind the late one'
+    assert not any(f.done() for f in late_futures)   # waiting for a match that never comes
+
+
+def test_an_answer_is_sent_once_its_client_is_matched(participants, monkeypatch):
+    """rmw gives an answer to a client it has not matched up after 100 ms ("failed to send
+    response (timeout)"); here the 'yes' answers fail so until the client counts as matched,
+    3 s later (the old code gave up after 2 s). Meanwhile the other client is answered."""
+    matched = threading.Event()
+    send = Service.send_response
+
+    def fake_send(self, response, header):
+        if response.message == 'yes' and not matched.is_set():
+            time.sleep(0.1)
+            warnings.warn('failed to send response (timeout): client will not receive '
+                          'response', RuntimeWarning)
+            return
+        send(self, response, header)
+    monkeypatch.setattr(Service, 'send_response', fake_send)
+    taken = []
+    server = participants('answering')
+    serve(server, taken)
+    waiting, other = participants('waiting'), participants('other')
+    waiting_client = waiting.node.create_client(SetBool, NAME, qos_profile=SERVICES)
+    other_client = other.node.create_client(SetBool, NAME, qos_profile=SERVICES)
+    assert ready(waiting_client) and ready(other_client)
+
+    answer = []
+    caller = threading.Thread(target=lambda: answer.append(call(waiting_client, True, 15.0)))
+    caller.start()
+    end = time.monotonic() + 3.0
+    while time.monotonic() < end:
+        assert call(other_client, False, 2.0).message == 'no'
+    assert caller.is_alive() and not answer
+    matched.set()
+    caller.join(timeout=15.0)
+    assert answer and answer[0] is not None and answer[0].message == 'yes'
+    assert taken.count(True) == 1     # executed once; only its answer was sent again
+
+
+def test_a_client_behind_the_answers_to_the_others_keeps_its_own(participants):
+    """The answers to all clients of a service travel on one topic that every client reads.
+    A client that does not take them for a while (its process starved of CPU; here: not
+    spinning) keeps only the last SERVICES.depth of them; its own answer must not be pushed
+    out by the answers to a busy other client (1,500 here: more than the old depth, 1,000)."""
+    taken = []
+    server = participants('answering')
+    serve(server, taken)
+    behind = participants('behind', spin=False)
+    behind_client = behind.node.create_client(SetBool, NAME, qos_profile=SERVICES)
+    other = participants('other')
+    other_client = other.node.create_client(SetBool, NAME, qos_profile=SERVICES)
+    assert ready(behind_client) and ready(other_client)
+    assert call(other_client, False).message == 'no'
+
+    done = threading.Event()
+    future = behind_client.call_async(SetBool.Request(data=True))
+    future.add_done_callback(lambda _: done.set())
+    deadline = time.monotonic() + WAIT
+    while True not in taken:
+        assert time.monotonic() < deadline, 'the server never took the request'
+        time.sleep(0.001)
+    for _ in range(1500):
+        assert call(other_client, False).message == 'no'
+    behind.start_spinning()
+    assert done.wait(10.0), 'the answer was pushed out of the reader history'
+    assert future.result().message == 'yes'
+
+
+def wait_for(condition, timeout: float = WAIT) -> bool:
     deadline = time.monotonic() + timeout
     while not condition():
         if time.monotonic() > deadline:
@@ -55,22 +212,12 @@ def wait_for(condition, timeout=WAIT) -> bool:
     return True
 
 
-@pytest.fixture
-def pair():
-    server, client = Participant('reporting'), Participant('watching')
-    try:
-        yield server, client
-    finally:
-        client.close()
-        server.close()
-
-
-def test_the_report_follows_matches_and_a_matched_reader_gets_the_next_message(pair):
-    server, client = pair
+def test_the_report_follows_matches_and_a_matched_reader_gets_the_next_message(participants):
+    server, client = participants('reporting'), participants('watching')
     report = MatchReport(server.node)
-    publisher = report.create_publisher(String, TOPIC, RELIABLE)
-    report.create_subscription(String, TOPIC + '_in', lambda _: None, RELIABLE)
-    topic = server.node.resolve_topic_name(TOPIC)
+    publisher = report.create_publisher(String, REPORTED, RELIABLE)
+    report.create_subscription(String, REPORTED + '_in', lambda _: None, RELIABLE)
+    topic = server.node.resolve_topic_name(REPORTED)
     reports = MatchedEndpoints(client.node)
     # the report is latched: a watcher that comes later gets the current counts
     assert wait_for(lambda: reports.counts(PUBLISHER, topic) == {'/reporting': 0})
@@ -78,7 +225,7 @@ def test_the_report_follows_matches_and_a_matched_reader_gets_the_next_message(p
 
     for round_ in range(3):
         got = []
-        sub = client.node.create_subscription(String, TOPIC, lambda m: got.append(m.data),
+        sub = client.node.create_subscription(String, REPORTED, lambda m: got.append(m.data),
                                               RELIABLE)
         # both halves: the remote writer's (the report) and the local reader's
         assert wait_for(lambda: reports.counts(PUBLISHER, topic) == {'/reporting': 1}
@@ -90,7 +237,7 @@ def test_the_report_follows_matches_and_a_matched_reader_gets_the_next_message(p
         assert wait_for(lambda: reports.counts(PUBLISHER, topic) == {'/reporting': 0})
 
     # the subscription side is reported too
-    writer = client.node.create_publisher(String, TOPIC + '_in', RELIABLE)
+    writer = client.node.create_publisher(String, REPORTED + '_in', RELIABLE)
     assert wait_for(lambda: reports.counts(SUBSCRIPTION, topic + '_in') == {'/reporting': 1})
     client.node.destroy_publisher(writer)
     assert wait_for(lambda: reports.counts(SUBSCRIPTION, topic + '_in') == {'/reporting': 0})
