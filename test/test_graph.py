@@ -94,37 +94,47 @@ def test_reset_refuses_bad_task_instances(client, task):
 
 
 def test_bad_effort_commands_never_reach_the_physics(client, graph, task, theta,
-                                                     reference_result):
-    """Wrong-sized and NaN commands, published throughout a rollout, are refused: the
-    rollout is bit-identical to one without them, and the simulator says why."""
+                                                     reference_result, wait_until):
+    """Wrong-sized and NaN commands, published from the episode's start on, are refused: the
+    rollout is bit-identical to one without them, and the simulator says why. (A publisher
+    besides the controller that exists at a reset stops the episode from starting at all:
+    test_bad_requests.py.)"""
     node = client.node
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-    pub = node.create_publisher(Float64MultiArray, 'effort_command', qos)
-    deadline = time.monotonic() + 10
-    while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
-        time.sleep(0.05)
-    stop = threading.Event()
+    stop, running = threading.Event(), threading.Event()
+    sim_log = next(p for p in graph.processes if p.name == 'sim').log_path
 
     def spam():
-        bad = [Float64MultiArray(data=[1.0, 2.0]), Float64MultiArray(data=[np.nan, 0.0, 0.0])]
-        i = 0
-        while not stop.is_set():
-            pub.publish(bad[i % 2])
-            i += 1
-            time.sleep(0.002)
+        running.wait(60)
+        pub = node.create_publisher(Float64MultiArray, 'effort_command', qos)
+        try:
+            bad = [Float64MultiArray(data=[1.0, 2.0]),
+                   Float64MultiArray(data=[np.nan, 0.0, 0.0])]
+            i = 0
+            while not stop.is_set():
+                pub.publish(bad[i % 2])
+                i += 1
+                time.sleep(0.002)
+        finally:
+            node.destroy_publisher(pub)
 
     thread = threading.Thread(target=spam)
     thread.start()
     try:
-        result = client.rollout(TASK, task.tau_default, theta)
+        # the episode has started once the executor reports progress
+        result = client.rollout(TASK, task.tau_default, theta,
+                                feedback=lambda _: running.set())
+        # the simulator saw the bad commands (while the episode ran, or after it)
+        assert wait_until(lambda: 'refused effort_command: expected 3 finite torques'
+                          in sim_log.read_text(), 30.0)
     finally:
+        running.set()
         stop.set()
         thread.join()
-        node.destroy_publisher(pub)
     assert result.success, result.message
     assert list(result.evaluation.component_values) == list(reference_result.component_values)
-    sim_log = next(p for p in graph.processes if p.name == 'sim').log_path.read_text()
-    assert 'refused effort_command: expected 3 finite torques' in sim_log
+    # once the publisher has gone, episodes start again
+    assert wait_until(lambda: client.rollout(TASK, task.tau_default, theta).success, 30.0)
 
 
 def count_messages(node, topics, counts):

@@ -98,7 +98,7 @@ def fresh_memory(client, tmp_path) -> None:
     memory.create(task.name, task.tau_low, task.tau_high, policy_for(task).default_theta)
     path = tmp_path / 'empty.npz'
     memory.save(path)
-    assert client.memory('load', path=str(path)).success
+    assert client.memory('load', path=str(path), replace=True).success
 
 
 def num_samples(client) -> int:
@@ -149,14 +149,22 @@ def test_a_bad_goal_gets_a_reason_and_the_node_keeps_serving(client, tmp_path, f
 
 
 def test_a_missing_skill_is_created_from_the_task(client, tmp_path):
-    """The memory knows no tasks: the learner creates the task's skill (create_skill)."""
-    empty = SkillMemory(SKILL)
-    empty.save(tmp_path / 'none.npz')
-    assert client.memory('load', path=str(tmp_path / 'none.npz')).success
-    result = client.learn(timeout=120, **goal(settings('bootstrap', 2, 5, 0), tmp_path / 'x'))
+    """The memory knows no tasks: the learner creates the task's skill (create_skill), here
+    of a task (a copy of TASK under a new name) the memory has never seen."""
+    import shutil
+
+    import yaml
+    from psl_sim.task import EMBEDDED_TASKS
+    data = yaml.safe_load((EMBEDDED_TASKS / f'{TASK}.yaml').read_text())
+    data['name'] = name = f'never_seen_{os.getpid()}'
+    shutil.copy(EMBEDDED_TASKS / data['model'], tmp_path / data['model'])
+    (tmp_path / 'never_seen.yaml').write_text(yaml.safe_dump(data))
+    assert name not in json.loads(client.memory('info').message)
+    result = client.learn(timeout=120, **{**goal(settings('bootstrap', 2, 5, 0), tmp_path / 'x'),
+                                          'task': str(tmp_path / 'never_seen.yaml')})
     assert result.success, result.message
     metrics = json.loads(open(result.metrics_path).read())
-    skill = json.loads(client.memory('info').message)[TASK]
+    skill = json.loads(client.memory('info').message)[name]
     assert (skill['tau_dim'], skill['theta_dim']) == (2, policy_for(load_task(TASK)).num_parameters)
     assert skill['num_samples'] == sum(r['fulfilled'] for r in metrics['tasks'])
 

@@ -201,7 +201,7 @@ def test_memory_files_stay_inside_the_memory_folder(client, tmp_path):
     name = f'psl-memory-test-{os.getpid()}.npz'                    # so does a bare name
     try:
         assert client.memory('save', path=name).success and (root / name).is_file()
-        assert client.memory('load', path=name).success
+        assert client.memory('load', path=name, replace=True).success
     finally:
         (root / name).unlink(missing_ok=True)
     assert info(client) == before
@@ -240,7 +240,7 @@ def test_corrupt_file_is_refused_and_memory_kept(client, tmp_path):
         response = client.memory('load', path=str(path))
         assert not response.success and 'unchanged' in response.message
         assert info(client) == before
-    assert client.memory('load', path=str(good)).success
+    assert client.memory('load', path=str(good), replace=True).success
     assert info(client) == before
 
 
@@ -277,8 +277,12 @@ def test_ten_new_clients_under_load_lose_no_answer():
     psl_ros.service (a deep service history; answers resent to a client the server has not
     matched yet) about 1 in 140 answers never came."""
     from psl_bench.memory_load import measure
-    report = measure(clients=8, adders=2, calls=250, timeout=10.0)
+    # lost = never answered: the deadline is far beyond any answer time (p99 below 0.4 s
+    # with a core busy, docs/benchmarks.md), so a slow machine is not mistaken for a loss;
+    # the answer times are the benchmark's (psl bench memory-load)
+    report = measure(clients=8, adders=2, calls=250, timeout=60.0)
     assert report['query']['lost'] == 0 and report['add']['lost'] == 0, report
+    assert report['unavailable'] == 0, report
     assert report['query']['calls'] == 8 * 250
     assert report['samples_held'] == report['samples_expected'] == 1 + 2 * 50
 

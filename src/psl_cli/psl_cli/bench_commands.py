@@ -33,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     def sessions(p, seeds: int, tasks: int, test_tasks: int, after: bool = True) -> None:
         """The options of benchmarks made of learning sessions."""
-        p.add_argument('--seeds', type=int, nargs='+', default=list(range(seeds)))
+        p.add_argument('--seeds', type=options.seed, nargs='+', default=list(range(seeds)))
         p.add_argument('--tasks', type=positive_int, default=tasks,
                        help='training tasks per session')
         p.add_argument('--budget', type=positive_int, default=300,
@@ -100,7 +100,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument('--strategy', choices=STRATEGIES, default='scratch')
     p.add_argument('--tasks', type=positive_int, default=3)
     p.add_argument('--budget', type=positive_int, default=22)
-    p.add_argument('--seed', type=int, default=5)
+    p.add_argument('--seed', type=options.seed, default=5)
     p = bench('learn', 'policy-search strategies over task instances: rollouts per task, '
               'zero-shot success on held-out tasks')
     p.add_argument('--strategies', nargs='+', choices=STRATEGIES, default=list(STRATEGIES))
@@ -121,7 +121,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     options.add_out(p, RUN_FOLDERS)
     p = bench('memories', 'associative memories: completion error both ways on learned '
               'sessions')
-    p.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2, 3, 4])
+    p.add_argument('--seeds', type=options.seed, nargs='+', default=[0, 1, 2, 3, 4])
     options.add_out(p, 'session folders (as psl bench learn --out leaves them); missing '
                     'bootstrap sessions are learned here first', default='runs/bench-learn')
     p.add_argument('--tasks', type=positive_int, default=30,

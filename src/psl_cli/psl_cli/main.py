@@ -247,6 +247,8 @@ def cmd_memory(args) -> int:
         # as given: the memory node resolves a name or relative path inside its memory folder
         # (and says why it refuses one: outside it, a directory, a link, ...)
         service, fields = action, {'path': args.path}
+        if action == 'load':
+            fields['replace'] = args.replace
     else:
         service, fields = 'info', {}
     from psl_ros.client import RosClient
@@ -301,10 +303,15 @@ def _memory_options(p: argparse.ArgumentParser) -> None:
     complete.add_argument('--skill', required=True)
     complete.add_argument('--pattern', type=float, nargs='+', required=True)
     complete.add_argument('--known', required=True, help="e.g. 11000: one 0/1 per entry")
-    for name in ('save', 'load'):
-        action(name, f'{name} the whole memory').add_argument(
-            'path', help="the memory file (.npz): a name or a path inside the memory node's "
-            'memory folder (its memory_dir)')
+    path_help = ("the memory file (.npz): a name or a path inside the memory node's memory "
+                 'folder (its memory_dir)')
+    action('save', 'save the whole memory').add_argument('path', help=path_help)
+    load = action('load', "add a memory file's skills to the memory (the others are kept)")
+    load.add_argument('path', help=path_help)
+    load.add_argument('--replace', action='store_true',
+                      help="the file's skills replace those of the same name (else a name the "
+                           'memory holds already is refused); a skill a learning session has '
+                           'claimed is refused either way')
     action('info', 'the skills and their sample counts')
 
 
@@ -444,7 +451,7 @@ def _learn_options(p: argparse.ArgumentParser) -> None:
     p.add_argument('--budget', type=options.non_negative_int, default=0,
                    help='rollouts per task at most; 0 (the default) is the learner\'s '
                    f'default budget, {SearchSettings.max_rollouts}')
-    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--seed', type=options.seed, default=0)
     p.add_argument('--test-tasks', type=options.positive_int, default=20,
                    help='held-out instances tested zero-shot at the end (default 20)')
     options.add_out(p, 'output folder (default runs/TASK-STRATEGY[-MAP]-seedK); the same '

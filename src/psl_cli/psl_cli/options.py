@@ -34,6 +34,18 @@ def non_negative_int(text: str) -> int:
     return _integer(text, 0, '0 or more')
 
 
+SEED_LIMIT = 2**32      # a seed travels as uint32 (LearnSkill.seed) and seeds numpy as such
+
+
+def seed(text: str) -> int:
+    """An argparse type: a seed, a whole number in [0, 2^32) (one that cannot be represented
+    is refused, not wrapped)."""
+    value = _integer(text, 0, '0 or more')
+    if value >= SEED_LIMIT:
+        raise argparse.ArgumentTypeError(f'must be below 2^32 = {SEED_LIMIT}, got {value}')
+    return value
+
+
 def positive_float(text: str) -> float:
     """An argparse type: a finite number > 0 (a timeout in seconds)."""
     try:

@@ -87,6 +87,9 @@ def test_learn_refuses_an_output_folder_it_cannot_make(files, out, words):
     (['--test-tasks', '0'], ['--test-tasks', '1 or more']),
     (['--budget', '-1'], ['--budget', '0 or more']),
     (['--tasks', 'many'], ['--tasks', 'not a whole number']),
+    (['--seed', '5000000000'], ['--seed', 'below 2^32']),          # not wrapped to 705032704
+    (['--seed', '-1'], ['--seed', '0 or more']),
+    (['--mode', 'graph', '--seed', '-1'], ['--seed', '0 or more']),
 ])
 def test_learn_refuses_bad_counts_before_learning(tmp_path, args, words):
     done = run(['learn', '--out', tmp_path / 'run'] + args, cwd=tmp_path)

@@ -31,7 +31,11 @@ goal from a switch time on):
   leave the reference already served; the evaluator then sees that the controller's last
   reference is not the announced one and keeps the episode's goal, so the evaluation always
   agrees with what was executed. One goal change per rollout; an update that comes too late,
-  names another episode or holds a bad goal changes nothing, and the result message says why.
+  names another episode, holds a bad goal or a time outside the episode, or whose spliced
+  reference the safety check refuses changes nothing, and the result message says why.
+
+Every reference that reaches the controller passes the task's safety check: the rollout's,
+a live goal change's spliced one, and a drive reset's homing quintic.
 """
 from __future__ import annotations
 
@@ -58,6 +62,7 @@ from psl_msgs.msg import GoalUpdate, RolloutEvaluation
 from psl_msgs.srv import GoalChange, ResetTask
 from psl_ros import names
 from psl_ros.futures import wait_for
+from psl_ros.guard import guard_subscription
 from psl_ros.matching import MatchReport
 from psl_ros.node_main import run_node
 from psl_ros.qos import RELIABLE, SERVICES
@@ -129,7 +134,9 @@ class DMPExecutor(Node):
                                                qos_profile=SERVICES)
         self.matches.create_subscription(RolloutEvaluation, names.ROLLOUT_EVALUATION,
                                          self.on_evaluation, RELIABLE, callback_group=group)
-        self.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self.on_diagnostics, 10,
+        self.create_subscription(DiagnosticArray, names.DIAGNOSTICS,
+                                 guard_subscription(self.get_logger(), names.DIAGNOSTICS,
+                                                    self.on_diagnostics), 10,
                                  callback_group=group)
         self.goal_change_client = self.create_client(GoalChange, names.GOAL_CHANGE,
                                                      callback_group=group, qos_profile=SERVICES)
@@ -326,6 +333,9 @@ class DMPExecutor(Node):
         if np.abs(q0 - start).max() <= spec.tolerance and np.abs(qd0).max() <= spec.tolerance:
             return                                  # there already
         reference = homing_reference(q0, qd0, start, spec, task.control_period)
+        verdict = self._safety(task).check(np.asarray(goal.tau), reference.q, reference.qd)
+        if not verdict.safe:
+            raise ValueError(f'homing refused by the safety check: {verdict.reason}')
         self.pub_trajectory.publish(trajectory_msg(run.joint_names, reference))
         self._acked(self.pub_trajectory, 'the controller did not receive the homing trajectory')
         response = self._call(self.reset_client, ResetTask.Request(
@@ -422,9 +432,22 @@ class DMPExecutor(Node):
             return ignore(f'the goal changed already at {run.change_time:g} s (one change '
                           'per rollout)')
         dt = run.task.control_period
-        if not math.isfinite(msg.time_from_start):
-            return ignore(f'time_from_start {msg.time_from_start} is not finite')
-        wanted = max(0, math.ceil(msg.time_from_start / dt - 1e-9))
+        end = run.num_steps * dt
+        if not 0.0 <= msg.time_from_start <= end:        # NaN and inf too
+            return ignore(f'time_from_start {msg.time_from_start:g} s is outside the episode '
+                          f'[0, {end:g}] s')
+        wanted = math.ceil(msg.time_from_start / dt - 1e-9)
+        # the goal itself first, at the time asked for: a goal the safety check refuses is
+        # refused for that reason, whatever the loop's progress
+        try:
+            asked = splice(run.reference, run.policy.reference_with_new_goal(
+                np.asarray(run.goal.theta), np.asarray(run.goal.tau), wanted * dt,
+                np.asarray(msg.goal)), wanted)
+        except ValueError as exc:
+            return ignore(str(exc))
+        verdict = self._safety(run.task).check(np.asarray(run.goal.tau), asked.q, asked.qd)
+        if not verdict.safe:
+            return ignore(f'refused by the safety check: {verdict.reason}')
         cost = LOAD_FACTOR * run.prepare_cost       # [s] to compute, build and publish it
         announced = False
 
@@ -445,6 +468,11 @@ class DMPExecutor(Node):
             except ValueError as exc:
                 return give_up(str(exc))
             reference = splice(run.reference, new, k)
+            # the check every reference that reaches the controller passes (as the rollout's)
+            verdict = self._safety(run.task).check(np.asarray(run.goal.tau), reference.q,
+                                                   reference.qd)
+            if not verdict.safe:
+                return give_up(f'refused by the safety check: {verdict.reason}')
             trajectory = trajectory_msg(run.joint_names, reference)
             trajectory.header.stamp = time_msg(run.t0)     # a replacement for this episode
             # the evaluator first: the episode cannot end before the controller has it

@@ -21,6 +21,8 @@ class RangeScaler:
             raise ValueError('ranges must be finite')
         if np.any(high <= low):
             raise ValueError('every range needs high > low')
+        if not np.all(np.isfinite(high - low)):
+            raise ValueError('a range wider than floating point holds (high - low overflows)')
         self.low, self.high = low, high
         self._center = 0.5 * (high + low)
         self._half = 0.5 * (high - low)

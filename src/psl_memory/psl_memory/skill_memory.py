@@ -5,6 +5,8 @@ policy: whoever knows the task passes them, the memory knows no tasks) or by the
 dimensions. `save` writes atomically (temporary file + rename); `load` checks the file's format
 and version and every array before it replaces anything, so a corrupt, truncated or
 other-version file is refused with a clear error and the memory in use stays as it was.
+What a memory may hold is bounded (`psl_memory.memory_limits`): names, skills, dimensions,
+samples, magnitudes; a file is written only if it can be read back within the same bounds.
 Imports no ROS.
 """
 from __future__ import annotations
@@ -19,13 +21,13 @@ from pathlib import Path
 import numpy as np
 
 from psl_memory.elm import RangeScaler
+from psl_memory.memory_limits import MAX_FILE_BYTES, MemoryLimits
 from psl_memory.parameterized_skill import ParameterizedSkill, scaler_around
 from psl_memory.skill_config import SkillConfig
 
 FORMAT = 'psl-skill-memory'
 VERSION = 1
-MAX_FILE_BYTES = 256 * 2**20     # a memory file, and the arrays it declares, at most this big
-MAX_MEMBERS = 100_000            # arrays in one file
+FULL = 0.9      # share of max_file_bytes a memory's state may take before it takes no sample
 
 
 class MemoryFileError(ValueError):
@@ -35,9 +37,61 @@ class MemoryFileError(ValueError):
 class SkillMemory:
     """Named skills with one configuration (hyper-parameters) for all of them."""
 
-    def __init__(self, config: SkillConfig = SkillConfig()):
-        self.config = config
+    def __init__(self, config: SkillConfig = SkillConfig(),
+                 limits: MemoryLimits = MemoryLimits()):
+        self.config, self.limits = config, limits
         self.skills: dict[str, ParameterizedSkill] = {}
+        self._bytes: dict[str, int] = {}     # skill -> bytes of its state (after its last add)
+
+    # -- bounds -------------------------------------------------------------------------------
+    def check_new_skill(self, name: str, tau_dim: int, theta_dim: int) -> None:
+        """ValueError when a skill of this name and these sizes may not be made."""
+        limits = self.limits
+        if not isinstance(name, str) or not name.strip():
+            raise ValueError('a skill needs a name')
+        if len(name) > limits.max_name_length:
+            raise ValueError(f'a skill name of {len(name)} characters: at most '
+                             f'{limits.max_name_length} (max_name_length)')
+        if name not in self.skills and len(self.skills) >= limits.max_skills:
+            raise ValueError(f'the memory holds {len(self.skills)} skills, the most it may '
+                             f'(max_skills)')
+        if tau_dim > limits.max_tau_dim:
+            raise ValueError(f'{tau_dim} task parameters: at most {limits.max_tau_dim} '
+                             '(max_tau_dim)')
+        if theta_dim > limits.max_theta_dim:
+            raise ValueError(f'{theta_dim} policy parameters: at most {limits.max_theta_dim} '
+                             '(max_theta_dim)')
+
+    def check_magnitudes(self, what: str, values: np.ndarray) -> None:
+        """ValueError when an entry's magnitude exceeds max_magnitude (or is not finite)."""
+        values = np.asarray(values, dtype=float)
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f'{what} must be finite')
+        if values.size and np.abs(values).max() > self.limits.max_magnitude:
+            raise ValueError(f'{what} holds {np.abs(values).max():g}, more than '
+                             f'{self.limits.max_magnitude:g} (max_magnitude): a units or '
+                             'scaling error')
+
+    def check_room(self, name: str) -> None:
+        """ValueError when skill `name` may take no further sample: max_samples, or the
+        memory's state near max_file_bytes (its file must stay readable)."""
+        skill = self.skills.get(name)
+        if skill is not None and skill.num_samples >= self.limits.max_samples:
+            raise ValueError(f'skill {name!r} holds {skill.num_samples} samples, the most it '
+                             'may (max_samples)')
+        held = sum(self._bytes.values())
+        if held > FULL * self.limits.max_file_bytes:
+            raise ValueError(f'the memory holds {held} bytes, {100 * FULL:.0f} % of what its '
+                             f'file may hold ({self.limits.max_file_bytes} bytes, '
+                             'max_file_bytes): it takes no further sample')
+
+    def _measure(self, name: str) -> None:
+        """Note the bytes of a skill's state (as saved)."""
+        if name in self.skills:
+            self._bytes[name] = sum(np.asarray(v).nbytes
+                                    for v in self.skills[name].get_state().values())
+        else:
+            self._bytes.pop(name, None)
 
     def create(self, name: str, tau_low, tau_high, theta_reference,
                exist_ok: bool = False, replace: bool = False) -> ParameterizedSkill:
@@ -49,8 +103,10 @@ class SkillMemory:
             ValueError: no name, bad ranges or reference, or a skill of that name exists (with
                 ``exist_ok``: only if its sizes differ; otherwise it is returned as it is).
         """
-        if not name or not name.strip():
-            raise ValueError('a skill needs a name')
+        self.check_new_skill(name, np.size(tau_low), np.size(theta_reference))
+        for what, values in (('tau_low', tau_low), ('tau_high', tau_high),
+                             ('theta_reference', theta_reference)):
+            self.check_magnitudes(what, values)
         tau_scaler = RangeScaler(tau_low, tau_high)
         theta_scaler = scaler_around(theta_reference)
         if tau_scaler.dim == 0 or theta_scaler.dim == 0:
@@ -66,6 +122,7 @@ class SkillMemory:
             return skill
         skill = ParameterizedSkill(name, tau_scaler, theta_scaler, self.config, bounded=True)
         self.skills[name] = skill
+        self._measure(name)
         return skill
 
     def get(self, name: str) -> ParameterizedSkill:
@@ -75,22 +132,47 @@ class SkillMemory:
         return self.skills[name]
 
     def add(self, name: str, tau, theta) -> int:
-        """Add a sample; an unknown skill is created by it (ranges around this sample)."""
+        """Add a sample; an unknown skill is created by it (ranges around this sample).
+        Raises ValueError, changing nothing, for a bad sample or one beyond the limits."""
+        self.check_room(name)
         if name not in self.skills:
-            if not name or not name.strip():
-                raise ValueError('a skill needs a name')
             tau = np.asarray(tau, dtype=float)
             theta = np.asarray(theta, dtype=float)
+            self.check_new_skill(name, tau.size, theta.size)
             if tau.ndim != 1 or theta.ndim != 1 or tau.size == 0 or theta.size == 0:
                 raise ValueError('the first sample of a skill needs non-empty tau and theta')
-            if not (np.all(np.isfinite(tau)) and np.all(np.isfinite(theta))):
-                raise ValueError('tau and theta must be finite')
+            self.check_magnitudes('tau', tau)
+            self.check_magnitudes('theta', theta)
             skill = ParameterizedSkill(name, scaler_around(tau), scaler_around(theta),
                                        self.config)
             count = skill.add(tau, theta)
             self.skills[name] = skill
-            return count
-        return self.skills[name].add(tau, theta)
+        else:
+            count = self.skills[name].add(tau, theta)
+        self._measure(name)
+        return count
+
+    def merge(self, other: 'SkillMemory', replace: bool = False) -> list[str]:
+        """Take the skills of `other` (a memory read from a file); skills only this memory
+        holds are kept. Returns the names taken.
+
+        Raises:
+            ValueError, changing nothing: a name this memory holds already (unless
+            `replace`), or more skills than max_skills.
+        """
+        clash = sorted(set(other.skills) & set(self.skills))
+        if clash and not replace:
+            raise ValueError(f'the memory holds skill(s) {", ".join(map(repr, clash))} '
+                             'already; load with replace to replace them')
+        if len(set(self.skills) | set(other.skills)) > self.limits.max_skills:
+            raise ValueError(f'the memory would hold more than {self.limits.max_skills} skills '
+                             '(max_skills)')
+        for name, skill in other.skills.items():
+            self.check_new_skill(name, skill.tau_dim, skill.theta_dim)
+        for name, skill in other.skills.items():
+            self.skills[name] = skill
+            self._bytes[name] = other._bytes.get(name, 0)
+        return sorted(other.skills)
 
     def info(self) -> dict:
         return {name: {'tau_dim': s.tau_dim, 'theta_dim': s.theta_dim,
@@ -108,17 +190,21 @@ class SkillMemory:
         for index, name in enumerate(meta['skills']):      # by index: any name is safe
             for key, value in self.skills[name].get_state().items():
                 arrays[f'skill{index}/{key}'] = np.asarray(value)
-        write_npz_atomically(path, arrays)
+        write_npz_atomically(path, arrays, self.limits.max_file_bytes)
 
     @classmethod
-    def read(cls, path: str | Path, max_bytes: int = MAX_FILE_BYTES) -> 'SkillMemory':
+    def read(cls, path: str | Path, max_bytes: int = MAX_FILE_BYTES,
+             limits: MemoryLimits | None = None) -> 'SkillMemory':
         """A new memory from a file; raises MemoryFileError saying what is wrong with it.
 
         The file is opened without following a symbolic link and must be a regular file; its
         size and the sizes its archive declares for the arrays are checked against
         `max_bytes` before any array is read, so a crafted file (a zip of gigabytes of zeros)
-        is refused at once, at a bounded memory cost."""
+        is refused at once, at a bounded memory cost. With `limits`, the number of arrays,
+        of skills and their sizes are held to them too (and `max_bytes` is theirs)."""
         path = Path(path)
+        limits = limits or MemoryLimits(max_file_bytes=max_bytes)
+        max_bytes = limits.max_file_bytes
         try:
             fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)   # a FIFO: no wait
         except FileNotFoundError:
@@ -139,10 +225,11 @@ class SkillMemory:
                 with zipfile.ZipFile(f) as archive:
                     members = archive.infolist()
                     declared = sum(m.file_size for m in members)
-                    if len(members) > MAX_MEMBERS or declared > max_bytes:
+                    if len(members) > limits.max_file_arrays or declared > max_bytes:
                         raise MemoryFileError(
                             f'{path}: declares {len(members)} arrays of {declared} bytes in '
-                            f'all, more than the limit of {max_bytes} bytes; not read')
+                            f'all, more than the limits of {limits.max_file_arrays} arrays '
+                            f'and {max_bytes} bytes; not read')
                     archive.testzip()                      # every member's CRC
                 f.seek(0)
                 with np.load(f, allow_pickle=False) as data:
@@ -166,23 +253,29 @@ class SkillMemory:
             raise MemoryFileError(f'{path}: version {meta.get("version")!r}; this psl reads '
                                   f'version {VERSION}')
         try:
-            memory = cls(SkillConfig(**meta['config']))
+            memory = cls(SkillConfig(**meta['config']), limits)
             for index, name in enumerate(meta['skills']):
                 prefix = f'skill{index}/'
                 state = {k[len(prefix):]: v for k, v in arrays.items() if k.startswith(prefix)}
-                memory.skills[str(name)] = ParameterizedSkill.from_state(str(name),
-                                                                         memory.config, state)
+                skill = ParameterizedSkill.from_state(str(name), memory.config, state)
+                memory.check_new_skill(str(name), skill.tau_dim, skill.theta_dim)
+                memory.skills[str(name)] = skill
+                memory._measure(str(name))
         except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
             raise MemoryFileError(f'{path}: inconsistent content ({exc})') from exc
         return memory
 
 
-def write_npz_atomically(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
+def write_npz_atomically(path: str | Path, arrays: dict[str, np.ndarray],
+                         max_bytes: int | None = None) -> None:
     """Write arrays as an npz file: a temporary file in the same folder, synced, then
     renamed over `path`, which is never a link, directory, device or FIFO that gets replaced.
+    With `max_bytes`, a file larger than that (one that would not be read back) is not
+    written.
 
     Raises:
-        OSError: the folder does not exist, or `path` is not a regular file.
+        OSError: the folder does not exist, `path` is not a regular file, or the file would
+        be larger than `max_bytes`.
     """
     path = Path(path)
     if not path.parent.is_dir():
@@ -193,6 +286,11 @@ def write_npz_atomically(path: str | Path, arrays: dict[str, np.ndarray]) -> Non
             np.savez(f, **arrays)
             f.flush()
             os.fsync(f.fileno())
+            size = f.tell()
+        if max_bytes is not None and size > max_bytes:
+            raise OSError(f'cannot save to {path}: the file would hold {size} bytes, more '
+                          f'than a memory file may ({max_bytes}, max_file_bytes): it could '
+                          'not be loaded again')
         if path.is_symlink() or (path.exists() and not path.is_file()):
             raise OSError(f'cannot save to {path}: not a regular file (a link, directory, '
                           'device or FIFO); it is not replaced')

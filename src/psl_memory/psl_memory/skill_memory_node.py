@@ -4,21 +4,30 @@ Serves ``~/query`` (psl_msgs/QuerySkill: theta = PS(tau) and its per-dimension p
 variance), ``~/add_sample`` (AddSample), ``~/complete`` (CompletePattern: associative completion
 of [tau, theta] with the known dimensions clamped), ``~/create_skill`` (CreateSkill: a skill
 with a task's tau ranges and theta reference), ``~/save`` and ``~/load`` (SaveMemory,
-LoadMemory: one versioned file, named inside the node's ``memory_dir``) and ``~/info``
-(std_srvs/Trigger: the skills as JSON).
+LoadMemory: one versioned file, named inside the node's ``memory_dir``; a load adds the file's
+skills, replacing skills of the same name only with ``replace``), ``~/claim`` (ClaimSkill: a
+learning session's claim on its skill) and ``~/info`` (std_srvs/Trigger: the skills as JSON).
 The node knows no tasks: a task's skill is created by whoever knows the task (``psl up``, the
-learner) through ``~/create_skill``, or by its first sample. Every bad request gets ``success=false`` and a message saying what was wrong; the memory
-is unchanged and the node keeps serving.
+learner) through ``~/create_skill``, or by its first sample. Every bad request gets
+``success=false`` and a message saying what was wrong; the memory is unchanged and the node
+keeps serving. What a request may make the node hold is bounded (`psl_memory.memory_limits`,
+a parameter per bound).
+
+A skill a learning session has claimed takes samples, a replacement and a load over it only
+from the claim's owner (a node's fully qualified name), until the owner releases it or leaves
+the graph: a ``psl memory load`` during a session is refused, instead of swapping the skill
+under it.
 
 Memory files live in one folder, ``memory_dir`` (default: the working directory the node was
 started in, i.e. where ``psl up`` ran): ``~/save`` and ``~/load`` take a file name or a path
 inside it and refuse anything else — a path leading out (``..``, an absolute path elsewhere),
 a symbolic link on the way, a file that is not a regular file (directory, device, FIFO) —
 without creating, replacing or reading anything (`psl_memory.memory_directory`). A file is
-checked against ``max_file_megabytes`` (its size and the sizes its archive declares) before an
-array is read, and read outside the service lock, so the other services go on answering. With ``autosave_path`` set, the memory is loaded from
-that file at start (if it exists) and written back after every added sample, so a killed node
-restarts with everything it had learned.
+checked against ``max_file_bytes`` (its size and the sizes its archive declares) and
+``max_skills`` (the arrays it holds) before an array is read, and read outside the service
+lock, so the other services go on answering. With ``autosave_path`` set, the memory is loaded
+from that file at start (if it exists) and written back after every added sample, so a killed
+node restarts with everything it had learned.
 """
 from __future__ import annotations
 
@@ -32,11 +41,12 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from psl_msgs.srv import (AddSample, CompletePattern, CreateSkill, LoadMemory, QuerySkill,
-                          SaveMemory)
+from psl_msgs.srv import (AddSample, ClaimSkill, CompletePattern, CreateSkill, LoadMemory,
+                          QuerySkill, SaveMemory)
 from psl_memory.skill_config import SkillConfig
 from psl_memory.memory_directory import MemoryDirectory, MemoryPathError
-from psl_memory.skill_memory import MAX_FILE_BYTES, MemoryFileError, SkillMemory
+from psl_memory.memory_limits import MemoryLimits
+from psl_memory.skill_memory import MemoryFileError, SkillMemory
 from psl_ros.node_main import run_node
 from psl_ros.service import create_service
 
@@ -64,26 +74,35 @@ class SkillMemoryNode(Node):
                  'recall iteration cap'),
                 ('memory_dir', '', "the folder of the memory files ('' = the working "
                                    'directory); save, load and autosave stay inside it'),
-                ('max_file_megabytes', MAX_FILE_BYTES / 2**20,
-                 'largest memory file (and declared array content) that is read'),
                 ('autosave_path', '', 'memory file (inside memory_dir) loaded at start and '
                                       'written after every sample; empty = no autosave')):
             self.declare_parameter(name, default, ParameterDescriptor(description=text,
                                                                       read_only=True))
         self.config = SkillConfig(**{field.name: self.get_parameter(field.name).value
                                      for field in dataclasses.fields(SkillConfig)})
+        # what one request may make the node hold (psl_memory.memory_limits)
+        limits = MemoryLimits()
+        for field in dataclasses.fields(MemoryLimits):
+            self.declare_parameter(field.name, getattr(limits, field.name), ParameterDescriptor(
+                description=f'bound: {field.name} (psl_memory.memory_limits)', read_only=True))
+        try:
+            self.limits = MemoryLimits(**{field.name: self.get_parameter(field.name).value
+                                          for field in dataclasses.fields(MemoryLimits)})
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f'memory limits: {exc}') from None
         self.files = MemoryDirectory(self.get_parameter('memory_dir').value or os.getcwd())
-        self.max_bytes = int(self.get_parameter('max_file_megabytes').value * 2**20)
         autosave = self.get_parameter('autosave_path').value
         self.autosave = self.files.for_writing(autosave) if autosave else None
         self._lock = threading.Lock()
         self.memory = self._initial_memory()
+        self.claims: dict[str, str] = {}        # skill -> owner (a node's full name)
         for name, srv, callback in (('~/query', QuerySkill, self.on_query),
                                     ('~/add_sample', AddSample, self.on_add),
                                     ('~/complete', CompletePattern, self.on_complete),
                                     ('~/create_skill', CreateSkill, self.on_create),
                                     ('~/save', SaveMemory, self.on_save),
                                     ('~/load', LoadMemory, self.on_load),
+                                    ('~/claim', ClaimSkill, self.on_claim),
                                     ('~/info', Trigger, self.on_info)):
             create_service(self, srv, name, callback)
         self.get_logger().info(f'skills: {json.dumps(self.memory.info())}')
@@ -91,10 +110,10 @@ class SkillMemoryNode(Node):
     def _initial_memory(self) -> SkillMemory:
         if self.autosave is not None and self.autosave.is_file():
             # a corrupt file stops the node here
-            memory = SkillMemory.read(self.autosave, self.max_bytes)
+            memory = SkillMemory.read(self.autosave, limits=self.limits)
             self.get_logger().info(f'restored the memory from {self.autosave}')
             return memory
-        return SkillMemory(self.config)
+        return SkillMemory(self.config, self.limits)
 
     # -- services -----------------------------------------------------------------------------
     def _serve(self, response, work):
@@ -116,8 +135,47 @@ class SkillMemoryNode(Node):
             return '' if var is not None else 'this readout has no predictive variance'
         return self._serve(response, work)
 
+    # -- claims (ClaimSkill) --------------------------------------------------------------------
+    def _owner_alive(self, owner: str) -> bool:
+        return owner in {(ns.rstrip('/') + '/' + name) for name, ns in
+                         self.get_node_names_and_namespaces()}
+
+    def _claimed_by_another(self, skill: str, owner: str) -> str:
+        """The live owner of `skill` if it is not `owner`, else '' (a claim whose owner has
+        left the graph lapses here)."""
+        holder = self.claims.get(skill)
+        if holder is None or holder == owner:
+            return ''
+        if not self._owner_alive(holder):
+            self.get_logger().warning(f'claim of {skill!r} by {holder} lapsed: it has left')
+            del self.claims[skill]
+            return ''
+        return holder
+
+    def _check_claim(self, skill: str, owner: str, doing: str) -> None:
+        holder = self._claimed_by_another(skill, owner)
+        if holder:
+            raise ValueError(f'skill {skill!r} is being learned by {holder} (claimed): '
+                             f'{doing} refused until its session ends')
+
+    def on_claim(self, request, response):
+        def work():
+            if not request.owner:
+                raise ValueError('a claim needs an owner (a node\'s fully qualified name)')
+            if request.release:
+                if self.claims.get(request.skill) == request.owner:
+                    del self.claims[request.skill]
+                    return f'released {request.skill!r}'
+                return f'{request.skill!r} was not claimed by {request.owner}'
+            self._check_claim(request.skill, request.owner, 'a claim')
+            self.memory.check_new_skill(request.skill, 0, 0)    # the name's bounds
+            self.claims[request.skill] = request.owner
+            return f'{request.skill!r} claimed by {request.owner}'
+        return self._serve(response, work)
+
     def on_add(self, request, response):
         def work():
+            self._check_claim(request.skill, request.owner, 'adding a sample')
             response.num_samples = self.memory.add(request.skill, np.asarray(request.tau),
                                                    np.asarray(request.theta))
             if self.autosave is not None:
@@ -127,6 +185,8 @@ class SkillMemoryNode(Node):
 
     def on_create(self, request, response):
         def work():
+            if request.replace:
+                self._check_claim(request.skill, request.owner, 'replacing it')
             existed = request.skill in self.memory.skills and not request.replace
             skill = self.memory.create(request.skill, np.asarray(request.tau_low),
                                        np.asarray(request.tau_high),
@@ -167,15 +227,22 @@ class SkillMemoryNode(Node):
         # other services; the memory is swapped under the lock
         try:
             path = self.files.for_reading(request.path)
-            memory = SkillMemory.read(path, self.max_bytes)
-        except (MemoryPathError, MemoryFileError) as exc:
+            memory = SkillMemory.read(path, limits=self.limits)
+        except (MemoryPathError, MemoryFileError, OSError, ValueError) as exc:
             response.success = False
             response.message = f'{exc}; the memory in use is unchanged'
             return response
 
         def work():
-            self.memory = memory
-            return f'loaded {len(memory.skills)} skills from {path}'
+            for name in memory.skills:
+                self._check_claim(name, request.owner, 'loading over it')
+            replaced = sorted(set(memory.skills) & set(self.memory.skills))
+            names = self.memory.merge(memory, replace=request.replace)
+            if self.autosave is not None:
+                self.memory.save(self.autosave)
+            return (f'loaded {len(names)} skills from {path}'
+                    + (f' (replaced {", ".join(map(repr, replaced))})' if replaced else '')
+                    + f'; the memory holds {len(self.memory.skills)}')
         return self._serve(response, work)
 
     def on_info(self, request, response):

@@ -44,6 +44,8 @@ class ServiceSkill:
 
     def __init__(self, node: 'LearnerNode', task: TaskDefinition, timeout: float):
         self.node, self.task, self.name, self.timeout = node, task, task.name, timeout
+        self.owner = node.get_fully_qualified_name()     # this session's claim on the skill
+        self.claimed = False
 
     def _call(self, service: str, **fields):
         try:
@@ -64,25 +66,43 @@ class ServiceSkill:
 
     def add(self, tau: np.ndarray, theta: np.ndarray) -> None:
         self._call('add_sample', skill=self.name, tau=[float(x) for x in tau],
-                   theta=[float(x) for x in theta])
+                   theta=[float(x) for x in theta], owner=self.owner)
 
     def save(self, path: Path) -> None:
         self._call('save', path=str(Path(path).resolve()))
 
     def start(self, continue_from: str) -> None:
         """A new session: the memory node's skill of the task replaced by an empty one, or
-        (continue_from, a memory file of the node's memory_dir) loaded from that file."""
+        (continue_from, a memory file of the node's memory_dir) loaded from that file. The
+        session claims the skill first: nobody else writes to it until `release`."""
+        self.claim()
         if continue_from:
-            self._call('load', path=continue_from)
+            self._call('load', path=continue_from, replace=True, owner=self.owner)
         task = self.task
         self._call('create_skill', skill=self.name, tau_low=task.tau_low.tolist(),
                    tau_high=task.tau_high.tolist(),
                    theta_reference=policy_for(task).default_theta.tolist(),
-                   replace=not continue_from)
+                   replace=not continue_from, owner=self.owner)
 
     def restore(self, path: Path) -> None:
-        """A resumed session: the checkpoint's memory loaded into the memory node."""
-        self._call('load', path=str(Path(path).resolve()))
+        """A resumed session: the checkpoint's memory loaded into the memory node (the skill
+        claimed first, as in `start`)."""
+        self.claim()
+        self._call('load', path=str(Path(path).resolve()), replace=True, owner=self.owner)
+
+    def claim(self) -> None:
+        self._call('claim', skill=self.name, owner=self.owner)
+        self.claimed = True
+
+    def release(self) -> None:
+        """End the session's claim (best effort: a claim lapses anyway when this node
+        leaves the graph)."""
+        if self.claimed:
+            try:
+                self._call('claim', skill=self.name, owner=self.owner, release=True)
+                self.claimed = False
+            except RuntimeError as exc:
+                self.node.get_logger().warning(f'releasing the claim on {self.name!r}: {exc}')
 
 
 class LearnerNode(Node):
@@ -147,12 +167,17 @@ class LearnerNode(Node):
             self.get_logger().info(f'learning {task.name} with {settings.strategy}, seed '
                                    f'{settings.seed}, {settings.num_tasks} tasks, {mode} '
                                    f'mode -> {out}')
+            skill = ServiceSkill(self, task, self.get_parameter('service_timeout').value)
             try:
+                if not (out / 'checkpoint.json').is_file():
+                    # the memory node writes the session's memory file: it checks the folder
+                    # (inside its memory_dir) before any work, and makes it
+                    skill.save(out / 'memory.npz')
                 learner = Learner(task, settings, out,
                                   rollouts=self._rollouts(task, mode, goal_handle),
-                                  skill=ServiceSkill(self, task,
-                                                     self.get_parameter('service_timeout').value))
-            except (TaskError, ValueError) as exc:
+                                  skill=skill)
+            except (TaskError, ValueError, RuntimeError) as exc:
+                skill.release()
                 goal_handle.abort()
                 result.message = str(exc)
                 return result
@@ -168,6 +193,8 @@ class LearnerNode(Node):
                 result.message = self._stopped(f'stopped by an error ({exc})', learner)
                 self.get_logger().error(result.message)
                 return result
+            finally:
+                skill.release()
             summary = metrics.summary
             goal_handle.succeed()
             result.success = True

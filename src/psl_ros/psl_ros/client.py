@@ -30,8 +30,8 @@ from std_srvs.srv import Trigger
 
 from psl_msgs.action import ExecuteRollout, LearnSkill
 from psl_msgs.msg import GoalUpdate, RolloutEvaluation
-from psl_msgs.srv import (AddSample, CompletePattern, CreateSkill, LoadMemory, QuerySkill,
-                          ResetTask, SaveMemory)
+from psl_msgs.srv import (AddSample, ClaimSkill, CompletePattern, CreateSkill, LoadMemory,
+                          QuerySkill, ResetTask, SaveMemory)
 from psl_ros import names
 from psl_ros.action_client import ActionClient
 from psl_ros.futures import wait_for
@@ -46,7 +46,7 @@ DISCOVERY_POLL = 0.01  # s between looks while waiting for a server to be discov
 
 MEMORY_SERVICES = {'query': QuerySkill, 'add_sample': AddSample, 'complete': CompletePattern,
                    'create_skill': CreateSkill, 'save': SaveMemory, 'load': LoadMemory,
-                   'info': Trigger}
+                   'claim': ClaimSkill, 'info': Trigger}
 
 
 def _floats(values) -> list[float]:
@@ -399,10 +399,16 @@ class RosClient:
         self._thread.start()
 
     def _spin(self) -> None:
-        try:
-            self.executor.spin()
-        except Exception:  # noqa: BLE001 - the context was shut down under us
-            pass
+        """Spin until the context ends. An entity destroyed by another thread while its
+        message is being taken makes rclpy's executor raise (InvalidHandle); that must not
+        end the thread, or every later call of this client waits in vain."""
+        while self.context.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.1)
+            except Exception:  # noqa: BLE001 - a destroyed entity, or the context ended
+                if not self.context.ok():
+                    return
+                time.sleep(0.001)
 
     def close(self) -> None:
         """Stop the spin thread, destroy the node and end the context. The action clients are

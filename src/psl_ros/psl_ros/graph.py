@@ -73,8 +73,9 @@ class NodeHandle:
                 cmdline = f.read().decode(errors='replace').split('\0')
         except OSError:
             ppid, cmdline = None, []
-        # read with the pidfd held: if its process runs still, what was read was its own
-        if self.alive():
+        # read with the pidfd held: if its process runs still, what was read was its own (an
+        # empty command line: it is exiting, its memory already released)
+        if self.alive() and any(cmdline):
             package, executable = next((p, e) for n, p, e in NODES
                                        if n == label.rsplit('/', 1)[-1])
             if ppid != parent or not any(arg.endswith(f'/lib/{package}/{executable}')

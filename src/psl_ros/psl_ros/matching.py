@@ -31,6 +31,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from psl_ros import names
+from psl_ros.guard import guard_subscription
 from psl_ros.qos import LATCHED
 
 PUBLISHER, SUBSCRIPTION = 'publisher', 'subscription'
@@ -68,9 +69,9 @@ class MatchReport:
 
     def create_subscription(self, msg_type, topic: str, callback: Callable, qos,
                             **kwargs):
-        """``node.create_subscription``, watched."""
+        """``node.create_subscription``, watched, its callback guarded (`psl_ros.guard`)."""
         subscription = self._node.create_subscription(
-            msg_type, topic, callback, qos,
+            msg_type, topic, guard_subscription(self._node.get_logger(), topic, callback), qos,
             event_callbacks=SubscriptionEventCallbacks(matched=self.update), **kwargs)
         self._watch(key(SUBSCRIPTION, subscription.topic_name),
                     subscription.get_publisher_count)

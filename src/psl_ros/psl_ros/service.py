@@ -45,6 +45,7 @@ from typing import Callable
 from rclpy.node import Node
 from rclpy.service import Service
 
+from psl_ros.guard import guard_service
 from psl_ros.qos import SERVICES
 
 RETRY_PERIOD = 0.01         # s between looks at the graph while answers are parked
@@ -65,8 +66,11 @@ class _Parked:
 
 def create_service(node: Node, srv_type, name: str, callback: Callable,
                    callback_group=None) -> Service:
-    """``node.create_service`` with the SERVICES QoS and answers sent later to a client whose
-    response reader the server has not matched yet (see the module docstring)."""
+    """``node.create_service`` with the SERVICES QoS, answers sent later to a client whose
+    response reader the server has not matched yet (see the module docstring), and a callback
+    that answers ``success=False`` instead of ending the node when it raises
+    (`psl_ros.guard`)."""
+    callback = guard_service(node.get_logger(), name, callback, srv_type.Response)
     service = node.create_service(srv_type, name, callback, qos_profile=SERVICES,
                                   callback_group=callback_group)
     send_once = service.send_response

@@ -109,9 +109,15 @@ def _start_node(started: list[subprocess.Popen]) -> tuple[subprocess.Popen, set[
 
 def _older_than(paths: list[Path], age: float) -> bool:
     """Every file's modification time (what remove_stale ages lock files by) lies more than
-    `age` s back."""
+    `age` s back (a file removed meanwhile, by another run's cleanup, counts as old)."""
     now = time.time()
-    return all(now - path.stat().st_mtime > age for path in paths)
+
+    def old(path: Path) -> bool:
+        try:
+            return now - path.stat().st_mtime > age
+        except FileNotFoundError:
+            return True
+    return all(old(path) for path in paths)
 
 
 def test_a_killed_nodes_segment_is_removed_a_live_ones_stays(started):
@@ -128,7 +134,8 @@ def test_a_killed_nodes_segment_is_removed_a_live_ones_stays(started):
         assert time.monotonic() < deadline, 'the lock files do not age'
         time.sleep(0.05)
     removed = remove_stale(min_age=MIN_AGE)
-    assert killed_segments <= set(removed)
+    # gone: removed by this call, or by the cleanup of a graph another test started meanwhile
+    # (the suite runs on two workers; every graph start cleans up)
     assert not any((SHM_DIR / s).exists() for s in killed_segments)
     assert all((SHM_DIR / s).exists() for s in live_segments)
     assert not set(removed) & live_segments

@@ -30,6 +30,7 @@ Modes:
 """
 from __future__ import annotations
 
+import math
 import threading
 import time
 from pathlib import Path
@@ -61,6 +62,9 @@ from psl_ros.step_timing import StepTiming
 from psl_sim.task import TaskError, load_task, task_id
 
 RESET_MODES = ('teleport', 'drive', 'probe')     # ResetTask.mode
+CONTROLLER = 'pd_controller'     # the node whose effort_command an episode takes
+UNKNOWN_NODE = '_UNKNOWN_'       # rmw's node name of an endpoint whose node is not known yet
+NAME_PATIENCE = 2.0              # s to wait for it
 # phases of a lockstep step: the wait from sending a state to its answer's callback (the
 # controller and both transports; of it, the command's way from the controller's publish to
 # the callback), the physics, building and sending the state, then the rest (clock, pose,
@@ -120,6 +124,8 @@ class SimNode(Node):
             description=' | '.join(SIM_MODES), read_only=True))
         self.declare_parameter('episode_duration', 0.0, ParameterDescriptor(
             description='episode length [s]; 0 = the task duration plus its settle time'))
+        self.declare_parameter('max_episode_duration', 600.0, ParameterDescriptor(
+            description='the longest episode a reset may ask for [s]'))
         self.declare_parameter('scene_rate', 30.0, ParameterDescriptor(
             description='scene markers per second of simulated time while someone subscribes '
                         '[Hz]; 0 = only at resets and episode ends'))
@@ -165,6 +171,7 @@ class SimNode(Node):
         # dropped, by the publisher's source timestamp (the same wall clock on this machine)
         self._state_wall_ns = self._episode_wall_ns = 0
         self.stale_commands = 0
+        self.foreign_refusals = 0   # resets refused: someone besides the controller commanded
         # where each lockstep step's time goes, reported with the episode's end (StepTiming)
         self.timing = StepTiming(STEP_PHASES)
         self._published_ns = 0      # perf_counter_ns when the last state was sent
@@ -189,6 +196,9 @@ class SimNode(Node):
             if p.name == 'episode_duration' and not p.value >= 0.0:
                 return SetParametersResult(successful=False,
                                            reason='episode_duration must be >= 0 seconds')
+            if p.name == 'max_episode_duration' and not 0.0 < p.value < 1e6:
+                return SetParametersResult(successful=False,
+                                           reason='max_episode_duration must be in (0, 1e6) s')
             if p.name == 'scene_rate' and not p.value >= 0.0:
                 return SetParametersResult(successful=False, reason='scene_rate must be >= 0 Hz')
         return SetParametersResult(successful=True)
@@ -207,11 +217,54 @@ class SimNode(Node):
         return self._arms[task.path]
 
     # -- services -----------------------------------------------------------------------
+    def episode_steps(self, requested: float, arm: ArmModel, tau: np.ndarray) -> int:
+        """Control periods of an episode of `requested` seconds (0: the episode_duration
+        parameter, whose 0 means the task's duration plus its settle time). Raises TaskError
+        for a duration that is not finite, negative, shorter than one period or longer than
+        max_episode_duration."""
+        longest = self.get_parameter('max_episode_duration').value
+        if not (math.isfinite(requested) and requested >= 0.0):
+            raise TaskError(f'duration must be a finite number of seconds >= 0 (0: the '
+                            f"task's), got {requested}")
+        duration = requested or self.get_parameter('episode_duration').value
+        if duration > longest:
+            raise TaskError(f'an episode of {duration:g} s is longer than max_episode_duration '
+                            f'({longest:g} s)')
+        if duration == 0.0:
+            return arm.task.num_steps_of(tau)
+        steps = int(round(duration * arm.task.control_rate))
+        if steps < 1:
+            raise TaskError(f'an episode of {duration:g} s is shorter than one control period '
+                            f'({arm.task.control_period:g} s)')
+        return steps
+
+    def foreign_commanders(self, patience: float = NAME_PATIENCE) -> list[str]:
+        """The nodes besides this namespace's pd_controller that publish on effort_command.
+        ROS 2 has no access control on topics (DDS Security, SROS2, would add it): anyone may
+        publish torques, and a message does not say who sent it, so the simulator refuses to
+        start an episode while anyone else publishes them."""
+        topic = self.resolve_topic_name(names.EFFORT_COMMAND)
+        mine = self.get_namespace().rstrip('/') + '/' + CONTROLLER
+        # DDS announces an endpoint before ROS says whose node it is: wait up to `patience` s
+        deadline = time.monotonic() + patience
+        while True:
+            found = {(i.node_namespace.rstrip('/') + '/' + i.node_name)
+                     for i in self.get_publishers_info_by_topic(topic)}
+            if not any(UNKNOWN_NODE in name for name in found) or time.monotonic() > deadline:
+                return sorted(found - {mine})
+            time.sleep(0.01)
+
     def on_reset(self, request: ResetTask.Request, response: ResetTask.Response):
-        duration = request.duration or self.get_parameter('episode_duration').value
         mode = request.mode or 'teleport'
         with self._lock:
             try:
+                foreign = self.foreign_commanders()
+                if foreign and mode != 'probe':
+                    self.foreign_refusals += 1
+                    raise TaskError(f'{", ".join(foreign)} publish(es) on '
+                                    f'{self.resolve_topic_name(names.EFFORT_COMMAND)} besides '
+                                    'the controller: no episode starts while anyone else '
+                                    'may command the torques')
                 if mode not in RESET_MODES:
                     raise TaskError(f'reset mode must be one of {", ".join(RESET_MODES)}, got '
                                     f'{mode!r}')
@@ -219,6 +272,9 @@ class SimNode(Node):
                     raise TaskError('an episode is running: drive and probe start from the '
                                     'state between episodes')
                 arm = self._arm(request.task)
+                # before anything changes: the episode's length
+                num_steps = self.episode_steps(request.duration, arm,
+                                               arm.task.validate_tau(request.tau))
                 if mode == 'teleport':          # refuses a bad tau before changing anything
                     tau = arm.reset(request.tau)
                 else:                           # the arm stays where it is
@@ -237,8 +293,6 @@ class SimNode(Node):
                 response.success, response.message = True, 'the current state'
                 response.stamp, response.num_steps = time_msg(self.t_ns), 0
                 return response
-            num_steps = (int(round(duration * arm.task.control_rate)) if duration > 0
-                         else arm.task.num_steps_of(tau))
             self.arm = arm
             self.episodes += 1
             self.applied = np.zeros(len(arm.joint_names))
@@ -255,6 +309,7 @@ class SimNode(Node):
             self._episode_wall_ns = self._state_wall_ns
             self._ee_path = []
             self._scene_tick(always=True)
+            self._publish_status(0)        # the episode's start (and, realtime, its rate)
         response.success, response.message = True, f'episode of {num_steps} steps started'
         response.stamp, response.num_steps = time_msg(self.t_ns), num_steps
         return response
@@ -328,6 +383,9 @@ class SimNode(Node):
         (steps done, deadline misses, wall time, steps per second)."""
         ep = self.episode
         wall = time.perf_counter() - ep['start']
+        # at the start: the rate the realtime loop keeps (lockstep's is not known yet)
+        rate = (done / wall if done else
+                self.arm.task.control_rate if self.mode == 'realtime' else 0.0)
         status = DiagnosticStatus(
             level=DiagnosticStatus.OK, name=f'{self.get_fully_qualified_name()}: episode',
             message=f'{done}/{ep["steps"]} steps, {ep["misses"]} deadline misses',
@@ -336,8 +394,10 @@ class SimNode(Node):
                 ('mode', self.mode), ('task', self.arm.task.name), ('episode_start_ns', ep['t0']),
                 ('steps_done', done), ('steps', ep['steps']), ('episodes', self.episodes),
                 ('deadline_misses', ep['misses']), ('stale_commands', self.stale_commands),
+                ('foreign_refusals', self.foreign_refusals),
+                ('foreign_commanders', ' '.join(self.foreign_commanders(patience=0.0))),
                 ('wall_time_s', f'{wall:.6f}'),
-                ('steps_per_second', f'{done / wall:.1f}'))]
+                ('steps_per_second', f'{rate:.1f}'))]
             + ([KeyValue(key=f'step_{phase}_us', value=f'{us:.1f}')
                 for phase, us in self.timing.medians_us().items()] if done == ep['steps'] else []))
         diag = DiagnosticArray(status=[status])

@@ -293,7 +293,25 @@ def list_tasks() -> list[str]:
     return sorted(names)
 
 
+MAX_TASK_REFERENCE = 1024       # characters of a task name or YAML path
+MAX_TASK_FILE = 2**20           # bytes of a task YAML
+
+
 def find_task_file(name_or_path: str) -> Path:
+    """The YAML of a task name (on the search path) or path. Raises TaskError for an unknown
+    task, a reference longer than MAX_TASK_REFERENCE and a file that cannot be read."""
+    if len(name_or_path) > MAX_TASK_REFERENCE:
+        raise TaskError(f'a task name or path of {len(name_or_path)} characters: at most '
+                        f'{MAX_TASK_REFERENCE}')
+    if '\0' in name_or_path:
+        raise TaskError('a task name or path cannot hold a NUL character')
+    try:
+        return _find_task_file(name_or_path)
+    except OSError as exc:          # too long a file name, no permission, ...
+        raise TaskError(f'task {name_or_path[:100]!r}: {exc.strerror or exc}') from None
+
+
+def _find_task_file(name_or_path: str) -> Path:
     candidate = Path(name_or_path)
     if candidate.suffix in ('.yaml', '.yml'):
         if candidate.is_file():
@@ -324,7 +342,14 @@ _CACHE: dict[tuple[Path, float], TaskDefinition] = {}
 def load_task(name_or_path: str) -> TaskDefinition:
     """Load a task by name (search path) or by YAML path. Raises TaskError."""
     path = find_task_file(name_or_path)
-    key = (path, path.stat().st_mtime)
+    try:
+        stat = path.stat()
+    except OSError as exc:
+        raise TaskError(f'{path}: {exc.strerror or exc}') from None
+    if stat.st_size > MAX_TASK_FILE:
+        raise TaskError(f'{path}: {stat.st_size} bytes, more than a task file may hold '
+                        f'({MAX_TASK_FILE})')
+    key = (path, stat.st_mtime)
     if key not in _CACHE:
         _CACHE[key] = _parse(path)
     return _CACHE[key]
@@ -349,6 +374,8 @@ def _parse(path: Path) -> TaskDefinition:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
         raise TaskError(f'{path}: not valid YAML: {exc}') from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TaskError(f'{path}: cannot be read: {exc}') from None
     try:
         return _build(path, data)
     except KeyError as exc:
