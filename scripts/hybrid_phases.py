@@ -16,7 +16,7 @@ import numpy as np
 import psl_optimizer.learning as L
 import psl_optimizer.policy_search as PS
 from psl_optimizer.learning import Learner, LearnSettings
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 phase_log = []           # (task index, phase, rollouts, fulfilled at end)
 current = {'task': -1}

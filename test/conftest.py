@@ -70,7 +70,7 @@ def graph_matches_batch(client):
     from sensor_msgs.msg import JointState
 
     from psl_optimizer.batch_rollout import BatchRollouts
-    from psl_sim.task import task_id
+    from psl_task.task import task_id
 
     def check(task, tau, theta, law=None):
         states = {}

@@ -21,7 +21,7 @@ from psl_msgs.srv import ResetTask
 from psl_ros import names
 from psl_ros.graph import pid_alive
 from psl_ros.qos import RELIABLE, SERVICES
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'
 BAD_NUMBERS = (math.nan, math.inf, -math.inf, 1e308, -1e308, -1.0, 0.0, 1e-300)
@@ -202,8 +202,8 @@ def live_update(client, task, goal, time_from_start):
 
 def test_a_live_goal_outside_the_joint_range_is_refused_with_the_safety_reason(graph, client,
                                                                               task):
-    from psl_sim.arm_model import ArmModel
-    from psl_sim.safety_check import SafetyCheck
+    from psl_task.arm_model import ArmModel
+    from psl_task.safety_check import SafetyCheck
     check = SafetyCheck(ArmModel(task))            # the joint ranges less the safety margin
     goal = np.array([10.0, 0.0, 0.0])            # joint1 at 10 rad: far above its limit
     result, references = live_update(client, task, goal, 0.5)

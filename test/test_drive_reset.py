@@ -12,7 +12,7 @@ from psl_controller.policy import policy_for
 from psl_ros.client import RosClient
 from psl_ros.graph import NODES, Graph, pid_alive
 from psl_ros.stamps import to_ns
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'
 JUMP = 0.05         # rad: no joint moves more in one 2 ms control period (homing: <= 1 rad/s)

@@ -6,7 +6,7 @@ import yaml
 
 from psl_controller.pd_law import law_for
 from psl_controller.policy import policy_for
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'
 

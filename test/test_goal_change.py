@@ -15,8 +15,8 @@ import yaml
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from psl_controller.policy import policy_for
-from psl_sim.arm_model import joint_names_of
-from psl_sim.task import EMBEDDED_TASKS, load_task, task_id
+from psl_task.arm_model import joint_names_of
+from psl_task.task import EMBEDDED_TASKS, load_task, task_id
 
 TASK = 'reach_over_obstacle'
 NEW_GOAL = np.array([0.539, -0.395, -1.395])   # rad: the goal posture moved by 0.1-0.15 rad

@@ -9,7 +9,7 @@ from std_msgs.msg import Float64MultiArray
 
 from psl_ros.bag_recorder import make_typestore, read_bag_summary, record
 from psl_controller.policy import policy_for
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'
 DELIVERY_TIMEOUT = 10.0  # s, for messages already published to reach the recorder

@@ -11,7 +11,7 @@ from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
 from psl_ros.client import RosClient
 from psl_ros.graph import Graph, pid_alive
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'payload_transport'
 NUM_TEST = 2

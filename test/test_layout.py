@@ -14,9 +14,12 @@ PACKAGES = sorted(p.name for p in SRC.iterdir() if (p / 'package.xml').is_file()
 PYTHON_PACKAGES = [p for p in PACKAGES if (SRC / p / p).is_dir()]
 # what the design card (../shared/DESIGN.md, section 3a) keeps apart
 FORBIDDEN = {
-    'psl_memory': {'psl_sim', 'psl_controller', 'psl_optimizer', 'psl_bench', 'psl_cli'},
-    'psl_ros': {'psl_sim', 'psl_controller', 'psl_optimizer', 'psl_memory', 'psl_bench',
-                'psl_cli'},
+    'psl_task': {'psl_ros', 'psl_sim', 'psl_controller', 'psl_optimizer', 'psl_memory',
+                 'psl_bench', 'psl_cli'},
+    'psl_memory': {'psl_task', 'psl_sim', 'psl_controller', 'psl_optimizer', 'psl_bench',
+                   'psl_cli'},
+    'psl_ros': {'psl_task', 'psl_sim', 'psl_controller', 'psl_optimizer', 'psl_memory',
+                'psl_bench', 'psl_cli'},
     'psl_sim': {'psl_controller', 'psl_optimizer', 'psl_memory', 'psl_bench', 'psl_cli'},
     'psl_controller': {'psl_optimizer', 'psl_memory', 'psl_bench', 'psl_cli'},
     'psl_optimizer': {'psl_bench', 'psl_cli'},

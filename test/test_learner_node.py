@@ -24,7 +24,7 @@ from psl_memory.skill_memory import SkillMemory
 from psl_msgs.msg import RolloutEvaluation
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'
 NUM_TEST = 6
@@ -154,7 +154,7 @@ def test_a_missing_skill_is_created_from_the_task(client, tmp_path):
     import shutil
 
     import yaml
-    from psl_sim.task import EMBEDDED_TASKS
+    from psl_task.task import EMBEDDED_TASKS
     data = yaml.safe_load((EMBEDDED_TASKS / f'{TASK}.yaml').read_text())
     data['name'] = name = f'never_seen_{os.getpid()}'
     shutil.copy(EMBEDDED_TASKS / data['model'], tmp_path / data['model'])

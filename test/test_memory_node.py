@@ -86,7 +86,7 @@ def info(client) -> dict:
 def create_task_skill(client, **override):
     """create_skill with the ranges and default policy of the embedded task."""
     from psl_controller.policy import policy_for
-    from psl_sim.task import load_task
+    from psl_task.task import load_task
     task = load_task(TASK_SKILL)
     fields = dict(skill=TASK_SKILL, tau_low=task.tau_low.tolist(),
                   tau_high=task.tau_high.tolist(),

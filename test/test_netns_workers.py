@@ -21,7 +21,7 @@ from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
 from psl_ros.bag_recorder import read_bag_summary
 from psl_ros.graph import Graph
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'
 EVALUATIONS = ('/worker0/rollout_evaluation', '/worker1/rollout_evaluation')

@@ -9,8 +9,8 @@ from psl_memory.parameterized_skill import scaler_around
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings, search
-from psl_sim.arm_model import ArmModel
-from psl_sim.task import load_task
+from psl_task.arm_model import ArmModel
+from psl_task.task import load_task
 
 TASK = 'reach_4dof'
 JOINTS = ['waist', 'shoulder', 'elbow', 'wrist']     # reach_4dof.xml, in actuator order

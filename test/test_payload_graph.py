@@ -5,7 +5,7 @@ import pytest
 
 from psl_controller.policy import policy_for
 from psl_optimizer.inverse_dynamics import oracle_theta
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'payload_transport'
 

@@ -11,7 +11,7 @@ from psl_ros.action_client import ActionClient
 from psl_ros.graph import Graph
 from psl_ros.client import RosClient, wait_for_server
 from psl_controller.policy import policy_for
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 NAMESPACE = 'worker1'
 

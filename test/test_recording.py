@@ -21,7 +21,7 @@ from psl_controller.pd_law import law_for
 from psl_controller.policy import policy_for
 from psl_ros.bag_recorder import LOSS_KEY, read_bag_summary, record
 from psl_ros.stamps import NS_PER_S, to_ns
-from psl_sim.task import load_task, task_id
+from psl_task.task import load_task, task_id
 
 TASK = 'reach_over_obstacle'
 # back to back: 5 x 1001 messages per topic, more than a keep-last-1000 subscription holds

@@ -10,8 +10,8 @@ import pytest
 import yaml
 
 from psl_controller.policy import policy_for
-from psl_sim.arm_model import ArmModel
-from psl_sim.task import load_task
+from psl_task.arm_model import ArmModel
+from psl_task.task import load_task
 
 EXAMPLES = Path(__file__).resolve().parents[1] / 'examples'
 PUSHER = EXAMPLES / 'pusher_reach_over_obstacle.yaml'

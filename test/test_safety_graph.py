@@ -1,5 +1,5 @@
 """The safety check in the graph: the executor checks every candidate's reference before it
-sends anything (`psl_sim.safety_check`); a refused one gets the penalty and the reason, and the
+sends anything (`psl_task.safety_check`); a refused one gets the penalty and the reason, and the
 simulator starts no episode for it (its episode count on /diagnostics)."""
 import numpy as np
 import pytest
@@ -10,7 +10,7 @@ from psl_optimizer.batch_rollout import BatchRollouts
 from psl_ros import names
 from psl_ros.qos import RELIABLE
 from psl_ros.stamps import to_ns
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'
 

@@ -15,9 +15,9 @@ from psl_controller.policy import policy_for
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_ros import names
 from psl_ros.stamps import NS_PER_S, to_ns
-from psl_sim.arm_model import ArmModel
+from psl_task.arm_model import ArmModel
 from psl_sim.scene import ARM, END_EFFECTOR_PATH, OBSTACLES, Scene
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'
 SCENE_RATE = 30.0                   # Hz of simulated time, the simulator's default

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from psl_controller.policy import policy_for
-from psl_sim.task import EMBEDDED_TASKS, load_task
+from psl_task.task import EMBEDDED_TASKS, load_task
 
 
 @pytest.fixture(scope='module')

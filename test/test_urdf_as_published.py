@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from psl_controller.policy import policy_for
-from psl_sim.arm_model import ArmModel
-from psl_sim.task import load_task
+from psl_task.arm_model import ArmModel
+from psl_task.task import load_task
 
 UR5 = Path(__file__).resolve().parents[1] / 'examples' / 'ur5_reach_over_obstacle.yaml'
 

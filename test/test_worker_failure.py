@@ -18,7 +18,7 @@ from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
 from psl_ros.client import RosClient
 from psl_ros.graph import NODES, NodeHandle
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 PSL = [sys.executable, '-m', 'psl_cli.main']
 TASK = 'reach_over_obstacle'

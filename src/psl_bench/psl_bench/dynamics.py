@@ -40,7 +40,7 @@ def session(task_name: str, optimiser: str, seed: int, num_tasks: int, budget: i
     from psl_optimizer.ilc import ILCSettings
     from psl_optimizer.learning import Learner, LearnSettings
     from psl_optimizer.policy_search import SearchSettings
-    from psl_sim.task import load_task
+    from psl_task.task import load_task
 
     if optimiser not in OPTIMISERS:
         raise ValueError(f'unknown optimiser {optimiser!r}; known: {", ".join(OPTIMISERS)}')
@@ -66,7 +66,7 @@ def run(task_name: str = 'payload_transport', optimisers: Sequence[str] = OPTIMI
         ValueError: an unknown optimiser or a task without feed-forward.
     """
     from psl_controller.policy import policy_for
-    from psl_sim.task import load_task
+    from psl_task.task import load_task
 
     if not policy_for(load_task(task_name)).has_feedforward:
         raise ValueError(f'task {task_name!r} has no feed-forward (policy.feedforward)')

@@ -46,7 +46,7 @@ def run_encodings(task_name: str, seeds: Sequence[int], num_tasks: int, budget: 
     from psl_optimizer.learning import Learner, LearnSettings
     from psl_optimizer.task_selection import held_out_tasks
     from psl_optimizer.policy_search import SearchSettings
-    from psl_sim.task import load_task
+    from psl_task.task import load_task
 
     base = load_task(task_name)
     rows: dict[str, list[dict]] = {}
@@ -85,7 +85,7 @@ def run_selection(task_name: str, seeds: Sequence[int], num_tasks: int, budget: 
     from psl_optimizer.learning import Learner, LearnSettings
     from psl_optimizer.task_selection import held_out_tasks
     from psl_optimizer.policy_search import SearchSettings
-    from psl_sim.task import load_task
+    from psl_task.task import load_task
 
     task = load_task(task_name)
     batch = BatchRollouts(task)

@@ -47,7 +47,7 @@ def measure(task_name: str = 'reach_over_obstacle', rollouts: int = 10,
     from psl_controller.policy import policy_for
     from psl_ros.client import RosClient
     from psl_ros.graph import Graph
-    from psl_sim.task import load_task, task_id
+    from psl_task.task import load_task, task_id
 
     task = load_task(task_name)
     theta = policy_for(task).default_theta
@@ -113,7 +113,7 @@ def _realtime(task, seconds: float, busy: int = 0, priority: int = 0,
     from psl_bench.busy_cores import busy_cores
     from psl_ros.client import RosClient
     from psl_ros.graph import Graph
-    from psl_sim.task import task_id
+    from psl_task.task import task_id
 
     graph = Graph(task=task_id(task), mode='realtime',
                   nodes=(('sim', 'psl_sim', 'sim'),

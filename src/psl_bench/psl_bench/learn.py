@@ -137,7 +137,7 @@ def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None
     from psl_optimizer.batch_rollout import BatchRollouts
     from psl_optimizer.learning import SKILL_MAPS, Learner, LearnSettings
     from psl_optimizer.policy_search import STRATEGIES, SearchSettings
-    from psl_sim.task import load_task
+    from psl_task.task import load_task
 
     strategies = tuple(strategies or STRATEGIES)
     unknown = [s for s in strategies if s not in STRATEGIES]

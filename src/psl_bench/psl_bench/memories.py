@@ -74,7 +74,7 @@ def session_samples(task_name: str, seed: int, out: Path, num_tasks: int,
     generated = False
     if not (folder / METRICS_FILE).is_file():
         from psl_optimizer.learning import Learner, LearnSettings
-        from psl_sim.task import load_task
+        from psl_task.task import load_task
         if progress is not None:
             progress(f'seed {seed}: no session in {folder}, learning {num_tasks} tasks')
         Learner(load_task(task_name), LearnSettings(strategy='bootstrap', num_tasks=num_tasks,

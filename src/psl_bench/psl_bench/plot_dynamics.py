@@ -58,8 +58,8 @@ def plot_dynamics(directory: str | Path, out_path: str | Path, test_index: int =
         OSError: the PNG cannot be written.
     """
     from psl_memory.skill_memory import SkillMemory
-    from psl_sim.arm_model import joint_names_of
-    from psl_sim.task import load_task
+    from psl_task.arm_model import joint_names_of
+    from psl_task.task import load_task
 
     run = load_run(directory)
     metrics = run['metrics']

@@ -197,7 +197,7 @@ def _task_info(metrics: Metrics) -> tuple[list[str] | None, float | None]:
     YAML where it was learned (`Metrics.task_path`), by name on the task search path, or from
     the copy of the YAML text the metrics keep; (None, None) when none of them gives them."""
     import yaml
-    from psl_sim.task import TaskError, load_task
+    from psl_task.task import TaskError, load_task
     for source in (metrics.task_path, metrics.task):
         try:
             if source:

@@ -139,7 +139,7 @@ def measure(task_name: str = 'reach_over_obstacle', rollouts: int = 5, busy: int
     from psl_controller.policy import policy_for
     from psl_ros.client import RosClient
     from psl_ros.graph import Graph
-    from psl_sim.task import load_task, task_id
+    from psl_task.task import load_task, task_id
 
     if rollouts < 1 or rounds < 1 or busy < 0:
         raise ValueError(f'need rollouts >= 1, rounds >= 1 and busy >= 0, got {rollouts}, '

@@ -19,7 +19,7 @@ def measure(task_name: str = 'reach_over_obstacle', population: int = 32,
     from mujoco import rollout as mj_rollout
 
     from psl_optimizer.batch_rollout import CONTROL, BatchRollouts, stacked
-    from psl_sim.task import load_task
+    from psl_task.task import load_task
 
     if population < 1 or repeats < 1:
         raise ValueError('population and repeats must be at least 1')

@@ -56,7 +56,7 @@ def _session(workers: int, task_name: str, strategy: str, tasks: int, budget: in
     from psl_optimizer.metrics import read_metrics
     from psl_ros.client import RosClient
     from psl_ros.graph import Graph
-    from psl_sim.task import load_task, task_id
+    from psl_task.task import load_task, task_id
 
     task = load_task(task_name)
     graph = Graph(task=task_id(task), workers=workers, log_dir=log_dir)
@@ -101,7 +101,7 @@ def measure(task_name: str = 'reach_over_obstacle', workers: Sequence[int] = (1,
         RuntimeError: a graph did not come up or a session failed.
     """
     from psl_ros.graph import default_log_dir
-    from psl_sim.task import load_task
+    from psl_task.task import load_task
 
     workers = [int(n) for n in workers]
     if not workers or min(workers) < 1 or len(set(workers)) != len(workers):

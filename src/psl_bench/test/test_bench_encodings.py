@@ -8,7 +8,7 @@ from psl_bench import encodings as bench_encodings
 from psl_controller.policy import policy_for
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'
 

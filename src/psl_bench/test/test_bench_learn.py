@@ -7,7 +7,7 @@ import pytest
 
 from psl_bench import learn as bench_learn
 from psl_optimizer.task_selection import held_out_tasks, task_sequence
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'
 STRATEGIES = ('scratch', 'bootstrap')

@@ -7,7 +7,7 @@ from psl_bench.plot_dynamics import dynamics_rollouts, plot_dynamics
 from psl_controller.policy import policy_for
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
 

@@ -15,7 +15,7 @@ from psl_memory.skill_memory import SkillMemory
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
-from psl_sim.task import EMBEDDED_TASKS, load_task
+from psl_task.task import EMBEDDED_TASKS, load_task
 
 TASK = 'reach_over_obstacle'
 NUM_TASKS = 12

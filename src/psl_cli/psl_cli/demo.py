@@ -19,7 +19,7 @@ from psl_controller.policy import policy_for
 from psl_ros import names
 from psl_ros.bag_recorder import read_bag_summary, record
 from psl_ros.client import RosClient, evaluation_dict
-from psl_sim.task import load_task, task_id
+from psl_task.task import load_task, task_id
 
 
 

@@ -93,7 +93,7 @@ def check_task(task_name: str) -> list[str]:
     costs: gravity sag, torque saturation)."""
     from psl_controller.policy import policy_for
     from psl_optimizer.robot_check import check_robot
-    from psl_sim.task import load_task
+    from psl_task.task import load_task
 
     task = load_task(task_name)
     policy_for(task)
@@ -112,7 +112,7 @@ def create_task_skill(task_name: str, namespace: str = '', timeout: float = 30.0
     RuntimeError if it refuses, TimeoutError if it does not answer."""
     from psl_controller.policy import policy_for
     from psl_ros.client import RosClient
-    from psl_sim.task import load_task
+    from psl_task.task import load_task
 
     task = load_task(task_name)
     with RosClient(namespace) as client:
@@ -169,7 +169,7 @@ def cmd_rollout(args) -> int:
     from psl_cli.vectors import load_vector
     from psl_controller.policy import policy_for
     from psl_ros.client import RosClient, evaluation_dict
-    from psl_sim.task import load_task, task_id
+    from psl_task.task import load_task, task_id
 
     try:
         task = load_task(args.task)
@@ -320,7 +320,7 @@ def cmd_learn(args) -> int:
     """psl learn: one learning session, resumable from its output folder. Batch mode runs
     in this process; graph mode sends the session to the running graph's learner node."""
     from psl_cli.progress import LearnProgress
-    from psl_sim.task import load_task
+    from psl_task.task import load_task
 
     try:
         task = load_task(args.task)
@@ -403,7 +403,7 @@ CANCEL_WAIT = 30.0     # s psl learn waits, after Ctrl-C, for the learner to say
 def _learn_in_graph(args, task, out: Path, stop: threading.Event, progress) -> int:
     from psl_optimizer.metrics import read_metrics
     from psl_ros.client import RosClient, Stopped
-    from psl_sim.task import task_id
+    from psl_task.task import task_id
 
     def feedback(message) -> None:
         fb = message.feedback
@@ -552,7 +552,7 @@ def _demo_options(p: argparse.ArgumentParser) -> None:
 
 def cmd_check(args) -> int:
     from psl_optimizer.robot_check import check_robot, format_report
-    from psl_sim.task import load_task
+    from psl_task.task import load_task
 
     try:
         report = check_robot(load_task(args.task))

@@ -2,11 +2,11 @@
 
 The rollout runs in batch mode in this process (`psl_optimizer.batch_rollout.BatchRollouts`:
 the same law and physics as the graph), then its measured joint angles are replayed
-kinematically in the task's model (`psl_sim.arm_model.ArmModel`: joint angles, the task
+kinematically in the task's model (`psl_task.arm_model.ArmModel`: joint angles, the task
 instance's mocap bodies, ``mj_forward``) at ``--fps`` frames per second of simulated time
 (the control steps subsampled; first and last state included) and drawn with
 ``mujoco.Renderer``. The commanded end-effector path (the policy's reference through the
-reward's end-effector sensor, `psl_sim.reward_geometry.RewardGeometry.replay`) is drawn as a
+reward's end-effector sensor, `psl_task.reward_geometry.RewardGeometry.replay`) is drawn as a
 thin line. If MuJoCo cannot render here (no OpenGL context), each frame is a matplotlib 3-D
 stick figure of the same replay instead (the geoms of `psl_sim.scene.Scene`: capsules and
 cylinders as segments, spheres as dots, boxes and planes as outlines, joints as dots);
@@ -42,9 +42,9 @@ import numpy as np
 
 if TYPE_CHECKING:
     from psl_optimizer.reward import RewardResult
-    from psl_sim.arm_model import ArmModel
+    from psl_task.arm_model import ArmModel
     from psl_sim.scene import SceneGeom
-    from psl_sim.task import TaskDefinition
+    from psl_task.task import TaskDefinition
 
 DEFAULT_SIZE = (480, 360)       # px, width and height
 DEFAULT_FPS = 30.0              # frames per second of simulated time
@@ -115,7 +115,7 @@ def replay_rollout(task: TaskDefinition, tau: np.ndarray, theta: np.ndarray, fps
         ValueError: a theta of the wrong size or not finite (TaskError, a ValueError, for tau).
     """
     from psl_optimizer.batch_rollout import BatchRollouts
-    from psl_sim.arm_model import ArmModel
+    from psl_task.arm_model import ArmModel
 
     rollouts = BatchRollouts(task, n_threads=1)
     result = rollouts.run(theta[None], tau)[0]
@@ -301,7 +301,7 @@ def run(args: argparse.Namespace) -> int:
     from psl_cli.options import fail
     from psl_cli.vectors import load_vector
     from psl_controller.policy import policy_for
-    from psl_sim.task import TaskError, load_task
+    from psl_task.task import TaskError, load_task
 
     width, height = args.size
     try:

@@ -207,7 +207,7 @@ def broken_task(tmp_path):
     import shutil
 
     import yaml
-    from psl_sim.task import EMBEDDED_TASKS
+    from psl_task.task import EMBEDDED_TASKS
     data = yaml.safe_load((EMBEDDED_TASKS / 'reach_over_obstacle.yaml').read_text())
     data['goal_posture'] = [0.639, -3.5, -1.495]
     data['demonstration']['positions'][-1] = [0.639, -3.5, -1.495]

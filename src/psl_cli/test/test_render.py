@@ -10,7 +10,7 @@ import pytest
 from PIL import Image, ImageChops
 
 from psl_cli import render
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'
 FPS = 5.0                       # frames per second of simulated time: few frames, fast

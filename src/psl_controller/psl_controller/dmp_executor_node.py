@@ -2,7 +2,7 @@
 
 One rollout: check the goal, give the controller the task's gains if the task changed (its
 parameter service, validated there), roll out the policy for theta on the control grid, check the
-reference against the task's safety limits (`psl_sim.safety_check`: a refused candidate is never
+reference against the task's safety limits (`psl_task.safety_check`: a refused candidate is never
 sent, no episode runs, the result carries the penalty and the reason in ``refused``), send the
 commanded trajectory to the controller (``joint_trajectory``, stamped zero = "start with the
 next state"), start an episode of the task instance with the simulator's ``sim/reset``
@@ -67,9 +67,9 @@ from psl_ros.matching import MatchReport
 from psl_ros.node_main import run_node
 from psl_ros.qos import RELIABLE, SERVICES
 from psl_ros.stamps import duration_msg, time_msg, to_ns
-from psl_sim.arm_model import ArmModel, joint_names_of
-from psl_sim.safety_check import SafetyCheck
-from psl_sim.task import RESETS, TaskDefinition, TaskError, load_task
+from psl_task.arm_model import ArmModel, joint_names_of
+from psl_task.safety_check import SafetyCheck
+from psl_task.task import RESETS, TaskDefinition, TaskError, load_task
 
 LEAD_STEPS = 5          # control periods of lead at the least
 RATE_MARGIN = 1.5       # the loop may run this many times faster than last measured

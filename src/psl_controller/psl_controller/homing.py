@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from psl_controller.policy import Reference
-from psl_sim.task import HomingSpec
+from psl_task.task import HomingSpec
 
 PEAK_VELOCITY = 15.0 / 8.0              # x d / T, from rest
 PEAK_ACCELERATION = 10.0 / np.sqrt(3.0)  # x d / T^2, from rest

@@ -32,7 +32,7 @@ from psl_ros.node_main import run_node
 from psl_ros.qos import RELIABLE
 from psl_ros.realtime import raise_priority
 from psl_ros.stamps import to_ns
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 
 def trajectory_from_msg(msg: JointTrajectory, joint_names: list[str]) -> SampledTrajectory:

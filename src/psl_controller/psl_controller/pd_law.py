@@ -17,8 +17,8 @@ import functools
 
 import numpy as np
 
-from psl_sim.arm_model import ArmModel
-from psl_sim.task import TaskDefinition
+from psl_task.arm_model import ArmModel
+from psl_task.task import TaskDefinition
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -20,7 +20,7 @@ Task variability the DMP carries (``kind: dmp`` only):
   follows the duration;
 - ``policy.space: end_effector``: the DMP runs over the end-effector position (3-D, start and
   default goal from the demonstration's end-effector path) and the joint reference is its
-  differential inverse kinematics on the task's model (`psl_sim.inverse_kinematics`), computed
+  differential inverse kinematics on the task's model (`psl_task.inverse_kinematics`), computed
   from theta before the rollout, the same in graph and batch mode.
 Imports no ROS; the DMP executor node and batch rollouts both call `TaskPolicy.reference`.
 """
@@ -34,7 +34,7 @@ import numpy as np
 from psl_controller.dmp import DMP, demonstration_from_waypoints
 from psl_controller.feedforward import FeedForward
 from psl_controller.gmr_trajectory import GMRTrajectory
-from psl_sim.task import TaskDefinition
+from psl_task.task import TaskDefinition
 
 
 KINDS = ('dmp', 'gmr')     # how theta_K encodes the joint trajectory
@@ -260,11 +260,11 @@ def policy_for(task: TaskDefinition) -> TaskPolicy:
 
 
 def end_effector_ik(task: TaskDefinition):
-    """Differential inverse kinematics (`psl_sim.inverse_kinematics.DifferentialIK`) of the
+    """Differential inverse kinematics (`psl_task.inverse_kinematics.DifferentialIK`) of the
     task's end-effector site on its own model, pulled toward the start posture in the null
     space."""
-    from psl_sim.arm_model import ArmModel
-    from psl_sim.inverse_kinematics import DifferentialIK
+    from psl_task.arm_model import ArmModel
+    from psl_task.inverse_kinematics import DifferentialIK
     arm = ArmModel(task)
     return DifferentialIK(arm.model, task.end_effector_site, arm.qpos_adr, arm.dof_adr,
                           q_rest=task.start_posture)

@@ -7,7 +7,7 @@ from psl_controller.basis_functions import NormalizedGaussianBasis
 from psl_controller.canonical_system import CanonicalSystem
 from psl_controller.feedforward import FeedForward
 from psl_controller.policy import TaskPolicy, policy_for
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 FIT_TOLERANCE = 1e-9    # N m, a signal of the basis projects back onto itself
 

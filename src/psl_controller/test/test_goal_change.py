@@ -8,7 +8,7 @@ import yaml
 
 from psl_controller.dmp import DMP
 from psl_controller.policy import TaskPolicy, policy_for
-from psl_sim.task import EMBEDDED_TASKS, load_task
+from psl_task.task import EMBEDDED_TASKS, load_task
 
 TOL_SETTLED = 1e-6      # |y - g_new| long after the switch (relative to the goal change)
 EULER_RATIO = (1.8, 2.2)   # explicit Euler: halving the step halves the error (first order)
@@ -180,8 +180,8 @@ def hand_space_task(tmp_path_factory):
 def test_in_end_effector_space_the_new_goal_is_a_hand_point(hand_space_task):
     """The hand path (forward kinematics on the model) turns to the new 3-D goal point; the
     joint reference is the policy's until the switch."""
-    from psl_sim.arm_model import ArmModel
-    from psl_sim.reward_geometry import RewardGeometry
+    from psl_task.arm_model import ArmModel
+    from psl_task.reward_geometry import RewardGeometry
 
     policy = TaskPolicy(hand_space_task)
     theta = policy.default_theta

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from psl_controller.pd_law import PDLaw, law_for
-from psl_sim.arm_model import ArmModel
-from psl_sim.task import load_task
+from psl_task.arm_model import ArmModel
+from psl_task.task import load_task
 
 TOL = 1e-12
 

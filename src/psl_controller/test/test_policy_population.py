@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from psl_controller.policy import TaskPolicy
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 # joint space with and without feed-forward, a learned goal, durations that vary per
 # instance, and end-effector space (which goes one by one)

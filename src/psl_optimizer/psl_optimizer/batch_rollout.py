@@ -11,9 +11,9 @@ through the control vector (``mjSTATE_MOCAP_POS``); those that change the model 
 get a copy of the batch model per task instance. A task whose control period spans several
 physics steps (``n_substeps``) holds the law's torque over them, as the graph does: there the
 law runs in Python once per control period (`BatchRollouts._run_held`). The reward's sensors
-(`psl_sim.reward_geometry`) are part of the batch model, so the reward needs no Python loop
+(`psl_task.reward_geometry`) are part of the batch model, so the reward needs no Python loop
 over steps either. Every candidate's reference passes the task's safety check
-(`psl_sim.safety_check`) first; a refused one is not simulated and gets the penalty. Imports no
+(`psl_task.safety_check`) first; a refused one is not simulated and gets the penalty. Imports no
 ROS.
 """
 from __future__ import annotations
@@ -31,11 +31,11 @@ from psl_controller.pd_law import PDLaw, law_for
 from psl_controller.policy import Reference
 from psl_optimizer.reward import Reward
 from psl_optimizer.rollouts import RolloutResult, Rollouts, refused_result
-from psl_sim.arm_model import ArmModel
-from psl_sim.model_spec import task_spec
-from psl_sim.reward_geometry import RewardGeometry
-from psl_sim.safety_check import SafetyCheck
-from psl_sim.task import TaskDefinition
+from psl_task.arm_model import ArmModel
+from psl_task.model_spec import task_spec
+from psl_task.reward_geometry import RewardGeometry
+from psl_task.safety_check import SafetyCheck
+from psl_task.task import TaskDefinition
 
 FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
 CONTROL = mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_MOCAP_POS

@@ -21,7 +21,7 @@ from psl_controller.policy import Reference
 from psl_optimizer.reward import RewardResult
 from psl_optimizer.rollouts import RolloutResult, Rollouts, Stopped, refused_result
 from psl_ros.client import RolloutClient
-from psl_sim.task import TaskDefinition, task_id
+from psl_task.task import TaskDefinition, task_id
 
 
 class GraphRollouts(Rollouts):

@@ -11,9 +11,9 @@ from __future__ import annotations
 import numpy as np
 
 from psl_controller.policy import Reference, TaskPolicy, policy_for
-from psl_sim.arm_model import ArmModel
-from psl_sim.safety_check import reference_acceleration
-from psl_sim.task import TaskDefinition
+from psl_task.arm_model import ArmModel
+from psl_task.safety_check import reference_acceleration
+from psl_task.task import TaskDefinition
 
 
 def inverse_dynamics_torque(task: TaskDefinition, tau: np.ndarray,

@@ -36,7 +36,7 @@ from psl_optimizer.rollouts import MODES, Rollouts, Stopped
 from psl_ros import names
 from psl_ros.client import MemoryClient, RolloutClient
 from psl_ros.node_main import run_node
-from psl_sim.task import TaskDefinition, TaskError, load_task
+from psl_task.task import TaskDefinition, TaskError, load_task
 
 
 class ServiceSkill:

@@ -43,7 +43,7 @@ from psl_optimizer.policy_search import SearchResult, SearchSettings, search
 from psl_optimizer.rollouts import Rollouts
 from psl_optimizer.task_selection import (TASK_SELECTIONS, held_out_tasks, most_uncertain,
                                           task_stream)
-from psl_sim.task import TaskDefinition
+from psl_task.task import TaskDefinition
 
 FEEDFORWARD_SCALE = 0.5          # theta_D's CMA-ES unit: this share of the joint's torque limit
 # after ILC, CMA-ES refines theta_D in this share of that unit (2 % of the torque limit): with

@@ -5,7 +5,7 @@ rollouts (one rollout is a population of one): arrays carry the rollout first, `
 The reward is ``-sum(weight_i * cost_i)`` with the weights from the task YAML, and a rollout
 fulfils its task instance when the reward reaches the task's success threshold. `Reward`
 scores graph-mode and batch-mode rollouts alike; the geometric components read the task's
-`psl_sim.reward_geometry` (MuJoCo sensors, recorded by batch mode's rollout or evaluated on a
+`psl_task.reward_geometry` (MuJoCo sensors, recorded by batch mode's rollout or evaluated on a
 kinematic replay of the measured joint angles in graph mode). Imports no ROS.
 """
 from __future__ import annotations
@@ -14,8 +14,8 @@ import dataclasses
 
 import numpy as np
 
-from psl_sim.reward_geometry import Measurements, RewardGeometry
-from psl_sim.task import TaskDefinition
+from psl_task.reward_geometry import Measurements, RewardGeometry
+from psl_task.task import TaskDefinition
 
 COMPONENTS = ('goal_error', 'penetration', 'clearance', 'smoothness', 'effort',
               'tracking_error', 'orientation_error')

@@ -36,9 +36,9 @@ from psl_ros.node_main import run_node
 from psl_ros.qos import LATCHED, RELIABLE, WHOLE_EPISODE
 from psl_ros.service import create_service
 from psl_ros.stamps import to_ns
-from psl_sim.arm_model import ArmModel
-from psl_sim.reward_geometry import RewardGeometry
-from psl_sim.task import TaskError, load_task
+from psl_task.arm_model import ArmModel
+from psl_task.reward_geometry import RewardGeometry
+from psl_task.task import TaskError, load_task
 # [s] rest of the taking thread after each wake-up: the evaluator is not on the lockstep path,
 # so the loop's states and references queue up in the middleware meanwhile (WHOLE_EPISODE
 # keeps them all) and are taken with one wake-up instead of one each: 38 % less CPU per

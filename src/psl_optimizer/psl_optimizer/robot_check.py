@@ -1,7 +1,7 @@
 """What psl made of a task's robot, and what in it will hurt learning (``psl check``).
 
-Loading a task already refuses what cannot work, with the cause and the fix (`psl_sim.task`,
-`psl_sim.arm_model`: lengths, joint ranges, demonstration times, motors). `check_robot` reports
+Loading a task already refuses what cannot work, with the cause and the fix (`psl_task.task`,
+`psl_task.arm_model`: lengths, joint ranges, demonstration times, motors). `check_robot` reports
 the rest, which runs but costs: per driven joint its range, torque limit and the mass it carries;
 the end effector, the scene objects and the geoms the reward measures; and warnings with their
 fix for
@@ -24,8 +24,8 @@ import mujoco
 import numpy as np
 
 from psl_optimizer.batch_rollout import BatchRollouts
-from psl_sim.arm_model import ArmModel
-from psl_sim.task import TaskDefinition
+from psl_task.arm_model import ArmModel
+from psl_task.task import TaskDefinition
 
 SAG_WARNING = 0.005          # m of hand sag under PD alone worth a warning
 SATURATION_WARNING = 0.01    # share of saturated control periods worth a warning

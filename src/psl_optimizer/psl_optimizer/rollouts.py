@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from psl_sim.task import TaskDefinition
+from psl_task.task import TaskDefinition
 
 if TYPE_CHECKING:     # the command line reads MODES without loading the physics
     from psl_controller.policy import Reference, TaskPolicy
@@ -54,7 +54,7 @@ class RolloutResult:
 
 
 def refused_result(reason: str, reward: float, violation: float) -> RolloutResult:
-    """The result of a candidate the safety check refused (`psl_sim.safety_check`): the
+    """The result of a candidate the safety check refused (`psl_task.safety_check`): the
     penalty reward, not fulfilled, its violation as the one component, no trajectory."""
     from psl_optimizer.reward import RewardResult
 

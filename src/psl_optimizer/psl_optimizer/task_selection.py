@@ -12,7 +12,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from psl_sim.task import TaskDefinition
+from psl_task.task import TaskDefinition
 
 TEST_SEED_OFFSET = 1_000_003     # held-out instances: a stream no training sequence uses
 

@@ -8,9 +8,9 @@ from psl_controller.pd_law import PDLaw, law_for
 from psl_controller.policy import policy_for
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.reward import Reward
-from psl_sim.arm_model import ArmModel
-from psl_sim.reward_geometry import RewardGeometry
-from psl_sim.task import EMBEDDED_TASKS, TaskError, load_task
+from psl_task.arm_model import ArmModel
+from psl_task.reward_geometry import RewardGeometry
+from psl_task.task import EMBEDDED_TASKS, TaskError, load_task
 
 Q_TOLERANCE = 1e-12        # rad; only the order of floating-point additions differs
 REWARD_TOLERANCE = 1e-9

@@ -11,7 +11,7 @@ from psl_optimizer.inverse_dynamics import inverse_dynamics_torque, oracle_theta
 from psl_optimizer.learning import (Learner, LearnSettings, search_normalisation,
                                     tracking_comparison)
 from psl_optimizer.policy_search import SearchSettings
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'payload_transport'
 HEAVY = np.array([3.0])           # kg, the heaviest payload of the task

@@ -15,7 +15,7 @@ from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.task_selection import held_out_tasks, task_sequence
 from psl_optimizer.policy_search import SearchSettings
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'
 SETTINGS = LearnSettings(strategy='bootstrap', num_tasks=6, seed=3, num_test=12,

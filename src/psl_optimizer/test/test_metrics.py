@@ -7,7 +7,7 @@ import pytest
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.metrics import METRICS_FILE, MetricsError, read_metrics
 from psl_optimizer.policy_search import SearchSettings
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 SMALL = dict(strategy='bootstrap', num_tasks=2, seed=1, num_test=3,
              search=SearchSettings(max_rollouts=20))

@@ -15,8 +15,8 @@ import yaml
 from psl_controller.pd_law import law_for
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.robot_check import check_robot, format_report
-from psl_sim.arm_model import ArmModel
-from psl_sim.task import TaskError, load_task
+from psl_task.arm_model import ArmModel
+from psl_task.task import TaskError, load_task
 
 MJCF = """
 <mujoco model="arm_with_passive_parts">

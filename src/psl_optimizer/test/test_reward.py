@@ -8,9 +8,9 @@ import pytest
 from psl_controller.policy import TaskPolicy
 from psl_optimizer.reward import (COMPONENTS, Reward, clearance, effort, goal_error,
                                   penetration, score, smoothness, tracking_error)
-from psl_sim.arm_model import ArmModel
-from psl_sim.reward_geometry import RewardGeometry
-from psl_sim.task import load_task
+from psl_task.arm_model import ArmModel
+from psl_task.reward_geometry import RewardGeometry
+from psl_task.task import load_task
 
 TOL = 1e-12             # hand-computed numbers
 TOL_SMOOTH = 1e-6       # relative: second difference of a sampled parabola (rounding / dt^4)

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import yaml
 
-from psl_sim.arm_model import ArmModel
-from psl_sim.model_spec import task_spec
-from psl_sim.reward_geometry import RewardGeometry
-from psl_sim.task import END_EFFECTOR_SITE, TaskError, load_task
+from psl_task.arm_model import ArmModel
+from psl_task.model_spec import task_spec
+from psl_task.reward_geometry import RewardGeometry
+from psl_task.task import END_EFFECTOR_SITE, TaskError, load_task
 
 # two links of 0.5 m and 0.4 m in the x-z plane (hinges about -y), no site, no obstacle; the
 # second link's geom is unnamed (as in many published models)

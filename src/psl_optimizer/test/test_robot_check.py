@@ -9,8 +9,8 @@ import pytest
 import yaml
 
 from psl_optimizer.robot_check import SAG_WARNING, check_robot, format_report
-from psl_sim.arm_model import ArmModel
-from psl_sim.task import EMBEDDED_TASKS, load_task
+from psl_task.arm_model import ArmModel
+from psl_task.task import EMBEDDED_TASKS, load_task
 
 
 def variant(tmp_path, name, change, xml=lambda text: text):

@@ -13,7 +13,7 @@ from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.learning import (BASELINE_MAPS, SKILL_MAPS, InProcessBaseline,
                                     InProcessSkill, Learner, LearnSettings, in_process_skill)
 from psl_optimizer.policy_search import SearchSettings
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'
 TINY = LearnSettings(strategy='bootstrap', num_tasks=3, seed=2, num_test=3,

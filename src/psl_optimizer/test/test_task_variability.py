@@ -15,7 +15,7 @@ from psl_controller.dmp import DMP
 from psl_controller.policy import TaskPolicy
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.reward import orientation_error
-from psl_sim.task import EMBEDDED_TASKS, TaskError, load_task, rotation_xyz
+from psl_task.task import EMBEDDED_TASKS, TaskError, load_task, rotation_xyz
 
 PLANAR = 'planar_10dof_reach'
 TIMED = 'payload_transport_timed'
@@ -92,7 +92,7 @@ def test_bad_task_variability_keys_are_refused(tmp_path, change, words):
 
 
 def test_a_target_body_that_is_not_mocap_is_refused(tmp_path):
-    from psl_sim.arm_model import ArmModel
+    from psl_task.arm_model import ArmModel
     data = planar_data()
     data['target']['body'] = 'link3'
     with pytest.raises(TaskError, match='not mocap'):
@@ -100,7 +100,7 @@ def test_a_target_body_that_is_not_mocap_is_refused(tmp_path):
 
 
 def test_the_target_body_follows_the_instance():
-    from psl_sim.arm_model import ArmModel
+    from psl_task.arm_model import ArmModel
     arm = ArmModel(load_task(PLANAR))
     arm.reset(np.array([0.42, 0.11]))
     mocap = arm.model.body_mocapid[arm.model.body('target').id]
@@ -205,8 +205,8 @@ def test_goal_error_measures_the_distance_to_the_instances_target():
 
 def test_orientation_error_without_a_target_is_refused(tmp_path):
     from psl_optimizer.reward import Reward
-    from psl_sim.arm_model import ArmModel
-    from psl_sim.reward_geometry import RewardGeometry
+    from psl_task.arm_model import ArmModel
+    from psl_task.reward_geometry import RewardGeometry
     data = yaml.safe_load((EMBEDDED_TASKS / 'reach_over_obstacle.yaml').read_text())
     data['reward']['weights']['orientation_error'] = 1.0
     task = write(tmp_path, data)
@@ -258,7 +258,7 @@ def test_an_unreachable_goal_point_is_penalised_not_nan(hand_space_task):
 def hand_by_mujoco(task, q):
     """The palm position at joint angles q, by MuJoCo's own forward kinematics."""
     import mujoco
-    from psl_sim.arm_model import ArmModel
+    from psl_task.arm_model import ArmModel
     arm = ArmModel(task)
     arm.data.qpos[arm.qpos_adr] = q
     mujoco.mj_forward(arm.model, arm.data)

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import yaml
 
-from psl_sim.arm_model import ArmModel
-from psl_sim.task import TaskError, load_task
+from psl_task.arm_model import ArmModel
+from psl_task.task import TaskError, load_task
 
 LINKS = (('upper', 0.5), ('fore', 0.4))        # name, length [m]
 EFFORT = {'shoulder': 30.0, 'elbow': 20.0}      # N m, the URDF's effort limits

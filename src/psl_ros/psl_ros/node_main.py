@@ -21,7 +21,7 @@ def run_node(make_node: Callable[[], Node], args=None, threads: int = 1) -> None
     try:
         try:
             node = make_node()
-        except ValueError as exc:       # e.g. psl_sim.task.TaskError: the configuration's fault
+        except ValueError as exc:       # e.g. psl_task.task.TaskError: the configuration's fault
             print(f'{getattr(make_node, "__name__", "node")}: cannot start: {exc}',
                   file=sys.stderr, flush=True)
             raise SystemExit(1) from None

@@ -10,7 +10,7 @@ length; between episodes the simulation is paused. A reset may name another task
 robot (the same actuated joints); one of another robot is refused, since the controller and
 every other node of the graph are set up for the joints of the robot the simulator started with.
 ``task_instance`` names the task so that any node can load it: by name, or by its YAML's
-absolute path when the name does not find it (`psl_sim.task.task_id`).
+absolute path when the name does not find it (`psl_task.task.task_id`).
 
 ``scene``: the model's visible geoms at their current poses (`psl_sim.scene`: the arm, the
 obstacles, the static geoms; a capsule is a cylinder and two spheres) and the end-effector path
@@ -47,7 +47,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from psl_msgs.msg import TaskInstance
 from psl_msgs.srv import ResetTask
-from psl_sim.arm_model import ArmModel
+from psl_task.arm_model import ArmModel
 from psl_sim.scene import PATH_SHAPE, Scene, Shape, ShapeKind
 from psl_ros import names
 from psl_ros.graph import SIM_MODES
@@ -59,7 +59,7 @@ from psl_ros.qos import LATCHED, RELIABLE
 from psl_ros.service import create_service
 from psl_ros.stamps import NS_PER_S, time_msg
 from psl_ros.step_timing import StepTiming
-from psl_sim.task import TaskError, load_task, task_id
+from psl_task.task import TaskError, load_task, task_id
 
 RESET_MODES = ('teleport', 'drive', 'probe')     # ResetTask.mode
 CONTROLLER = 'pd_controller'     # the node whose effort_command an episode takes

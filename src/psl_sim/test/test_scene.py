@@ -8,10 +8,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from psl_sim.arm_model import ArmModel
+from psl_task.arm_model import ArmModel
 from psl_sim.scene import (ARM, OBSTACLES, PARTS_PER_GEOM, PLANE_THICKNESS, STATIC, Scene,
                            ShapeKind)
-from psl_sim.task import load_task
+from psl_task.task import load_task
 
 # reach_over_obstacle.xml, copied by hand
 ARM_GEOMS = ['link1', 'link2', 'link3']

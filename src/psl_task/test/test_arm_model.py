@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import yaml
 
-from psl_sim.arm_model import ArmModel, joint_names_of
-from psl_sim.reward_geometry import RewardGeometry
-from psl_sim.task import EMBEDDED_TASKS, TaskError, load_task
+from psl_task.arm_model import ArmModel, joint_names_of
+from psl_task.reward_geometry import RewardGeometry
+from psl_task.task import EMBEDDED_TASKS, TaskError, load_task
 
 DEFAULT_TASK = 'reach_over_obstacle'
 

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import yaml
 
-from psl_sim.arm_model import ArmModel
-from psl_sim.reward_geometry import RewardGeometry
-from psl_sim.safety_check import SafetyCheck
-from psl_sim.task import EMBEDDED_TASKS, TaskError, load_task
+from psl_task.arm_model import ArmModel
+from psl_task.reward_geometry import RewardGeometry
+from psl_task.safety_check import SafetyCheck
+from psl_task.task import EMBEDDED_TASKS, TaskError, load_task
 
 
 def variant(tmp_path, safety, name='reach_over_obstacle'):

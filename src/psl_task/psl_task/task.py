@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from psl_sim.package_paths import PREFIX as PACKAGE_PREFIX, PackageNotFound, resolve
+from psl_task.package_paths import PREFIX as PACKAGE_PREFIX, PackageNotFound, resolve
 
 EMBEDDED_TASKS = Path(__file__).resolve().parent / 'tasks'
 BINDING_KINDS = ('mocap_position', 'body_mass', 'target_position', 'target_orientation',
@@ -117,7 +117,7 @@ class RewardSpec:
 @dataclasses.dataclass(frozen=True)
 class SafetySpec:
     """The ``safety`` section: what a candidate's commanded trajectory must keep before it is
-    executed (`psl_sim.safety_check`), in either rollout mode. By default the reference must be
+    executed (`psl_task.safety_check`), in either rollout mode. By default the reference must be
     finite and inside the joint ranges; every other limit is off until the task sets it."""
 
     joint_margin: float = 0.0           # rad (m) kept inside each limited joint's range
@@ -397,7 +397,7 @@ def _build(path: Path, data: Any) -> TaskDefinition:
     if ('model' in robot) == ('model' in data):
         raise TaskError(f'{path}: give the model once, as robot.model (or the top-level model)')
     # absolute (or ~/...) as given; a relative path is relative to the YAML file's folder;
-    # package://NAME/... through psl_sim.package_paths
+    # package://NAME/... through psl_task.package_paths
     model = str(robot['model'] if 'model' in robot else data['model'])
     package_paths = _package_paths(robot.get('package_paths', {}), path)
     if model.startswith(PACKAGE_PREFIX):
@@ -503,7 +503,7 @@ def _joint_names(entries: Any, n: int, path: Path) -> tuple[str, ...]:
 
 def package_file(task: 'TaskDefinition | Path', url: str, what: str,
                  package_paths: dict[str, Path] | None = None) -> Path:
-    """The file a ``package://NAME/...`` url of a task names (`psl_sim.package_paths`);
+    """The file a ``package://NAME/...`` url of a task names (`psl_task.package_paths`);
     TaskError naming what was searched and the fix when the package is nowhere."""
     path = task.path if isinstance(task, TaskDefinition) else task
     if isinstance(task, TaskDefinition):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import yaml
 
-from psl_sim.task import (EMBEDDED_TASKS, TaskDefinition, TaskError, find_task_file, list_tasks,
+from psl_task.task import (EMBEDDED_TASKS, TaskDefinition, TaskError, find_task_file, list_tasks,
                           load_task, task_id)
 
 DEFAULT_TASK = 'reach_over_obstacle'
@@ -345,7 +345,7 @@ def test_sample_tau_reproducible_with_seed():
 
 # -- the typed sections -----------------------------------------------------------------------
 def test_sections_are_typed_with_their_defaults(tmp_path):
-    from psl_sim.task import ControllerSpec, PolicySpec, RewardSpec
+    from psl_task.task import ControllerSpec, PolicySpec, RewardSpec
     task = load_task(DEFAULT_TASK)
     assert isinstance(task.controller, ControllerSpec)
     assert isinstance(task.policy, PolicySpec) and isinstance(task.reward, RewardSpec)
@@ -408,7 +408,7 @@ def test_a_demonstration_row_of_the_wrong_length_names_both_counts(tmp_path):
 
 def test_postures_outside_the_joint_ranges_are_refused_naming_the_joint(tmp_path):
     """reach_over_obstacle.xml gives every joint the range [-3, 3]."""
-    from psl_sim.arm_model import ArmModel
+    from psl_task.arm_model import ArmModel
     data = embedded_data()
     data['goal_posture'] = [0.639, -3.2, -1.495]
     data['demonstration']['positions'][-1] = [0.639, -3.2, -1.495]
@@ -418,7 +418,7 @@ def test_postures_outside_the_joint_ranges_are_refused_naming_the_joint(tmp_path
 
 
 def test_a_start_posture_of_the_wrong_length_names_the_models_joints(tmp_path):
-    from psl_sim.arm_model import ArmModel
+    from psl_task.arm_model import ArmModel
     data = embedded_data()
     for key in ('start_posture', 'goal_posture'):
         data[key] = data[key] + [0.0]

@@ -7,7 +7,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from psl_sim.inverse_kinematics import DifferentialIK, IKError, IKResult
+from psl_task.inverse_kinematics import DifferentialIK, IKError, IKResult
 
 DT = 1e-3                   # s, control grid
 T_PATH = 800                # samples of a path (0.8 s)

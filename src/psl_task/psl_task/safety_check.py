@@ -1,5 +1,5 @@
 """The safety check before a rollout: a candidate's commanded trajectory is executed only if it
-keeps the task's ``safety`` limits (`psl_sim.task.SafetySpec`).
+keeps the task's ``safety`` limits (`psl_task.task.SafetySpec`).
 
 Both rollout modes call it on the reference of every candidate before anything moves: batch mode
 (`psl_optimizer.batch_rollout`) before ``mujoco.rollout``, the graph's executor before it sends
@@ -28,8 +28,8 @@ import dataclasses
 import mujoco
 import numpy as np
 
-from psl_sim.arm_model import ArmModel
-from psl_sim.model_spec import robot_bodies
+from psl_task.arm_model import ArmModel
+from psl_task.model_spec import robot_bodies
 
 NOT_FINITE_VIOLATION = 1e6
 

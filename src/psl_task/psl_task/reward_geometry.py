@@ -18,8 +18,8 @@ import dataclasses
 import mujoco
 import numpy as np
 
-from psl_sim.arm_model import ArmModel
-from psl_sim.model_spec import task_spec
+from psl_task.arm_model import ArmModel
+from psl_task.model_spec import task_spec
 
 CUTOFF = 10.0    # m; distances beyond this read as the cutoff (no obstacle is that far)
 

@@ -3,7 +3,7 @@
 `ArmModel` steps the simulation with joint torques (held over the control period's
 `n_substeps` physics steps) and
 gives named accessors (joint names, torque limits, end-effector pose) and the task parameters'
-bindings. What the reward measures on it is `psl_sim.reward_geometry`. Imports no ROS.
+bindings. What the reward measures on it is `psl_task.reward_geometry`. Imports no ROS.
 """
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import functools
 import mujoco
 import numpy as np
 
-from psl_sim.model_spec import robot_geoms, task_model
-from psl_sim.task import TASK_BINDINGS, TaskDefinition, TaskError
+from psl_task.model_spec import robot_geoms, task_model
+from psl_task.task import TASK_BINDINGS, TaskDefinition, TaskError
 
 
 class ArmModel:

@@ -11,8 +11,8 @@ from xml.etree import ElementTree
 import mujoco
 import numpy as np
 
-from psl_sim.package_paths import PREFIX
-from psl_sim.task import TaskDefinition, TaskError, package_file, rotation_xyz
+from psl_task.package_paths import PREFIX
+from psl_task.task import TaskDefinition, TaskError, package_file, rotation_xyz
 
 
 GEOM_TYPES = {'box': mujoco.mjtGeom.mjGEOM_BOX, 'sphere': mujoco.mjtGeom.mjGEOM_SPHERE,

@@ -1,0 +1,2 @@
+"""psl_task: the task model of psl (schema, bindings, model building, arm model, reward geometry,
+safety check, inverse kinematics). Imports no ROS."""
