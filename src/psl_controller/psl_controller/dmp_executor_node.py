@@ -47,7 +47,7 @@ import time
 import numpy as np
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.action import CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -61,6 +61,7 @@ from psl_msgs.action import ExecuteRollout
 from psl_msgs.msg import GoalUpdate, RolloutEvaluation
 from psl_msgs.srv import GoalChange, ResetTask
 from psl_ros import names
+from psl_ros.action_server import ActionServer
 from psl_ros.futures import wait_for
 from psl_ros.guard import guard_subscription
 from psl_ros.matching import MatchReport

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.action import CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 
@@ -34,6 +34,7 @@ from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import STRATEGIES, SearchSettings
 from psl_optimizer.rollouts import MODES, Rollouts, Stopped
 from psl_ros import names
+from psl_ros.action_server import ActionServer
 from psl_ros.client import MemoryClient, RolloutClient
 from psl_ros.node_main import run_node
 from psl_task.task import TaskDefinition, TaskError, load_task

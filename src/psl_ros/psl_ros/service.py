@@ -54,6 +54,22 @@ ANSWER_PATIENCE = 60.0      # s a parked answer is kept (callers wait 5-30 s)
 _TIMEOUT_WARNING = 'failed to send response (timeout)'
 
 
+def answered(send: Callable[[], None]) -> bool:
+    """Runs one attempt `send` to answer a request; False when rmw gave the answer up because
+    the client is not matched (its warning `_TIMEOUT_WARNING`; any other warning is shown as
+    it would have been)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter('always')
+        send()
+    timed_out = False
+    for w in caught:
+        if _TIMEOUT_WARNING in str(w.message):
+            timed_out = True
+        else:
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    return not timed_out
+
+
 @dataclass
 class _Parked:
     response: object
@@ -80,18 +96,7 @@ def create_service(node: Node, srv_type, name: str, callback: Callable,
     lock = threading.Lock()
 
     def sent(response, header) -> bool:
-        """One attempt; False when rmw gave the answer up because the client is not matched
-        (any other warning is shown as it would have been)."""
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter('always')
-            send_once(response, header)
-        timed_out = False
-        for w in caught:
-            if _TIMEOUT_WARNING in str(w.message):
-                timed_out = True
-            else:
-                warnings.showwarning(w.message, w.category, w.filename, w.lineno)
-        return not timed_out
+        return answered(lambda: send_once(response, header))
 
     def readers() -> frozenset:
         """The response readers of the service in the node's graph (their gids)."""

@@ -3,11 +3,13 @@ an independent reader (the ``mcap`` and ``mcap-ros2-support`` packages); losses 
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
 import rclpy
@@ -312,8 +314,19 @@ def test_losses_are_counted_and_equal_the_gap(ros, tmp_path):
     node = Node('bag_test_lossy_publisher')
     publisher = node.create_publisher(JointState, 'lossy', QoSProfile(
         depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    # The recorder is stopped while the burst is published. With psl's lease of 4 s a burst
+    # that takes longer on a loaded machine made this process drop the stopped recorder as
+    # dead and match it again as a new (volatile) reader afterwards: it then got nothing, and
+    # the acknowledgement wait had nobody to wait for (seen in CI: the bag held message 0
+    # only). The recorder announces a lease longer than any burst.
+    profile = tmp_path / 'long_lease.xml'
+    text, found = re.subn(r'(<leaseDuration>\s*<sec>)\d+', r'\g<1>600',
+                          Path(os.environ['FASTRTPS_DEFAULT_PROFILES_FILE']).read_text())
+    assert found == 1, 'no leaseDuration in the Fast DDS profile'
+    profile.write_text(text)
     recorder = subprocess.Popen([sys.executable, '-c', RECORDER_PROCESS, str(bag), 'lossy'],
-                                stderr=subprocess.PIPE, text=True)
+                                stderr=subprocess.PIPE, text=True,
+                                env={**os.environ, 'FASTRTPS_DEFAULT_PROFILES_FILE': str(profile)})
     try:
         _wait_matched(publisher, timeout=60.0)
         publisher.publish(_joint_state(0))
@@ -324,6 +337,7 @@ def test_losses_are_counted_and_equal_the_gap(ros, tmp_path):
                 publisher.publish(_joint_state(i))
         finally:
             os.kill(recorder.pid, signal.SIGCONT)
+        assert publisher.get_subscription_count() == 1, 'the stopped recorder was unmatched'
         _wait_acked(publisher)
         recorder.send_signal(signal.SIGINT)  # ends the recording normally
         _, stderr = recorder.communicate(timeout=60.0)

@@ -5,7 +5,9 @@ come and go, and once it says a new subscription is matched, the very next messa
 
 Services that do not lose their answers (psl_ros.service, psl_ros.qos.SERVICES): an answer the server cannot send yet (its client is not
 matched) waits without stalling the other clients and is sent once the client is matched, and
-a client that falls behind the answers to the other clients still gets its own."""
+a client that falls behind the answers to the other clients still gets its own. Action goals
+(psl_ros.action_server) likewise: the answer to a goal waits for its client, and a goal whose
+answer is given up does not run."""
 import os
 import threading
 import time
@@ -16,13 +18,17 @@ import pytest
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 
 import rclpy  # noqa: E402
+from rclpy.action import GoalResponse  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from rclpy.service import Service  # noqa: E402
 from std_srvs.srv import SetBool  # noqa: E402
 
+from psl_msgs.action import ExecuteRollout  # noqa: E402
+from psl_ros import action_server as psl_action_server  # noqa: E402
 from psl_ros import service as psl_service  # noqa: E402
+from psl_ros.action_client import ActionClient  # noqa: E402
 from psl_ros.matching import PUBLISHER, SUBSCRIPTION, MatchedEndpoints, MatchReport  # noqa: E402,E501
 from psl_ros.qos import RELIABLE, SERVICES  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
@@ -241,3 +247,96 @@ def test_the_report_follows_matches_and_a_matched_reader_gets_the_next_message(p
     assert wait_for(lambda: reports.counts(SUBSCRIPTION, topic + '_in') == {'/reporting': 1})
     client.node.destroy_publisher(writer)
     assert wait_for(lambda: reports.counts(SUBSCRIPTION, topic + '_in') == {'/reporting': 0})
+
+
+def action_server(server: Participant, ran: list, taken: list | None = None):
+    """An ExecuteRollout action server through psl_ros.action_server that notes each goal it
+    takes (`taken`) and executes (`ran`, its `task`) and succeeds."""
+    def accept(goal):
+        if taken is not None:
+            taken.append(goal.task)
+        return GoalResponse.ACCEPT
+
+    def execute(handle):
+        ran.append(handle.request.task)
+        handle.succeed()
+        return ExecuteRollout.Result(success=True)
+    return psl_action_server.ActionServer(server.node, ExecuteRollout, NAME + '_action',
+                                          execute_callback=execute, goal_callback=accept)
+
+
+def goal_answer(client, task: str, timeout: float):
+    """The goal response (accepted or not), or None after `timeout` s."""
+    done = threading.Event()
+    future = client.send_goal_async(ExecuteRollout.Goal(task=task))
+    future.add_done_callback(lambda _: done.set())
+    return future.result() if done.wait(timeout) else None
+
+
+def test_a_goal_whose_answer_is_given_up_does_not_run(participants, monkeypatch):
+    """A client whose goal-response reader the server never matches (TRANSIENT_LOCAL against
+    VOLATILE). rclpy's ActionServer took rmw's 'failed to send response (timeout)' warning for
+    success and executed a goal nobody heard of; here the answer is tried for
+    GOAL_ANSWER_PATIENCE s, then the goal is dropped, and the server serves the next client."""
+    monkeypatch.setattr(psl_action_server, 'GOAL_ANSWER_PATIENCE', 1.0)
+    ran, taken = [], []
+    server = participants('acting')
+    acting = action_server(server, ran, taken)
+    never = participants('never_matched')
+    never_client = ActionClient(never.node, ExecuteRollout, NAME + '_action',
+                                goal_service_qos_profile=QoSProfile(
+                                    depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                                    durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    other = participants('other')
+    other_client = ActionClient(other.node, ExecuteRollout, NAME + '_action')
+    deadline = time.monotonic() + WAIT
+    while not (other_client.server_is_ready() and never.node.count_publishers(
+            '/' + NAME + '_action/_action/status') > 0):
+        assert time.monotonic() < deadline, 'the action server was not discovered'
+        time.sleep(0.01)
+    assert goal_answer(never_client, 'unheard', 5.0) is None
+    answer = goal_answer(other_client, 'heard', 10.0)
+    assert answer is not None and answer.accepted
+    result = answer.get_result_async()
+    deadline = time.monotonic() + WAIT
+    while not result.done():
+        assert time.monotonic() < deadline, 'no result'
+        time.sleep(0.01)
+    assert taken == ['unheard', 'heard'] and ran == ['heard']
+    assert list(acting._goal_handles) == [bytes(answer.goal_id.uuid)]
+
+
+def test_a_goal_answer_is_sent_once_its_client_is_matched(participants, monkeypatch):
+    """The answer fails (as rmw's 100 ms timeout) until the client counts as matched, 1.5 s
+    later: it is then sent, and the goal runs once, after its answer."""
+    matched = threading.Event()
+    answered = psl_action_server.answered
+
+    def late(send):
+        if not matched.is_set():
+            time.sleep(0.1)
+            return False
+        return answered(send)
+    monkeypatch.setattr(psl_action_server, 'answered', late)
+    ran = []
+    server = participants('acting')
+    action_server(server, ran)
+    waiting = participants('waiting')
+    client = ActionClient(waiting.node, ExecuteRollout, NAME + '_action')
+    deadline = time.monotonic() + WAIT
+    while not client.server_is_ready():
+        assert time.monotonic() < deadline, 'the action server was not discovered'
+        time.sleep(0.01)
+    answer = []
+    caller = threading.Thread(target=lambda: answer.append(goal_answer(client, 'late', 15.0)))
+    caller.start()
+    time.sleep(1.5)   # the time the client stays unmatched (not a synchronisation)
+    assert caller.is_alive() and not answer and not ran
+    matched.set()
+    caller.join(timeout=15.0)
+    assert answer and answer[0] is not None and answer[0].accepted
+    deadline = time.monotonic() + WAIT
+    while not ran:
+        assert time.monotonic() < deadline, 'the accepted goal did not run'
+        time.sleep(0.01)
+    assert ran == ['late']

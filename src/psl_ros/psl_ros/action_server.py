@@ -1,0 +1,104 @@
+"""rclpy's ActionServer whose goal answers wait for a client the server has not matched yet.
+
+The goal request of an action is a service call, and its answer is lost the way a service's
+is (`psl_ros.service`): the client's ``wait_for_server`` is true once the *client* has matched
+the server, but the server may match the client's response reader only later. Fast DDS
+(rmw_fastrtps ``rmw_response.cpp``) then waits 100 ms and gives the answer up with a warning
+("failed to send response (timeout)"), which rclpy 7.1.6 (Jazzy) takes for success: the goal
+runs and the client, without the answer, waits in vain and never sees it (seen in CI: a learn
+goal sent right after the graph came up had no answer in 30 s).
+
+Here the answer is sent again until the server has matched the client (each attempt blocks
+rmw's 100 ms; goals are rare, the client usually appears within a second under load) or
+`GOAL_ANSWER_PATIENCE` s have passed; a client that has gone is recognised by rmw (the answer
+is dropped as sent). A goal whose answer is given up is dropped unexecuted: nobody would
+hear of it.
+"""
+from __future__ import annotations
+
+import time
+
+from action_msgs.msg import GoalInfo
+from rclpy.action import ActionServer as _RclpyActionServer
+from rclpy.action import GoalResponse
+from rclpy.action.server import ServerGoalHandle
+from rclpy.executors import await_or_execute
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.task import Future
+
+from psl_ros.service import answered
+
+GOAL_ANSWER_PATIENCE = 10.0   # s a goal answer is tried (clients wait 30 s for one)
+RETRY_PAUSE = 0.05            # s between attempts (each attempt itself waits 100 ms in rmw)
+
+
+class ActionServer(_RclpyActionServer):
+    """Drop-in replacement for ``rclpy.action.ActionServer``."""
+
+    def _send_goal_answer(self, request_header, response) -> bool:
+        """Whether the answer was sent (or dropped by rmw for a client that has gone)."""
+        deadline = time.monotonic() + GOAL_ANSWER_PATIENCE
+        attempts = 0
+        while True:
+            attempts += 1
+            try:
+                done = answered(lambda: self._handle.send_goal_response(request_header, response))
+            except _rclpy.RCLError as exc:   # as rclpy: the client may have gone away
+                self._logger.warning(f'goal answer failed: {exc}')
+                return False
+            if not done:
+                if time.monotonic() >= deadline:
+                    self._logger.error(f'goal answer given up after {attempts} attempts: the '
+                                       'client never matched this server')
+                    return False
+                time.sleep(RETRY_PAUSE)
+                continue
+            if attempts > 1:
+                self._logger.info(f'goal answer sent at attempt {attempts} (the server '
+                                  'matched the client late)')
+            return True
+
+    async def _execute_goal_request(self, request_header_and_message):
+        # rclpy 7.1.6's ActionServer._execute_goal_request; only the answer is sent with
+        # patience (`_send_goal_answer`) and a goal whose answer is given up is dropped
+        request_header, goal_request = request_header_and_message
+        goal_uuid = goal_request.goal_id
+        goal_info = GoalInfo()
+        goal_info.goal_id = goal_uuid
+        with self._lock:
+            goal_id_exists = self._handle.goal_exists(goal_info)
+        accepted = False
+        goal_handle = None
+        if not goal_id_exists:
+            response = await await_or_execute(self._goal_callback, goal_request.goal)
+            if not isinstance(response, GoalResponse):
+                self._logger.warning('Goal request callback did not return a GoalResponse '
+                                     'type. Rejecting goal.')
+            else:
+                accepted = GoalResponse.ACCEPT == response
+        if accepted:
+            goal_info.stamp = self._node.get_clock().now().to_msg()
+            try:
+                with self._lock:
+                    goal_handle = ServerGoalHandle(self, goal_info, goal_request.goal)
+            except RuntimeError as exc:
+                self._logger.error(f'Failed to accept new goal with ID {goal_uuid.uuid}: {exc}')
+                accepted = False
+            else:
+                self._goal_handles[bytes(goal_uuid.uuid)] = goal_handle
+                self._result_futures[bytes(goal_uuid.uuid)] = Future()
+                self.add_future(self._result_futures[bytes(goal_uuid.uuid)])
+        response_msg = self._action_type.Impl.SendGoalService.Response()
+        response_msg.accepted = accepted
+        response_msg.stamp = goal_info.stamp
+        if not self._send_goal_answer(request_header, response_msg):
+            if goal_handle is not None:
+                key = bytes(goal_uuid.uuid)   # as rclpy's _execute_expire_goals
+                goal_handle.destroy()
+                del self._goal_handles[key]
+                self.remove_future(self._result_futures.pop(key))
+            return
+        if not accepted:
+            return
+        self._handle.publish_status()
+        await await_or_execute(self._handle_accepted_callback, goal_handle)
