@@ -40,7 +40,7 @@ def test_the_task_has_every_new_kind(task):
     policy = policy_for(task)
     assert policy.ik is not None
     assert policy.num_parameters == 3 * task.policy.n_basis + 3      # weights and goal point
-    assert {p.binds['kind'] for p in task.parameters} == {
+    assert {p.binds.kind for p in task.parameters} == {
         'target_position', 'target_orientation', 'duration'}
 
 

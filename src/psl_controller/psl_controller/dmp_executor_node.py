@@ -70,7 +70,8 @@ from psl_ros.qos import RELIABLE, SERVICES
 from psl_ros.stamps import duration_msg, time_msg, to_ns
 from psl_task.arm_model import ArmModel, joint_names_of
 from psl_task.safety_check import SafetyCheck
-from psl_task.task import RESETS, TaskDefinition, TaskError, load_task
+from psl_task.schema import RESETS
+from psl_task.task import TaskDefinition, TaskError, load_task
 
 LEAD_STEPS = 5          # control periods of lead at the least
 RATE_MARGIN = 1.5       # the loop may run this many times faster than last measured

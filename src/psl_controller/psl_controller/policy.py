@@ -59,7 +59,7 @@ class TaskPolicy:
         if spec.kind not in KINDS:
             raise ValueError(f'task {task.name!r}: unknown policy kind {spec.kind!r}; known: '
                              f'{", ".join(KINDS)}')
-        varies_duration = any(p.binds['kind'] == 'duration' for p in task.parameters)
+        varies_duration = any(p.binds.sets_duration for p in task.parameters)
         if spec.kind != 'dmp' and (spec.learn_goal or spec.space != 'joint' or varies_duration):
             raise ValueError(f'task {task.name!r}: learn_goal, space end_effector and a duration '
                              'task parameter need policy kind dmp')

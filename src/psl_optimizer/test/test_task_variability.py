@@ -72,9 +72,9 @@ def test_target_default_is_where_the_demonstration_ends():
 
 @pytest.mark.parametrize('change, words', [
     (lambda d: d.pop('target'), 'need a target section'),
-    (lambda d: d['task_parameters'][0]['binds'].update(axis=3), 'axis 0, 1 or 2'),
+    (lambda d: d['task_parameters'][0]['binds'].update(axis=3), r'binds.axis must be one of 0, 1 or 2, got 3'),
     (lambda d: d['target'].update(position=[0.1, 0.2]), 'target.position must be 3'),
-    (lambda d: d['target'].update(colour='red'), 'unknown keys'),
+    (lambda d: d['target'].update(colour='red'), "target has unknown key 'colour'"),
     (lambda d: d['policy'].update(space='cartesian'), 'policy.space'),
     (lambda d: d['policy'].update(learn_goal='yes'), 'learn_goal must be true or false'),
     (lambda d: d['task_parameters'].append(

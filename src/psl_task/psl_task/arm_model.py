@@ -14,7 +14,7 @@ import mujoco
 import numpy as np
 
 from psl_task.model_spec import robot_geoms, task_model
-from psl_task.task import TASK_BINDINGS, TaskDefinition, TaskError
+from psl_task.task import TaskDefinition, TaskError
 
 
 class ArmModel:
@@ -81,14 +81,15 @@ class ArmModel:
             robot_geoms(self.model, self.joint_ids) if task.reward.obstacle_geoms else ())
         for name in self.arm_geoms + task.reward.obstacle_geoms:
             self.geom(name)                    # the reward's geoms exist: fail at load
-        self._bindings = [self._binding(p.binds) for p in task.parameters]
+        # each binding's applier (None: it changes neither model nor data, e.g. the target)
+        self._bindings = [p.binds.applier(self) for p in task.parameters]
         # bindings that move things (data-level); a kinematic replay applies only these, so it
         # never changes the dynamics (e.g. a payload mass) of the live simulation
-        self._kinematic = [p.binds['kind'] != 'body_mass' for p in task.parameters]
+        self._kinematic = [not p.binds.changes_model for p in task.parameters]
         # the target's display body follows the instance's target (a mocap body, no dynamics)
         self._target_mocap = -1
         if task.target is not None and task.target.body:
-            self._target_mocap = self._mocap(task.target.body)
+            self._target_mocap = self.mocap(task.target.body)
         self.tau = task.tau_default.copy()
 
     # -- set-up -------------------------------------------------------------------------
@@ -138,29 +139,17 @@ class ArmModel:
             raise TaskError(f'{self.task.model_path}: no {kind.name[6:].lower()} named {name!r}')
         return idx
 
-    def _mocap(self, name: str) -> int:
-        mocap = self.model.body_mocapid[self._id(mujoco.mjtObj.mjOBJ_BODY, name)]
+    def mocap(self, name: str) -> int:
+        """The mocap index of the body called `name`; TaskError if it is not a mocap body."""
+        mocap = self.model.body_mocapid[self.body(name)]
         if mocap < 0:
             raise TaskError(f'{self.task.model_path}: body {name!r} is not mocap (a task '
                             'parameter moves it: <body name=... mocap="true">)')
         return int(mocap)
 
-    def _binding(self, binds: dict):
-        if binds['kind'] in TASK_BINDINGS:     # the target, the duration: no body of the model
-            return lambda model, data, value: None
-        body = self._id(mujoco.mjtObj.mjOBJ_BODY, binds['body'])
-        offset = float(binds.get('offset', 0.0))
-        if binds['kind'] == 'mocap_position':
-            mocap = self._mocap(binds['body'])
-            axis = int(binds['axis'])
-
-            def apply(model, data, value):
-                data.mocap_pos[mocap, axis] = value + offset
-            return apply
-
-        def apply_mass(model, data, value):
-            model.body_mass[body] = value + offset
-        return apply_mass
+    def body(self, name: str) -> int:
+        """The id of the body called `name`; TaskError if the model has none."""
+        return self._id(mujoco.mjtObj.mjOBJ_BODY, name)
 
     @property
     def changes_model(self) -> bool:
@@ -175,8 +164,9 @@ class ArmModel:
         given ones (same bodies). tau must be valid already (`TaskDefinition.validate_tau`;
         `reset` validates); returns it."""
         for apply, value in zip(self._bindings, tau):
-            apply(self.model if model is None else model, self.data if data is None else data,
-                  value)
+            if apply is not None:
+                apply(self.model if model is None else model,
+                      self.data if data is None else data, value)
         self._place_target(tau, self.data if data is None else data)
         if data is None and model is None:
             self.tau = tau
@@ -187,7 +177,7 @@ class ArmModel:
         model, and so the dynamics, stay as they are. tau must be valid already
         (`TaskDefinition.validate_tau`): this runs on every rollout of a population."""
         for apply, kinematic, value in zip(self._bindings, self._kinematic, tau):
-            if kinematic:
+            if kinematic and apply is not None:
                 apply(self.model, data, value)
         self._place_target(tau, data)
 

@@ -1,14 +1,14 @@
 """Task definitions: a YAML file next to its MJCF model names everything a task varies.
 
 A task YAML holds the model file, the task parameters tau (names, ranges, and how each one
-is applied to the model), the start and goal postures, the controller gains, the movement
-representation, the demonstration the default policy is fitted to, the reward weights and
-the success threshold. The ``controller``, ``policy`` and ``reward`` sections are typed
-(`ControllerSpec`, `PolicySpec`, `RewardSpec`): every optional key has its default here and only
-here, and a key a section does not know is refused (a typo never passes silently). Tasks are found by name in the embedded ``tasks/`` folder and in the
-folders listed in ``PSL_TASK_PATH`` (colon-separated), or given as a path to a YAML file.
-The ``model`` key is a path to the MJCF file: absolute (``~`` expanded), or relative to the
-folder of the YAML file (not to the working directory).
+is applied to the model: `psl_task.bindings`), the start and goal postures, the controller
+gains, the movement representation, the demonstration the default policy is fitted to, the
+reward weights and the success threshold. Every section is typed in `psl_task.schema`: every
+optional key has its default there and only there, and a key no section knows is refused with
+the nearest valid key (a typo never passes silently). Tasks are found by name in the embedded
+``tasks/`` folder and in the folders listed in ``PSL_TASK_PATH`` (colon-separated), or given
+as a path to a YAML file. The ``model`` key is a path to the MJCF file: absolute (``~``
+expanded), or relative to the folder of the YAML file (not to the working directory).
 
 Imports no ROS: usable from the nodes, the batch rollouts, tests and notebooks.
 """
@@ -22,18 +22,13 @@ from typing import Any
 import numpy as np
 import yaml
 
+from psl_task.bindings import Binding
 from psl_task.package_paths import PREFIX as PACKAGE_PREFIX, PackageNotFound, resolve
+from psl_task.schema import (ControllerSpec, HomingSpec, PolicySpec, RewardSpec, SafetySpec,
+                             SceneObject, TargetSpec, TaskFile, parse_task_file)
 
 EMBEDDED_TASKS = Path(__file__).resolve().parent / 'tasks'
-BINDING_KINDS = ('mocap_position', 'body_mass', 'target_position', 'target_orientation',
-                 'duration')
-# bindings that change what the episode looks like (the target, the movement's duration)
-# rather than the model: they bind no body
-TASK_BINDINGS = ('target_position', 'target_orientation', 'duration')
-SPACES = ('joint', 'end_effector')     # where the DMP runs (policy.space)
-SCENE_TYPES = {'box': 3, 'sphere': 1, 'capsule': 2, 'cylinder': 2}   # type -> size entries
 END_EFFECTOR_SITE = 'psl_end_effector'  # the site psl adds for end_effector: {body, offset}
-RESETS = ('teleport', 'drive')          # how an episode begins (homing.reset)
 
 
 class TaskError(ValueError):
@@ -42,110 +37,14 @@ class TaskError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class TaskParameter:
-    """One entry of tau: its range and where it goes in the model."""
+    """One entry of tau: its range and where it goes (its binding)."""
 
     name: str
     low: float
     high: float
     default: float
-    binds: dict[str, Any]
+    binds: Binding
     unit: str = ''
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class TargetSpec:
-    """The ``target`` section: the point (and orientation) the end effector must reach, at
-    the end of the movement, by default; ``target_position`` / ``target_orientation`` task
-    parameters replace single coordinates of it per instance."""
-
-    position: np.ndarray            # (3,) m, world frame
-    orientation: np.ndarray         # (3,) rad, extrinsic x-y-z rotation angles of the frame
-    body: str = ''                  # a mocap body moved to the instance's target (display)
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class SceneObject:
-    """One entry of the ``scene`` section: a body psl adds to the model (a mocap body with
-    one geom of the same name), e.g. an obstacle, a table or a target marker."""
-
-    name: str
-    type: str                       # box | sphere | capsule | cylinder (SCENE_TYPES)
-    size: np.ndarray                # MuJoCo's geom size for the type (half-sizes, radius, ...)
-    position: np.ndarray            # (3,) m, world frame
-    orientation: np.ndarray         # (3,) rad, extrinsic x-y-z
-    contacts: bool = False          # collide with the robot (default: scored geometrically)
-    rgba: tuple[float, ...] = (0.8, 0.2, 0.2, 0.6)
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class ControllerSpec:
-    """The ``controller`` section: gains of the PD + feed-forward law, per joint (actuator
-    order). Torque limits come from the model."""
-
-    kp: np.ndarray                  # (n_joints,) N m / rad
-    kd: np.ndarray                  # (n_joints,) N m s / rad
-
-
-@dataclasses.dataclass(frozen=True)
-class PolicySpec:
-    """The ``policy`` section: how theta encodes the commanded trajectory
-    (`psl_controller.policy`)."""
-
-    n_basis: int                    # Gaussians per joint of the DMP (and the feed-forward)
-    kind: str = 'dmp'               # dmp | gmr (psl_controller.policy.KINDS)
-    k_s: float = 400.0              # DMP spring constant of eq. 2.23 (k_d = 2 sqrt(k_s))
-    canonical: str = 'linear'       # canonical system of the phase: linear | exponential
-    feedforward: bool = False       # theta = [theta_K, theta_D]: feed-forward torque on the basis
-    n_components: int = 6           # gmr: Gaussians of the mixture
-    fit_seed: int = 0               # gmr: seed of the EM fit to the demonstration
-    learn_goal: bool = False        # theta_K = [weights, goal]: the DMP goal is learned too
-    space: str = 'joint'            # joint | end_effector: the DMP's output (SPACES)
-
-
-@dataclasses.dataclass(frozen=True)
-class RewardSpec:
-    """The ``reward`` section: weights of the named components (`psl_optimizer.reward`), the
-    success threshold and what the geometric components measure."""
-
-    weights: dict[str, float]       # component name -> weight; missing components count zero
-    success_threshold: float        # fulfilled when reward >= this
-    clearance_margin: float = 0.0   # m; closer than this to an obstacle costs (clearance)
-    obstacle_geoms: tuple[str, ...] = ()    # geoms the arm must keep clear of
-    arm_geoms: tuple[str, ...] = ()         # the arm's geoms measured against them
-
-
-@dataclasses.dataclass(frozen=True)
-class SafetySpec:
-    """The ``safety`` section: what a candidate's commanded trajectory must keep before it is
-    executed (`psl_task.safety_check`), in either rollout mode. By default the reference must be
-    finite and inside the joint ranges; every other limit is off until the task sets it."""
-
-    joint_margin: float = 0.0           # rad (m) kept inside each limited joint's range
-    max_velocity: float = float('inf')  # rad/s (m/s), |qd_ref| of every driven joint
-    max_acceleration: float = float('inf')  # rad/s^2, |qdd_ref|
-    torque_share: float = float('inf')  # inverse-dynamics torque along the reference, as a
-                                        # share of each joint's torque limit (1: within them)
-    collisions: bool = False            # no penetration of reward.obstacle_geoms in a
-                                        # kinematic replay of the reference
-    self_collision: bool = False        # no contact between the robot's own geoms in it
-    replay_period: float = 0.01         # s between the replayed states of the collision check
-    penalty: float = -100.0             # reward of a refused candidate, minus its violation
-
-
-@dataclasses.dataclass(frozen=True)
-class HomingSpec:
-    """The ``homing`` section: how an episode begins. ``teleport`` (simulation only) puts the
-    arm at the start posture at rest; ``drive`` moves it there through the controller first,
-    along a quintic within the velocity and acceleration limits, and waits until it has
-    settled (`psl_controller.homing`)."""
-
-    reset: str = 'teleport'             # teleport | drive (RESETS); psl up --reset overrides
-    max_velocity: float = 1.0           # rad/s (m/s) of any joint along the homing path
-    max_acceleration: float = 4.0       # rad/s^2
-    min_duration: float = 0.2           # s, the shortest homing motion
-    settle_time: float = 0.3            # s held at the start posture after the motion
-    tolerance: float = 0.01             # rad from the start posture (and rad/s of velocity)
-                                        # within which the arm counts as there
 
 
 @dataclasses.dataclass(frozen=True, eq=False)   # hashed by identity: load_task caches
@@ -217,18 +116,17 @@ class TaskDefinition:
         """Control periods in one episode (motion plus settling)."""
         return int(round((self.duration + self.settle_time) * self.control_rate))
 
-    def _bound(self, tau: np.ndarray | None, kind: str):
-        """(value, binding) of each task parameter of this kind in tau (default instance
-        for None)."""
+    def _bound(self, tau: np.ndarray | None):
+        """(value, binding) of each task parameter in tau (default instance for None), the
+        binding's offset added."""
         tau = self.tau_default if tau is None else tau
-        return [(float(v) + float(p.binds.get('offset', 0.0)), p.binds)
-                for v, p in zip(tau, self.parameters) if p.binds['kind'] == kind]
+        return [(float(v) + p.binds.offset, p.binds) for v, p in zip(tau, self.parameters)]
 
     def duration_of(self, tau: np.ndarray | None = None) -> float:
         """The movement's duration [s] on the task instance tau: its ``duration`` task
         parameter, else the task's ``duration``."""
-        bound = self._bound(tau, 'duration')
-        return bound[0][0] if bound else self.duration
+        bound = [value for value, binds in self._bound(tau) if binds.sets_duration]
+        return bound[0] if bound else self.duration
 
     def num_steps_of(self, tau: np.ndarray | None = None) -> int:
         """Control periods in the episode of instance tau (its motion plus settling)."""
@@ -242,10 +140,8 @@ class TaskDefinition:
         if self.target is None:
             raise TaskError(f'task {self.name!r} has no target section')
         position, angles = self.target.position.copy(), self.target.orientation.copy()
-        for value, binds in self._bound(tau, 'target_position'):
-            position[int(binds['axis'])] = value
-        for value, binds in self._bound(tau, 'target_orientation'):
-            angles[int(binds['axis'])] = value
+        for value, binds in self._bound(tau):
+            binds.move_target(value, position, angles)
         return position, rotation_xyz(angles)
 
     def validate_tau(self, tau: Any) -> np.ndarray:
@@ -355,20 +251,6 @@ def load_task(name_or_path: str) -> TaskDefinition:
     return _CACHE[key]
 
 
-def _require(data: dict, key: str, path: Path) -> Any:
-    if key not in data:
-        raise TaskError(f'{path}: missing key {key!r}')
-    return data[key]
-
-
-def _vector(value: Any, key: str, n: int | None, path: Path) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
-    if arr.ndim != 1 or (n is not None and arr.size != n) or not np.all(np.isfinite(arr)):
-        want = f'{n} finite numbers' if n is not None else 'a list of finite numbers'
-        raise TaskError(f'{path}: {key} must be {want}, got {value!r}')
-    return arr
-
-
 def _parse(path: Path) -> TaskDefinition:
     try:
         data = yaml.safe_load(path.read_text())
@@ -387,118 +269,114 @@ def _parse(path: Path) -> TaskDefinition:
 
 
 def _build(path: Path, data: Any) -> TaskDefinition:
-    if not isinstance(data, dict):
-        raise TaskError(f'{path}: a task file is a mapping of keys')
-    robot = data.get('robot', {})
-    robot_keys = {'model', 'end_effector', 'package_paths', 'torque_limits',
-                  'gravity_compensation', 'joints'}
-    if not isinstance(robot, dict) or set(robot) - robot_keys:
-        raise TaskError(f'{path}: robot is a mapping with the keys {", ".join(sorted(robot_keys))}')
-    if ('model' in robot) == ('model' in data):
+    """The task of a file's contents: the schema first (`psl_task.schema`), then what the
+    sections hold together."""
+    try:
+        spec, bindings = parse_task_file(data)
+    except ValueError as exc:
+        raise TaskError(f'{path}: {exc}') from None
+    robot = spec.robot
+    if (robot.model is None) == (spec.model is None):
         raise TaskError(f'{path}: give the model once, as robot.model (or the top-level model)')
-    # absolute (or ~/...) as given; a relative path is relative to the YAML file's folder;
-    # package://NAME/... through psl_task.package_paths
-    model = str(robot['model'] if 'model' in robot else data['model'])
-    package_paths = _package_paths(robot.get('package_paths', {}), path)
-    if model.startswith(PACKAGE_PREFIX):
-        model_path = package_file(path, model, 'robot.model', package_paths).resolve()
-    else:
-        model_path = (path.parent / Path(model).expanduser()).resolve()
-    if not model_path.is_file():
-        raise TaskError(f'{path}: model file {model_path} does not exist')
-    start = _vector(_require(data, 'start_posture', path), 'start_posture', None, path)
+    model_path = _model_path(path, robot.model or spec.model, robot.package_paths)
+    start = spec.start_posture
     n = start.size
     params = []
-    for entry in _require(data, 'task_parameters', path):
-        binds = dict(entry.get('binds', {}))
-        if binds.get('kind') not in BINDING_KINDS:
-            raise TaskError(f'{path}: task parameter {entry.get("name")!r} binds kind must be '
-                            f'one of {BINDING_KINDS}, got {binds.get("kind")!r}')
-        low, high = float(entry['low']), float(entry['high'])
-        if not low < high:
-            raise TaskError(f'{path}: task parameter {entry["name"]!r} needs low < high')
-        _check_binding(binds, str(entry['name']), low + float(binds.get('offset', 0.0)), path)
+    for entry, binds in zip(spec.task_parameters, bindings):
+        if not entry.low < entry.high:
+            raise TaskError(f'{path}: task parameter {entry.name!r} needs low < high')
+        try:
+            binds.check_range(entry.name, entry.low + binds.offset, entry.high + binds.offset)
+        except ValueError as exc:
+            raise TaskError(f'{path}: {exc}') from None
         params.append(TaskParameter(
-            name=str(entry['name']), low=low, high=high,
-            default=float(entry.get('default', 0.5 * (low + high))),
-            binds=binds, unit=str(entry.get('unit', ''))))
-    kinds = [p.binds['kind'] for p in params]
-    if kinds.count('duration') > 1:
+            name=entry.name, low=entry.low, high=entry.high,
+            default=(0.5 * (entry.low + entry.high) if entry.default is None
+                     else entry.default),
+            binds=binds, unit=entry.unit))
+    if sum(p.binds.sets_duration for p in params) > 1:
         raise TaskError(f'{path}: at most one task parameter binds the duration')
-    target = _target(data['target'], path) if 'target' in data else None
-    if target is None and {'target_position', 'target_orientation'} & set(kinds):
-        raise TaskError(f'{path}: target_position / target_orientation task parameters need a '
-                        'target section (target: {position: [x, y, z]})')
-    controller = _section(data, 'controller', path)
-    demo = _require(data, 'demonstration', path)
-    demo_positions = np.asarray(demo['positions'], dtype=float)
+    if spec.target is None and any(p.binds.needs_target for p in params):
+        kinds = sorted({p.binds.kind for p in params if p.binds.needs_target})
+        raise TaskError(f'{path}: {" / ".join(kinds)} task parameters need a target section '
+                        '(target: {position: [x, y, z]})')
+    demo_positions = spec.demonstration.positions
     if demo_positions.ndim != 2 or demo_positions.shape[1] != n:
         found = (f'rows of {demo_positions.shape[1]}' if demo_positions.ndim == 2
                  else f'shape {demo_positions.shape}')
         raise TaskError(f'{path}: demonstration positions must be rows of {n} joint angles, '
                         f'one per entry of start_posture (one per driven joint); found {found}')
-    demo_times = _vector(demo['times'], 'demonstration times', len(demo_positions), path)
-    goal = _vector(_require(data, 'goal_posture', path), 'goal_posture', n, path)
+    demo_times = spec.demonstration.times
+    if demo_times.size != len(demo_positions):
+        raise TaskError(f'{path}: demonstration times must be {len(demo_positions)} finite '
+                        f'numbers (one per row of positions), got {demo_times.tolist()}')
+    for key, vector in (('goal_posture', spec.goal_posture), ('controller.kp', spec.controller.kp),
+                        ('controller.kd', spec.controller.kd),
+                        ('robot.torque_limits', robot.torque_limits)):
+        if vector is not None and vector.size != n:
+            raise TaskError(f'{path}: {key} must be {n} finite numbers (one per entry of '
+                            f'start_posture), got {vector.tolist()}')
+    goal = spec.goal_posture
     for what, posture, row in (('start_posture', start, 0), ('goal_posture', goal, -1)):
         if not np.allclose(demo_positions[row], posture, rtol=0.0, atol=1e-6):
             raise TaskError(f'{path}: the demonstration must {"start" if row == 0 else "end"} '
                             f'at {what} {posture.tolist()} (the DMP runs from its first to '
                             f'its last waypoint), got {demo_positions[row].tolist()}')
-    joints = _joint_names(robot.get('joints', []), n, path)
-    gravity_compensation = robot.get('gravity_compensation', False)
-    if not isinstance(gravity_compensation, bool):
-        raise TaskError(f'{path}: robot.gravity_compensation must be true or false')
-    duration = float(_require(data, 'duration', path))
-    if not duration > 0.0:
-        raise TaskError(f'{path}: duration must be > 0 s, got {duration:g}')
+    if robot.joints and len(robot.joints) != n:
+        raise TaskError(f'{path}: robot.joints names {len(robot.joints)} driven joints, '
+                        f'start_posture has {n} entries: give one posture entry per driven '
+                        'joint, in the order of robot.joints')
+    if len(set(robot.joints)) != len(robot.joints):
+        raise TaskError(f'{path}: robot.joints names a joint twice: {robot.joints}')
+    duration = spec.duration
     if np.any(np.diff(demo_times) <= 0.0) or demo_times[0] != 0.0 or \
             abs(demo_times[-1] - duration) > 1e-9 * max(1.0, duration):
         raise TaskError(f'{path}: demonstration times must rise from 0 to duration '
                         f'({duration:g} s): the DMP starts at the first waypoint and ends at '
                         f'the last; got {demo_times.tolist()}')
+    names = [o.name for o in spec.scene]
+    if len(set(names)) != len(names):
+        twice = sorted({name for name in names if names.count(name) > 1})
+        raise TaskError(f'{path}: two scene objects are called {twice[0]!r}')
     return TaskDefinition(
-        name=str(data.get('name', path.stem)),
+        name=spec.name if spec.name is not None else path.stem,
         path=path,
         model_path=model_path,
-        description=str(data.get('description', '')),
-        **_end_effector(robot, data, path),
-        control_rate=float(_require(data, 'control_rate', path)),
+        description=spec.description,
+        **_end_effector(spec, path),
+        control_rate=spec.control_rate,
         duration=duration,
-        settle_time=float(data.get('settle_time', 0.0)),
+        settle_time=spec.settle_time,
         start_posture=start,
         goal_posture=goal,
         parameters=tuple(params),
-        controller=ControllerSpec(
-            kp=_vector(_require(controller, 'kp', path), 'controller.kp', n, path),
-            kd=_vector(_require(controller, 'kd', path), 'controller.kd', n, path)),
-        policy=_policy(_section(data, 'policy', path), path),
+        controller=spec.controller,
+        policy=spec.policy,
         demo_times=demo_times,
         demo_positions=demo_positions,
-        reward=_reward(_section(data, 'reward', path), path),
-        target=target,
-        safety=_safety(data.get('safety', {}), path),
-        homing=_homing(data.get('homing', {}), path),
-        scene=_scene(data.get('scene', []), path),
-        package_paths=package_paths,
-        torque_limits=(None if 'torque_limits' not in robot else _vector(
-            robot['torque_limits'], 'robot.torque_limits', n, path)),
-        gravity_compensation=gravity_compensation,
-        joints=joints,
+        reward=spec.reward,
+        target=spec.target,
+        safety=spec.safety,
+        homing=spec.homing,
+        scene=tuple(spec.scene),
+        package_paths=_package_paths(robot.package_paths, path),
+        torque_limits=robot.torque_limits,
+        gravity_compensation=robot.gravity_compensation,
+        joints=tuple(robot.joints),
     )
 
 
-def _joint_names(entries: Any, n: int, path: Path) -> tuple[str, ...]:
-    """robot.joints: distinct joint names, one per entry of start_posture (none: the
-    model's actuated joints)."""
-    if not isinstance(entries, list) or not all(isinstance(e, str) for e in entries):
-        raise TaskError(f'{path}: robot.joints is a list of joint names, got {entries!r}')
-    if entries and len(entries) != n:
-        raise TaskError(f'{path}: robot.joints names {len(entries)} driven joints, '
-                        f'start_posture has {n} entries: give one posture entry per driven '
-                        'joint, in the order of robot.joints')
-    if len(set(entries)) != len(entries):
-        raise TaskError(f'{path}: robot.joints names a joint twice: {entries}')
-    return tuple(entries)
+def _model_path(path: Path, model: str, package_paths: dict[str, str]) -> Path:
+    """The model file: absolute (or ~/...) as given; a relative path is relative to the YAML
+    file's folder; package://NAME/... through psl_task.package_paths."""
+    if model.startswith(PACKAGE_PREFIX):
+        model_path = package_file(path, model, 'robot.model',
+                                  _package_paths(package_paths, path)).resolve()
+    else:
+        model_path = (path.parent / Path(model).expanduser()).resolve()
+    if not model_path.is_file():
+        raise TaskError(f'{path}: model file {model_path} does not exist')
+    return model_path
 
 
 def package_file(task: 'TaskDefinition | Path', url: str, what: str,
@@ -516,186 +394,22 @@ def package_file(task: 'TaskDefinition | Path', url: str, what: str,
                         f'(searched {", ".join(exc.searched)})') from None
 
 
-def _package_paths(section: Any, path: Path) -> dict[str, Path]:
+def _package_paths(section: dict[str, str], path: Path) -> dict[str, Path]:
     """robot.package_paths: package name -> folder (relative to the YAML's folder)."""
-    if not isinstance(section, dict):
-        raise TaskError(f'{path}: robot.package_paths maps package names to folders')
     return {str(k): (path.parent / Path(str(v)).expanduser()).resolve()
             for k, v in section.items()}
 
 
-def _end_effector(robot: dict, data: dict, path: Path) -> dict:
+def _end_effector(spec: TaskFile, path: Path) -> dict:
     """end_effector_site (and body, offset) from robot.end_effector ({site: NAME} or
     {body: NAME, offset: [x, y, z]}) or the top-level end_effector_site."""
-    if ('end_effector' in robot) == ('end_effector_site' in data):
+    given = spec.robot.end_effector
+    if (given is None) == (spec.end_effector_site is None):
         raise TaskError(f'{path}: give the end effector once, as robot.end_effector '
                         '({site: NAME} or {body: NAME, offset: [x, y, z]}) or end_effector_site')
-    if 'end_effector_site' in data:
-        return {'end_effector_site': str(data['end_effector_site'])}
-    spec = robot['end_effector']
-    if not isinstance(spec, dict) or not (set(spec) == {'site'} or
-                                          set(spec) <= {'body', 'offset'} and 'body' in spec):
-        raise TaskError(f'{path}: robot.end_effector is {{site: NAME}} or {{body: NAME, '
-                        f'offset: [x, y, z]}}, got {spec!r}')
-    if 'site' in spec:
-        return {'end_effector_site': str(spec['site'])}
-    return {'end_effector_site': END_EFFECTOR_SITE, 'end_effector_body': str(spec['body']),
-            'end_effector_offset': _vector(spec.get('offset', [0.0, 0.0, 0.0]),
-                                           'robot.end_effector.offset', 3, path)}
-
-
-def _scene(entries: Any, path: Path) -> tuple[SceneObject, ...]:
-    if not isinstance(entries, list):
-        raise TaskError(f'{path}: scene is a list of objects')
-    known = [f.name for f in dataclasses.fields(SceneObject)]
-    objects, names = [], set()
-    for entry in entries:
-        if not isinstance(entry, dict) or 'name' not in entry:
-            raise TaskError(f'{path}: every scene object is a mapping with a name, got {entry!r}')
-        name = str(entry['name'])
-        unknown = sorted(set(entry) - set(known))
-        if unknown:
-            raise TaskError(f'{path}: scene object {name!r} has unknown keys {unknown}; '
-                            f'known: {", ".join(known)}')
-        kind = str(entry.get('type', 'box'))
-        if kind not in SCENE_TYPES:
-            raise TaskError(f'{path}: scene object {name!r}: type must be one of '
-                            f'{", ".join(SCENE_TYPES)}, got {kind!r}')
-        if name in names:
-            raise TaskError(f'{path}: two scene objects are called {name!r}')
-        names.add(name)
-        size = _vector(_require(entry, 'size', path), f'scene object {name!r} size',
-                       SCENE_TYPES[kind], path)
-        if not np.all(size > 0):
-            raise TaskError(f'{path}: scene object {name!r}: sizes must be > 0, got '
-                            f'{size.tolist()}')
-        contacts = entry.get('contacts', False)
-        if not isinstance(contacts, bool):
-            raise TaskError(f'{path}: scene object {name!r}: contacts must be true or false')
-        rgba = _vector(entry.get('rgba', SceneObject.rgba), f'scene object {name!r} rgba', 4,
-                       path)
-        objects.append(SceneObject(
-            name=name, type=kind, size=size, contacts=contacts, rgba=tuple(rgba.tolist()),
-            position=_vector(_require(entry, 'position', path),
-                             f'scene object {name!r} position', 3, path),
-            orientation=_vector(entry.get('orientation', [0.0, 0.0, 0.0]),
-                                f'scene object {name!r} orientation', 3, path)))
-    return tuple(objects)
-
-
-def _check_binding(binds: dict, name: str, lowest: float, path: Path) -> None:
-    """The keys each binding kind needs."""
-    kind = binds['kind']
-    if kind in ('mocap_position', 'body_mass') and 'body' not in binds:
-        raise TaskError(f'{path}: task parameter {name!r} ({kind}) needs a body')
-    if kind in ('mocap_position', 'target_position', 'target_orientation'):
-        if binds.get('axis') not in (0, 1, 2):
-            raise TaskError(f'{path}: task parameter {name!r} ({kind}) needs axis 0, 1 or 2, '
-                            f'got {binds.get("axis")!r}')
-    if kind == 'duration' and not lowest > 0.0:
-        raise TaskError(f'{path}: task parameter {name!r} binds the duration: its range must '
-                        f'stay above 0 s, lowest {lowest:g}')
-
-
-def _target(section: Any, path: Path) -> TargetSpec:
-    if not isinstance(section, dict):
-        raise TaskError(f'{path}: target must be a mapping of keys')
-    _known_keys(section, TargetSpec, 'target', path)
-    return TargetSpec(
-        position=_vector(_require(section, 'position', path), 'target.position', 3, path),
-        orientation=_vector(section.get('orientation', [0.0, 0.0, 0.0]), 'target.orientation',
-                            3, path),
-        body=str(section.get('body', '')))
-
-
-def _section(data: dict, key: str, path: Path) -> dict:
-    section = _require(data, key, path)
-    if not isinstance(section, dict):
-        raise TaskError(f'{path}: {key} must be a mapping of keys')
-    return section
-
-
-def _known_keys(section: dict, spec: type, key: str, path: Path) -> None:
-    known = [f.name for f in dataclasses.fields(spec)]
-    unknown = sorted(set(section) - set(known))
-    if unknown:
-        raise TaskError(f'{path}: {key} has unknown keys {unknown}; known: {", ".join(known)}')
-
-
-def _policy(section: dict, path: Path) -> PolicySpec:
-    _known_keys(section, PolicySpec, 'policy', path)
-    feedforward = section.get('feedforward', PolicySpec.feedforward)
-    if not isinstance(feedforward, bool):
-        raise TaskError(f'{path}: policy.feedforward must be true or false, got '
-                        f'{feedforward!r}')
-    learn_goal = section.get('learn_goal', PolicySpec.learn_goal)
-    if not isinstance(learn_goal, bool):
-        raise TaskError(f'{path}: policy.learn_goal must be true or false, got {learn_goal!r}')
-    space = str(section.get('space', PolicySpec.space))
-    if space not in SPACES:
-        raise TaskError(f'{path}: policy.space must be one of {", ".join(SPACES)}, got '
-                        f'{space!r}')
-    n_basis = int(_require(section, 'n_basis', path))
-    if n_basis < 1:
-        raise TaskError(f'{path}: policy.n_basis must be at least 1, got {n_basis}')
-    return PolicySpec(n_basis=n_basis,
-                      kind=str(section.get('kind', PolicySpec.kind)),
-                      k_s=float(section.get('k_s', PolicySpec.k_s)),
-                      canonical=str(section.get('canonical', PolicySpec.canonical)),
-                      feedforward=feedforward,
-                      n_components=int(section.get('n_components', PolicySpec.n_components)),
-                      fit_seed=int(section.get('fit_seed', PolicySpec.fit_seed)),
-                      learn_goal=learn_goal, space=space)
-
-
-def _homing(section: Any, path: Path) -> HomingSpec:
-    if not isinstance(section, dict):
-        raise TaskError(f'{path}: homing must be a mapping of keys')
-    _known_keys(section, HomingSpec, 'homing', path)
-    values = {k: float(v) for k, v in section.items() if k != 'reset'}
-    for key, value in values.items():
-        if not value > 0.0 or not np.isfinite(value):
-            raise TaskError(f'{path}: homing.{key} must be > 0, got {value:g}')
-    reset = str(section.get('reset', HomingSpec.reset))
-    if reset not in RESETS:
-        raise TaskError(f'{path}: homing.reset must be one of {", ".join(RESETS)}, got {reset!r}')
-    return HomingSpec(reset=reset, **values)
-
-
-def _safety(section: Any, path: Path) -> SafetySpec:
-    if not isinstance(section, dict):
-        raise TaskError(f'{path}: safety must be a mapping of keys')
-    _known_keys(section, SafetySpec, 'safety', path)
-    values = {}
-    for field in dataclasses.fields(SafetySpec):
-        if field.name not in section:
-            continue
-        value = section[field.name]
-        if isinstance(field.default, bool):
-            if not isinstance(value, bool):
-                raise TaskError(f'{path}: safety.{field.name} must be true or false')
-        else:
-            value = float(value)
-            if field.name != 'penalty' and not value >= 0.0:
-                raise TaskError(f'{path}: safety.{field.name} must be >= 0, got {value:g}')
-            if field.name == 'replay_period' and not value > 0.0:
-                raise TaskError(f'{path}: safety.replay_period must be > 0 s')
-            if field.name == 'penalty' and not np.isfinite(value):
-                raise TaskError(f'{path}: safety.penalty must be finite')
-        values[field.name] = value
-    return SafetySpec(**values)
-
-
-def _reward(section: dict, path: Path) -> RewardSpec:
-    _known_keys(section, RewardSpec, 'reward', path)
-    weights = _require(section, 'weights', path)
-    if not isinstance(weights, dict):
-        raise TaskError(f'{path}: reward.weights must map component names to weights')
-    margin = float(section.get('clearance_margin', RewardSpec.clearance_margin))
-    if not margin >= 0.0:
-        raise TaskError(f'{path}: reward.clearance_margin must be >= 0, got {margin}')
-    return RewardSpec(weights={str(k): float(v) for k, v in weights.items()},
-                      success_threshold=float(_require(section, 'success_threshold', path)),
-                      clearance_margin=margin,
-                      obstacle_geoms=tuple(str(g) for g in section.get('obstacle_geoms', ())),
-                      arm_geoms=tuple(str(g) for g in section.get('arm_geoms', ())))
+    if given is None:
+        return {'end_effector_site': spec.end_effector_site}
+    if given.site is not None:
+        return {'end_effector_site': given.site}
+    return {'end_effector_site': END_EFFECTOR_SITE, 'end_effector_body': given.body,
+            'end_effector_offset': (np.zeros(3) if given.offset is None else given.offset)}

@@ -202,7 +202,7 @@ def test_an_arm_folded_onto_itself_is_refused(tmp_path):
 @pytest.mark.parametrize('section, words', [
     ({'max_velocity': -1.0}, 'safety.max_velocity must be >= 0'),
     ({'collisions': 'yes'}, 'safety.collisions must be true or false'),
-    ({'speed': 1.0}, "safety has unknown keys \\['speed'\\]"),
+    ({'speed': 1.0}, "safety has unknown key 'speed'; known: joint_margin, max_velocity"),
     ({'penalty': float('nan')}, 'safety.penalty must be finite'),
 ])
 def test_bad_safety_sections_are_refused(tmp_path, section, words):

@@ -2,6 +2,7 @@
 
 import copy
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -297,7 +298,8 @@ def test_unknown_binding_kind_raises(tmp_path):
     data = embedded_data()
     data['task_parameters'][0]['binds']['kind'] = 'joint_damping'
     path = write_task(tmp_path, data)
-    with pytest.raises(TaskError, match='binds kind'):
+    with pytest.raises(TaskError, match=r'task_parameters\[0\] \(obstacle_x\).binds: kind must be '
+                                        "one of mocap_position, .*, got 'joint_damping'"):
         load_task(str(path))
 
 
@@ -363,20 +365,22 @@ def test_sections_are_typed_with_their_defaults(tmp_path):
     assert bare.reward.clearance_margin == RewardSpec.clearance_margin
 
 
-@pytest.mark.parametrize('section, key', [('policy', 'n_basiss'), ('reward', 'weight'),
-                                          ('reward', 'clearance')])
-def test_an_unknown_key_of_a_section_is_refused(tmp_path, section, key):
+@pytest.mark.parametrize('section, key, meant', [('policy', 'n_basiss', 'n_basis'),
+                                                 ('reward', 'weight', 'weights'),
+                                                 ('reward', 'clearance', 'clearance_margin')])
+def test_an_unknown_key_of_a_section_is_refused(tmp_path, section, key, meant):
     data = embedded_data()
     data[section][key] = 1
-    with pytest.raises(TaskError, match=f"{section} has unknown keys \\['{key}'\\]"):
+    with pytest.raises(TaskError, match=f"{section} has unknown key '{key}' "
+                                        f"\\(did you mean {meant}\\?\\)"):
         load_task(str(write_task(tmp_path, data)))
 
 
 @pytest.mark.parametrize('section, key, value, words', [
     ('policy', 'feedforward', 'yes', 'true or false'),
-    ('policy', 'n_basis', 0, 'at least 1'),
+    ('policy', 'n_basis', 0, 'policy.n_basis must be >= 1, got 0'),
     ('reward', 'clearance_margin', -0.1, '>= 0'),
-    ('reward', 'weights', [1.0], 'map component names'),
+    ('reward', 'weights', [1.0], r'reward.weights must be a mapping of keys, got \[1.0\]'),
 ])
 def test_a_bad_section_value_is_refused(tmp_path, section, key, value, words):
     data = embedded_data()
@@ -437,3 +441,60 @@ def test_the_demonstration_must_start_and_end_at_the_postures(tmp_path, row, key
     data['demonstration']['positions'][row][0] += 0.1
     with pytest.raises(TaskError, match=f'the demonstration must {key} at'):
         load_task(str(write_task(tmp_path, data)))
+
+
+# -- a typo anywhere ---------------------------------------------------------------------------
+def _with_robot_scene_target(data: dict) -> dict:
+    """The embedded task with its model in a robot section, a scene object and a target, so
+    that every section is there to misspell."""
+    data['robot'] = {'model': data.pop('model')}
+    data['scene'] = [{'name': 'shelf', 'size': [0.1, 0.1, 0.01], 'position': [0.0, 0.0, 2.0]}]
+    data['target'] = {'position': [0.5, 0.0, 0.5]}
+    data.setdefault('homing', {})
+    data.setdefault('safety', {})
+    return data
+
+
+@pytest.mark.parametrize('where, name, typo, meant', [
+    ((), 'the top level', 'settle_tme', 'settle_time'),
+    (('robot',), 'robot', 'gravity_compensaton', 'gravity_compensation'),
+    (('controller',), 'controller', 'kpp', 'kp'),
+    (('policy',), 'policy', 'n_basiss', 'n_basis'),
+    (('demonstration',), 'demonstration', 'time', 'times'),
+    (('scene', 0), 'scene[0]', 'positon', 'position'),
+    (('target',), 'target', 'orientaton', 'orientation'),
+    (('homing',), 'homing', 'settle_tme', 'settle_time'),
+    (('safety',), 'safety', 'max_velocty', 'max_velocity'),
+    (('reward',), 'reward', 'sucess_threshold', 'success_threshold'),
+    (('task_parameters', 0), 'task_parameters[0]', 'defualt', 'default'),
+    (('task_parameters', 0, 'binds'), 'task_parameters[0] (obstacle_x).binds', 'axs', 'axis'),
+])
+def test_a_typo_in_any_section_is_refused_with_the_nearest_key(tmp_path, where, name, typo,
+                                                               meant):
+    """The misspelt key is refused, named with its section and the valid key it is nearest
+    to (psl_task.schema); before, only five sections were checked and a top-level
+    settle_tme loaded without a word."""
+    data = _with_robot_scene_target(embedded_data())
+    section = data
+    for part in where:
+        section = section[part]
+    section[typo] = 1
+    shutil.copy(EMBEDDED_XML, tmp_path / data['robot']['model'])
+    path = write_task(tmp_path, data, copy_model=False)
+    with pytest.raises(TaskError) as info:
+        load_task(str(path))
+    message = str(info.value)
+    assert f"{name} has unknown key '{typo}' (did you mean {meant}?)" in message, message
+
+
+def test_a_misspelt_binding_kind_is_refused_with_the_nearest_kind(tmp_path):
+    data = embedded_data()
+    data['task_parameters'][0]['binds']['kind'] = 'mocap_positon'
+    with pytest.raises(TaskError, match=r"got 'mocap_positon' \(did you mean mocap_position\?\)"):
+        load_task(str(write_task(tmp_path, data)))
+
+
+def test_every_embedded_and_example_task_loads():
+    examples = Path(__file__).resolve().parents[3] / 'examples'
+    for task in list_tasks() + [str(p) for p in sorted(examples.glob('*.yaml'))]:
+        assert load_task(task).parameters, task
