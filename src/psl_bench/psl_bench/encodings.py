@@ -25,6 +25,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from psl_bench.stats import mean_sd
+from psl_task import DEFAULT_TASK
 
 TARGET = 0.8
 
@@ -117,7 +118,7 @@ def run_selection(task_name: str, seeds: Sequence[int], num_tasks: int, budget: 
     return rows
 
 
-def run(task_name: str = 'reach_over_obstacle', seeds: Sequence[int] = (0, 1, 2, 3, 4),
+def run(task_name: str = DEFAULT_TASK, seeds: Sequence[int] = (0, 1, 2, 3, 4),
         num_tasks: int = 30, budget: int = 300, num_test: int = 20, after: int = 20,
         n_components: int = 6, progress: Callable[[str], None] = lambda line: None) -> dict:
     """Both tables' sessions (see the module docstring); the report of `format_tables`.

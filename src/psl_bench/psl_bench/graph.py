@@ -17,6 +17,7 @@ import numpy as np
 
 from psl_bench.round_trip import RoundTrip
 from psl_ros import names
+from psl_task import DEFAULT_TASK
 
 
 class EpisodeStats:
@@ -36,7 +37,7 @@ class EpisodeStats:
                 self.event.set()
 
 
-def measure(task_name: str = 'reach_over_obstacle', rollouts: int = 10,
+def measure(task_name: str = DEFAULT_TASK, rollouts: int = 10,
             round_trips: int = 2000, realtime_seconds: float = 60.0, busy: int = 0,
             realtime_priority: int = 0, spin_margin: float = 0.0) -> dict:
     """Round trip, lockstep and (realtime_seconds > 0) realtime figures of one run.

@@ -41,6 +41,7 @@ import numpy as np
 
 from psl_bench.stats import over_seeds
 from psl_optimizer.metrics import METRICS_FILE, read_metrics
+from psl_task import DEFAULT_TASK
 
 TARGETS = {'speedup': 5.0, 'zero_shot_success': 0.8}   # bootstrap vs scratch; every strategy
 SESSION_FILE = 'bench_session.json'   # a run folder's session and simulation time
@@ -104,7 +105,7 @@ def _settings_json(settings) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(settings)))
 
 
-def run(task_name: str = 'reach_over_obstacle', strategies: Sequence[str] | None = None,
+def run(task_name: str = DEFAULT_TASK, strategies: Sequence[str] | None = None,
         seeds: Sequence[int] = (0, 1, 2, 3, 4), num_tasks: int = 30, budget: int = 300,
         num_test: int = 20, after: int = 20, out: str | Path | None = None,
         readout: str | None = None, skill_maps: Sequence[str] = ('elm',),

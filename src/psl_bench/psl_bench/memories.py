@@ -43,6 +43,7 @@ from psl_bench.stats import over_seeds
 from psl_memory.registry import ASSOCIATIVE_MEMORIES
 from psl_memory.skill_config import SkillConfig
 from psl_optimizer.metrics import METRICS_FILE, read_metrics
+from psl_task import DEFAULT_TASK
 
 MEMORIES = tuple(ASSOCIATIVE_MEMORIES)      # aelm, arbf, rbm, hopfield
 REFERENCES = ('mean', 'readout')
@@ -154,7 +155,7 @@ def evaluate_seed(samples: dict, seed: int, stride: int, kinds: Sequence[str],
             'results': result}
 
 
-def run(task_name: str = 'reach_over_obstacle', seeds: Sequence[int] = (0, 1, 2, 3, 4),
+def run(task_name: str = DEFAULT_TASK, seeds: Sequence[int] = (0, 1, 2, 3, 4),
         out: str | Path = 'runs/bench-learn', num_tasks: int = 30, stride: int = 3,
         memories: Sequence[str] = MEMORIES, start: str = 'centre',
         progress: Callable[[str], None] | None = None) -> dict:

@@ -22,6 +22,7 @@ import numpy as np
 from psl_bench.busy_cores import busy_cores
 from psl_bench.graph import EpisodeStats
 from psl_ros import names
+from psl_task import DEFAULT_TASK
 
 # topics that carry one message per state of an episode (states 0..N): the state, the
 # controller's answer and reference, the pose and the clock
@@ -109,7 +110,7 @@ def _record_rollouts(client, bag: Path, topics: Sequence[str],
     return out['recording'], wait
 
 
-def measure(task_name: str = 'reach_over_obstacle', rollouts: int = 5, busy: int = 0,
+def measure(task_name: str = DEFAULT_TASK, rollouts: int = 5, busy: int = 0,
             topics: Sequence[str] = names.RECORDED_TOPICS, rounds: int = 3) -> dict:
     """Lockstep steps/s without and with the recorder, and the messages kept and lost.
 

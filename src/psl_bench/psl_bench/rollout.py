@@ -11,8 +11,10 @@ import time
 
 import numpy as np
 
+from psl_task import DEFAULT_TASK
 
-def measure(task_name: str = 'reach_over_obstacle', population: int = 32,
+
+def measure(task_name: str = DEFAULT_TASK, population: int = 32,
             repeats: int = 7) -> dict:
     """Steps per second of both, their ratio (of medians, and the median of the paired
     ratios) and the milliseconds per population of each part of batch mode."""

@@ -21,6 +21,8 @@ import time
 from pathlib import Path
 from typing import Callable, Sequence
 
+from psl_task import DEFAULT_TASK
+
 REWARD_TOLERANCE = 1e-9     # between two sessions' rewards (graph mode vs graph mode)
 
 
@@ -78,7 +80,7 @@ def _session(workers: int, task_name: str, strategy: str, tasks: int, budget: in
             'zero_shot_success': s.zero_shot_success_rate, 'metrics': metrics}
 
 
-def measure(task_name: str = 'reach_over_obstacle', workers: Sequence[int] = (1, 2),
+def measure(task_name: str = DEFAULT_TASK, workers: Sequence[int] = (1, 2),
             strategy: str = 'scratch', tasks: int = 3, budget: int = 22, seed: int = 5,
             progress: Callable[[str], None] | None = None) -> dict:
     """The same graph-mode session with each worker count (see the module docstring).

@@ -19,6 +19,7 @@ from typing import Callable, NamedTuple
 
 from psl_cli import options
 from psl_cli.options import fail
+from psl_ros.timeouts import ROLLOUT_TIMEOUT
 
 SIGPIPE_EXIT = 128 + signal.SIGPIPE       # what a shell reports for a process ended by SIGPIPE
 
@@ -210,7 +211,7 @@ def _rollout_options(p: argparse.ArgumentParser) -> None:
                    help="the DMP's new goal: one joint angle [rad] per joint, or the hand "
                    'point x y z [m] of an end-effector-space task; the evaluation scores '
                    'against it')
-    options.add_graph(p, timeout=120.0, waits_for='the rollout worker and its result')
+    options.add_graph(p, timeout=ROLLOUT_TIMEOUT, waits_for='the rollout worker and its result')
     p.add_argument('--json', action='store_true', help='the evaluation as JSON')
 
 
@@ -567,6 +568,21 @@ def _check_options(p: argparse.ArgumentParser) -> None:
     p.add_argument('--strict', action='store_true', help='exit 1 when there are warnings')
 
 
+def cmd_params(args) -> int:
+    from psl_cli.node_parameters import node_parameters, parameter_file
+
+    nodes = node_parameters()
+    if args.node not in nodes:
+        return fail('psl params', ValueError(f'no node {args.node!r}; nodes: '
+                                             f'{", ".join(nodes)}'), 2)
+    sys.stdout.write(parameter_file(args.node))
+    return 0
+
+
+def _params_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument('node', help='sim | pd_controller | dmp_executor | skill_memory | learner')
+
+
 def cmd_render(args) -> int:
     from psl_cli import render
 
@@ -616,6 +632,8 @@ COMMANDS = {
     'check': Command('what psl makes of a task\'s robot (joints, limits, masses, end '
                      'effector, scene) and what will hurt learning (gravity sag, torque '
                      'saturation), with the fix', _check_options, cmd_check),
+    'params': Command("a node's parameters at their defaults, as a ROS parameter file",
+                      _params_options, cmd_params),
     'render': Command('draw one rollout offscreen into an animated GIF', _render_options,
                       cmd_render),
     'bench': Command('benchmarks (see docs/benchmarks.md)', _bench_options, cmd_bench),

@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-DEFAULT_TASK = 'reach_over_obstacle'       # the embedded default task
+from psl_task import DEFAULT_TASK  # noqa: F401 - light: psl_task's __init__ imports nothing
 
 
 # -- values -----------------------------------------------------------------------------------

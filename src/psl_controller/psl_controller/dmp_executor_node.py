@@ -46,7 +46,6 @@ import time
 
 import numpy as np
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.action import CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
@@ -56,6 +55,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from psl_controller.homing import homing_reference
+from psl_controller.parameters import ExecutorParameters
 from psl_controller.policy import Reference, TaskPolicy, policy_for
 from psl_msgs.action import ExecuteRollout
 from psl_msgs.msg import GoalUpdate, RolloutEvaluation
@@ -66,11 +66,11 @@ from psl_ros.futures import wait_for
 from psl_ros.guard import guard_subscription
 from psl_ros.matching import MatchReport
 from psl_ros.node_main import run_node
+from psl_ros.parameters import check_update, declare
 from psl_ros.qos import RELIABLE, SERVICES
 from psl_ros.stamps import duration_msg, time_msg, to_ns
 from psl_task.arm_model import ArmModel, joint_names_of
 from psl_task.safety_check import SafetyCheck
-from psl_task.schema import RESETS
 from psl_task.task import TaskDefinition, TaskError, load_task
 
 LEAD_STEPS = 5          # control periods of lead at the least
@@ -123,11 +123,10 @@ class DMPExecutor(Node):
 
     def __init__(self):
         super().__init__('dmp_executor')
-        self.declare_parameter('timeout_margin', 10.0, ParameterDescriptor(
-            description='seconds to wait for an evaluation beyond the episode length'))
-        self.declare_parameter('reset', '', ParameterDescriptor(
-            description="how an episode begins: teleport | drive ('' = the task's "
-                        'homing.reset)'))
+        # every update (and declaration) checked by ExecutorParameters (one place)
+        self.add_on_set_parameters_callback(
+            lambda params: check_update(self, ExecutorParameters, params))
+        declare(self, ExecutorParameters)
         group = ReentrantCallbackGroup()
         self.matches = MatchReport(self)        # what the loop's endpoints matched
         self.pub_trajectory = self.matches.create_publisher(JointTrajectory,
@@ -262,9 +261,6 @@ class DMPExecutor(Node):
         goal = run.goal
         self._wait_for_subscriber(self.pub_trajectory, 'controller')
         reset = self.get_parameter('reset').value or run.task.homing.reset
-        if reset not in RESETS:
-            raise ValueError(f'parameter reset must be one of {", ".join(RESETS)} or empty, '
-                             f'got {reset!r}')
         self._set_gains(run)
         if reset == 'drive':
             self._home(run)

@@ -17,18 +17,20 @@ state's stamp, so the tracking error can be computed and recorded.
 from __future__ import annotations
 
 import numpy as np
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory
 
+from psl_controller.parameters import ControllerParameters
 from psl_controller.pd_law import PDLaw, law_for
 from psl_controller.trajectory_sampling import SampledTrajectory
 from psl_ros import names
 from psl_ros.hot_path import HotPath
 from psl_ros.matching import MatchReport
 from psl_ros.node_main import run_node
+from psl_ros.parameters import declare
 from psl_ros.qos import RELIABLE
 from psl_ros.realtime import raise_priority
 from psl_ros.stamps import to_ns
@@ -68,17 +70,10 @@ class PDController(Node):
 
     def __init__(self):
         super().__init__('pd_controller')
-        self.declare_parameter('task', 'reach_over_obstacle', ParameterDescriptor(
-            description='task whose YAML gives the default gains and whose model the '
-                        'default torque limits', read_only=True))
-        for name, text in (('kp', 'proportional gains [N m/rad], one per joint'),
-                           ('kd', 'derivative gains [N m s/rad], one per joint'),
-                           ('torque_limit', 'symmetric torque limits [N m], one per joint')):
-            self.declare_parameter(name, [0.0], ParameterDescriptor(
-                description=f'{text}; [0.0] = from the task'))
-        self.default_law = law_for(load_task(self.get_parameter('task').value))
+        self.parameters = declare(self, ControllerParameters)
+        self.default_law = law_for(load_task(self.parameters.task))
         self.n_joints = self.default_law.n_joints
-        self.law = self._law({name: self.get_parameter(name).value
+        self.law = self._law({name: getattr(self.parameters, name)
                               for name in ('kp', 'kd', 'torque_limit')})
         self.add_on_set_parameters_callback(self.on_set_parameters)
 
@@ -97,11 +92,8 @@ class PDController(Node):
         self._command, self._reference = Float64MultiArray(), JointState()
         # one thread serves both, the trajectory first when both are ready: a trajectory
         # published before an episode starts is in place for the episode's first state
-        self.declare_parameter('realtime_priority', 0, ParameterDescriptor(
-            description='SCHED_FIFO priority of the thread that answers the states (1..99) '
-                        'if the machine allows it; 0 = normal scheduling', read_only=True))
         # the hot path's thread inherits the scheduling of the thread that starts it
-        scheduling = raise_priority(self.get_parameter('realtime_priority').value)
+        scheduling = raise_priority(self.parameters.realtime_priority)
         self.hot_path = HotPath(self)
         self.matches.subscribe(self.hot_path, JointTrajectory, names.JOINT_TRAJECTORY,
                                self.on_trajectory, RELIABLE)

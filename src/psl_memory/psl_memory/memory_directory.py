@@ -8,9 +8,24 @@ regular file (a directory, device, FIFO or socket). Imports no ROS.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import stat
+from dataclasses import field
 from pathlib import Path
+
+
+@dataclasses.dataclass(frozen=True)
+class MemoryFiles:
+    """Where the skill_memory node keeps its files (its parameters beside `SkillConfig` and
+    `MemoryLimits`)."""
+
+    memory_dir: str = field(default='', metadata={'doc': (
+        "the folder of the memory files ('' = the working directory); save, load and "
+        'autosave stay inside it')})
+    autosave_path: str = field(default='', metadata={'doc': (
+        'memory file (inside memory_dir) loaded at start and written after every sample; '
+        'empty = no autosave')})
 
 
 class MemoryPathError(ValueError):

@@ -9,6 +9,7 @@ bound is a parameter of the skill_memory node (`psl_memory.skill_memory_node`). 
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import field
 
 MAX_FILE_BYTES = 256 * 2**20     # a memory file, and the arrays it declares, at most this big
 ARRAYS_PER_SKILL = 40            # a skill's state is 33 arrays in a memory file
@@ -18,19 +19,21 @@ ARRAYS_PER_SKILL = 40            # a skill's state is 33 arrays in a memory file
 class MemoryLimits:
     """Bounds of a skill memory (`SkillMemory.check_*` refuse what exceeds them)."""
 
-    max_name_length: int = 256          # characters of a skill name
-    max_skills: int = 200               # skills in one memory
-    max_tau_dim: int = 64               # task parameters of a skill
-    max_theta_dim: int = 20_000         # policy parameters of a skill
-    max_samples: int = 100_000          # samples of one skill
-    max_magnitude: float = 1e9          # |a range's end|, |a theta reference entry|
-    max_file_bytes: int = MAX_FILE_BYTES    # a memory file read or written (and its arrays)
+    max_name_length: int = field(default=256, metadata={'doc': 'characters of a skill name'})
+    max_skills: int = field(default=200, metadata={'doc': 'skills in one memory'})
+    max_tau_dim: int = field(default=64, metadata={'doc': 'task parameters of a skill'})
+    max_theta_dim: int = field(default=20_000, metadata={'doc': 'policy parameters of a skill'})
+    max_samples: int = field(default=100_000, metadata={'doc': 'samples of one skill'})
+    max_magnitude: float = field(default=1e9, metadata={'doc': (
+        "|a range's end|, |a theta reference entry|")})
+    max_file_bytes: int = field(default=MAX_FILE_BYTES, metadata={'doc': (
+        'bytes of a memory file read or written (and of its arrays)')})
 
     def __post_init__(self):
-        for field in dataclasses.fields(self):
-            value = getattr(self, field.name)
+        for bound in dataclasses.fields(self):
+            value = getattr(self, bound.name)
             if not value > 0:
-                raise ValueError(f'{field.name} must be > 0, got {value!r}')
+                raise ValueError(f'{bound.name} must be > 0, got {value!r}')
 
     @property
     def max_file_arrays(self) -> int:

@@ -6,6 +6,7 @@ Imports no ROS.
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import field
 
 from psl_memory.registry import ASSOCIATIVE_MEMORIES, READOUTS
 
@@ -14,21 +15,28 @@ from psl_memory.registry import ASSOCIATIVE_MEMORIES, READOUTS
 class SkillConfig:
     """Hyper-parameters of a skill (the skill_memory node's ROS parameters)."""
 
-    readout: str = 'bayes'          # a name of psl_memory.registry.READOUTS
-    n_hidden: int = 100
-    regularization: float = 1e-3     # ridge factor; the Bayesian prior precision alpha
-    forgetting: float = 1.0          # RLS only, 0 < lambda <= 1
-    seed: int = 0
-    alpha: float = 1.0               # slope of the hidden sigmoid (eq. 2.2), not a precision
-    # aelm: O(1) per sample; arbf: one centre per sample; rbm, hopfield: baselines
-    # (docs/benchmarks.md, psl bench memories)
-    associative: str = 'aelm'
-    # bayes: evidence maximisation of alpha and beta. Off by default: with few samples it
-    # shrinks PS towards the default policy (docs/benchmarks.md, psl bench learn)
-    estimate_precisions: bool = False
-    noise_precision: float = 1.0     # bayes: beta (the initial value when estimated)
-    completion_tolerance: float = 1e-6    # recall stops when no entry moves more (normalised)
-    completion_max_iterations: int = 200
+    readout: str = field(default='bayes', metadata={'doc': (
+        'the linear readout: ridge | rls | incremental_ridge | bayes (psl_memory.registry)')})
+    n_hidden: int = field(default=100, metadata={'doc': 'hidden neurons of the ELM (eq. 2.2)'})
+    regularization: float = field(default=1e-3, metadata={'doc': (
+        'ridge factor; the Bayesian prior precision alpha')})
+    forgetting: float = field(default=1.0, metadata={'doc': (
+        'RLS forgetting factor lambda, 0 < lambda <= 1')})
+    seed: int = field(default=0, metadata={'doc': 'seed of the random hidden layer'})
+    alpha: float = field(default=1.0, metadata={'doc': (
+        'slope of the hidden sigmoid (eq. 2.2), not a precision')})
+    associative: str = field(default='aelm', metadata={'doc': (
+        'associative completion of [tau, theta]: aelm (O(1) per sample) | arbf (one centre '
+        'per sample); rbm | hopfield: baselines (docs/benchmarks.md, psl bench memories)')})
+    estimate_precisions: bool = field(default=False, metadata={'doc': (
+        'bayes: evidence maximisation of alpha and beta; off by default: with few samples it '
+        'shrinks PS towards the default policy (docs/benchmarks.md, psl bench learn)')})
+    noise_precision: float = field(default=1.0, metadata={'doc': (
+        'bayes: the noise precision beta (the initial value when estimated)')})
+    completion_tolerance: float = field(default=1e-6, metadata={'doc': (
+        'recall stops when no entry moves more (normalised units)')})
+    completion_max_iterations: int = field(default=200, metadata={'doc': (
+        'recall iteration cap')})
 
     def __post_init__(self):
         if self.readout not in READOUTS:

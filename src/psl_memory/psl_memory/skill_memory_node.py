@@ -31,23 +31,20 @@ node restarts with everything it had learned.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import threading
 
 import numpy as np
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
-from std_srvs.srv import Trigger
 
-from psl_msgs.srv import (AddSample, ClaimSkill, CompletePattern, CreateSkill, LoadMemory,
-                          QuerySkill, SaveMemory)
 from psl_memory.skill_config import SkillConfig
-from psl_memory.memory_directory import MemoryDirectory, MemoryPathError
+from psl_memory.memory_directory import MemoryDirectory, MemoryFiles, MemoryPathError
 from psl_memory.memory_limits import MemoryLimits
 from psl_memory.skill_memory import MemoryFileError, SkillMemory
+from psl_ros.client import MEMORY_SERVICES
 from psl_ros.node_main import run_node
+from psl_ros.parameters import declare
 from psl_ros.service import create_service
 
 
@@ -55,56 +52,21 @@ class SkillMemoryNode(Node):
 
     def __init__(self):
         super().__init__('skill_memory')
-        defaults = SkillConfig()
-        for name, default, text in (
-                ('readout', defaults.readout, 'ridge | rls | incremental_ridge | bayes'),
-                ('n_hidden', defaults.n_hidden, 'hidden neurons of the ELM'),
-                ('regularization', defaults.regularization, 'ridge factor / prior precision'),
-                ('forgetting', defaults.forgetting, 'RLS forgetting factor, 0 < lambda <= 1'),
-                ('seed', defaults.seed, 'seed of the random hidden layer'),
-                ('alpha', defaults.alpha, 'slope of the hidden sigmoid'),
-                ('associative', defaults.associative,
-                 'aelm | arbf | rbm | hopfield (rbm, hopfield: baselines)'),
-                ('estimate_precisions', defaults.estimate_precisions,
-                 'bayes: estimate the prior and noise precisions by evidence maximisation'),
-                ('noise_precision', defaults.noise_precision, 'bayes: noise precision beta'),
-                ('completion_tolerance', defaults.completion_tolerance,
-                 'recall stops when no entry moves more than this (normalised units)'),
-                ('completion_max_iterations', defaults.completion_max_iterations,
-                 'recall iteration cap'),
-                ('memory_dir', '', "the folder of the memory files ('' = the working "
-                                   'directory); save, load and autosave stay inside it'),
-                ('autosave_path', '', 'memory file (inside memory_dir) loaded at start and '
-                                      'written after every sample; empty = no autosave')):
-            self.declare_parameter(name, default, ParameterDescriptor(description=text,
-                                                                      read_only=True))
-        self.config = SkillConfig(**{field.name: self.get_parameter(field.name).value
-                                     for field in dataclasses.fields(SkillConfig)})
-        # what one request may make the node hold (psl_memory.memory_limits)
-        limits = MemoryLimits()
-        for field in dataclasses.fields(MemoryLimits):
-            self.declare_parameter(field.name, getattr(limits, field.name), ParameterDescriptor(
-                description=f'bound: {field.name} (psl_memory.memory_limits)', read_only=True))
-        try:
-            self.limits = MemoryLimits(**{field.name: self.get_parameter(field.name).value
-                                          for field in dataclasses.fields(MemoryLimits)})
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f'memory limits: {exc}') from None
-        self.files = MemoryDirectory(self.get_parameter('memory_dir').value or os.getcwd())
-        autosave = self.get_parameter('autosave_path').value
-        self.autosave = self.files.for_writing(autosave) if autosave else None
+        self.config = declare(self, SkillConfig)
+        self.limits = declare(self, MemoryLimits)  # what one request may make the node hold
+        files = declare(self, MemoryFiles)
+        self.files = MemoryDirectory(files.memory_dir or os.getcwd())
+        self.autosave = (self.files.for_writing(files.autosave_path) if files.autosave_path
+                         else None)
         self._lock = threading.Lock()
         self.memory = self._initial_memory()
         self.claims: dict[str, str] = {}        # skill -> owner (a node's full name)
-        for name, srv, callback in (('~/query', QuerySkill, self.on_query),
-                                    ('~/add_sample', AddSample, self.on_add),
-                                    ('~/complete', CompletePattern, self.on_complete),
-                                    ('~/create_skill', CreateSkill, self.on_create),
-                                    ('~/save', SaveMemory, self.on_save),
-                                    ('~/load', LoadMemory, self.on_load),
-                                    ('~/claim', ClaimSkill, self.on_claim),
-                                    ('~/info', Trigger, self.on_info)):
-            create_service(self, srv, name, callback)
+        callbacks = {'query': self.on_query, 'add_sample': self.on_add,
+                     'complete': self.on_complete, 'create_skill': self.on_create,
+                     'save': self.on_save, 'load': self.on_load, 'claim': self.on_claim,
+                     'info': self.on_info}
+        for name, srv in MEMORY_SERVICES.items():   # the types: one table, client and node
+            create_service(self, srv, f'~/{name}', callbacks[name])
         self.get_logger().info(f'skills: {json.dumps(self.memory.info())}')
 
     def _initial_memory(self) -> SkillMemory:

@@ -21,6 +21,7 @@ from psl_controller.policy import Reference
 from psl_optimizer.reward import RewardResult
 from psl_optimizer.rollouts import RolloutResult, Rollouts, Stopped, refused_result
 from psl_ros.client import RolloutClient
+from psl_ros.timeouts import ROLLOUT_TIMEOUT
 from psl_task.task import TaskDefinition, task_id
 
 
@@ -36,7 +37,7 @@ class GraphRollouts(Rollouts):
     """
 
     def __init__(self, task: TaskDefinition, workers: list[RolloutClient],
-                 timeout: float = 120.0, should_stop: Callable[[], bool] = lambda: False):
+                 timeout: float = ROLLOUT_TIMEOUT, should_stop: Callable[[], bool] = lambda: False):
         super().__init__(task)
         if not workers:
             raise ValueError('graph mode needs at least one rollout worker')

@@ -21,7 +21,6 @@ import threading
 from pathlib import Path
 
 import numpy as np
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.action import CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
@@ -30,6 +29,7 @@ from psl_controller.policy import policy_for
 from psl_msgs.action import LearnSkill
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.graph_rollout import GraphRollouts
+from psl_optimizer.learner_parameters import LearnerParameters
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import STRATEGIES, SearchSettings
 from psl_optimizer.rollouts import MODES, Rollouts, Stopped
@@ -37,6 +37,7 @@ from psl_ros import names
 from psl_ros.action_server import ActionServer
 from psl_ros.client import MemoryClient, RolloutClient
 from psl_ros.node_main import run_node
+from psl_ros.parameters import declare
 from psl_task.task import TaskDefinition, TaskError, load_task
 
 
@@ -110,34 +111,12 @@ class LearnerNode(Node):
 
     def __init__(self):
         super().__init__('learner')
-        defaults = SearchSettings()
-        for name, default, text in (
-                ('mode', 'batch', 'batch (in-process mujoco.rollout) | graph (execute_rollout); '
-                                  'a goal may choose'),
-                ('output_root', 'runs', 'sessions write into <output_root>/<task>-<strategy>-'
-                                        'seed<seed>'),
-                ('test_tasks', LearnSettings.num_test, 'held-out instances tested at the end'),
-                ('max_tasks', 10_000, 'a goal with more training tasks is refused'),
-                ('max_rollouts_per_task', 10_000, 'a goal with a larger budget is refused'),
-                ('popsize', defaults.popsize, 'CMA-ES population size'),
-                ('sigma0', defaults.sigma0, 'CMA-ES initial step size, normalised theta units'),
-                ('cost_weight', defaults.cost_weight, 'beta of bootstrap_cost'),
-                ('service_timeout', 10.0, 'seconds to wait for a skill memory answer'),
-                ('rollout_timeout', 120.0, 'seconds to wait for one graph-mode rollout'),
-                ('workers', [''], 'graph mode: namespaces of the rollout workers, relative to '
-                                  "this node's ('' = its own); a population is spread over "
-                                  'them, one rollout per worker at a time')):
-            self.declare_parameter(name, default, ParameterDescriptor(description=text,
-                                                                      read_only=True))
-        self.mode = self.get_parameter('mode').value
-        if self.mode not in MODES:
-            raise ValueError(f"parameter mode must be one of {MODES}, got {self.mode!r}")
+        self.parameters = declare(self, LearnerParameters)
+        self.mode = self.parameters.mode
         clients = ReentrantCallbackGroup()
         self.memory = MemoryClient(self, callback_group=clients)
         self.rollout_clients = [RolloutClient(self, worker, callback_group=clients)
-                                for worker in self.get_parameter('workers').value]
-        if not self.rollout_clients:
-            raise ValueError("parameter workers needs at least one namespace ('' = own)")
+                                for worker in self.parameters.workers]
         self._busy = threading.Lock()
         self._batch: dict[Path, BatchRollouts] = {}     # batch mode's rollouts per task
         self._server = ActionServer(
@@ -168,7 +147,7 @@ class LearnerNode(Node):
             self.get_logger().info(f'learning {task.name} with {settings.strategy}, seed '
                                    f'{settings.seed}, {settings.num_tasks} tasks, {mode} '
                                    f'mode -> {out}')
-            skill = ServiceSkill(self, task, self.get_parameter('service_timeout').value)
+            skill = ServiceSkill(self, task, self.parameters.service_timeout)
             try:
                 if not (out / 'checkpoint.json').is_file():
                     # the memory node writes the session's memory file: it checks the folder
@@ -213,29 +192,26 @@ class LearnerNode(Node):
         if goal.strategy not in STRATEGIES:
             raise ValueError(f'unknown strategy {goal.strategy!r}; known: '
                              f'{", ".join(STRATEGIES)}')
-        p = self.get_parameter
-        if goal.num_test > p('max_tasks').value:
-            raise ValueError(f'num_test must be at most {p("max_tasks").value} (the '
-                             f"learner's max_tasks), got {goal.num_test}")
-        if not 1 <= goal.num_tasks <= p('max_tasks').value:
-            raise ValueError(f'num_tasks must be between 1 and {p("max_tasks").value} (the '
-                             f"learner's max_tasks), got {goal.num_tasks}")
+        p = self.parameters
+        if goal.num_test > p.max_tasks:
+            raise ValueError(f'num_test must be at most {p.max_tasks} (the learner\'s '
+                             f'max_tasks), got {goal.num_test}')
+        if not 1 <= goal.num_tasks <= p.max_tasks:
+            raise ValueError(f'num_tasks must be between 1 and {p.max_tasks} (the learner\'s '
+                             f'max_tasks), got {goal.num_tasks}')
         budget = int(goal.max_rollouts_per_task or SearchSettings.max_rollouts)   # 0: default
-        if budget > p('max_rollouts_per_task').value:
+        if budget > p.max_rollouts_per_task:
             raise ValueError(f'max_rollouts_per_task must be at most '
-                             f'{p("max_rollouts_per_task").value} (0 = the default '
+                             f'{p.max_rollouts_per_task} (0 = the default '
                              f'{SearchSettings.max_rollouts}), got {budget}')
         task = load_task(goal.task)
-        search = SearchSettings(
-            max_rollouts=budget,
-            popsize=p('popsize').value, sigma0=p('sigma0').value,
-            cost_weight=p('cost_weight').value)
         settings = LearnSettings(strategy=goal.strategy, num_tasks=int(goal.num_tasks),
                                  seed=int(goal.seed),
-                                 num_test=int(goal.num_test) or p('test_tasks').value,
-                                 search=search, task_selection=goal.task_selection or 'random',
+                                 num_test=int(goal.num_test) or p.test_tasks,
+                                 search=p.search(budget),
+                                 task_selection=goal.task_selection or 'random',
                                  continue_from=goal.continue_from)
-        out = Path(goal.output_dir or Path(p('output_root').value)
+        out = Path(goal.output_dir or Path(p.output_root)
                    / f'{task.name}-{goal.strategy}-seed{goal.seed}')
         return task, settings, out, mode
 
@@ -250,7 +226,7 @@ class LearnerNode(Node):
         mode through the rollout workers (stopping between two rollouts on a cancel)."""
         if mode == 'graph':
             return GraphRollouts(task, self.rollout_clients,
-                                 timeout=self.get_parameter('rollout_timeout').value,
+                                 timeout=self.parameters.rollout_timeout,
                                  should_stop=lambda: goal_handle.is_cancel_requested)
         if task.path not in self._batch:
             self._batch[task.path] = BatchRollouts(task)

@@ -33,6 +33,7 @@ from psl_msgs.msg import GoalUpdate, RolloutEvaluation
 from psl_msgs.srv import (AddSample, ClaimSkill, CompletePattern, CreateSkill, LoadMemory,
                           QuerySkill, ResetTask, SaveMemory)
 from psl_ros import names
+from psl_ros.timeouts import GOAL_TIMEOUT, ROLLOUT_TIMEOUT, SERVICE_TIMEOUT
 from psl_ros.action_client import ActionClient
 from psl_ros.futures import wait_for
 from psl_ros.matching import PUBLISHER, SUBSCRIPTION, MatchedEndpoints
@@ -180,7 +181,7 @@ class MemoryClient:
                                                  qos_profile=SERVICES)
                         for name, srv in MEMORY_SERVICES.items()}
 
-    def call(self, service: str, timeout: float = 10.0, **fields):
+    def call(self, service: str, timeout: float = SERVICE_TIMEOUT, **fields):
         """Call one service with the request fields given; returns the response (check its
         ``success``). Raises TimeoutError when the service is not there or does not answer."""
         client = self.clients[service]
@@ -279,7 +280,7 @@ class RolloutClient:
                                    f'{timeout:g} s: missing ' + self.missing_endpoints())
         self._ready = True
 
-    def reset(self, task: str, tau, timeout: float = 10.0) -> ResetTask.Response:
+    def reset(self, task: str, tau, timeout: float = SERVICE_TIMEOUT) -> ResetTask.Response:
         if not wait_for_service(self.reset_client, timeout):
             raise TimeoutError(f'the simulator service {self.reset_client.srv_name} is not '
                                f'available (waited {timeout:g} s)')
@@ -287,7 +288,7 @@ class RolloutClient:
         return wait_for(self.reset_client.call_async(request), timeout,
                         self.reset_client.srv_name)
 
-    def rollout(self, task: str, tau, theta, timeout: float = 120.0,
+    def rollout(self, task: str, tau, theta, timeout: float = ROLLOUT_TIMEOUT,
                 feedback=None, new_goal=None,
                 new_goal_time: float = -1.0) -> ExecuteRollout.Result:
         """One rollout; returns the action result (success, message, evaluation). With
@@ -367,7 +368,7 @@ class LearnClient:
         self.learn_client = ActionClient(node, LearnSkill, names.LEARN_SKILL,
                                          callback_group=callback_group)
 
-    def send_goal(self, timeout: float = 30.0, feedback=None, **fields):
+    def send_goal(self, timeout: float = GOAL_TIMEOUT, feedback=None, **fields):
         """Send a goal (fields of psl_msgs/LearnSkill.Goal); returns the accepted goal handle
         (`.get_result_async()`, `.cancel_goal_async()`; `wait_for_result`). A session is not
         idempotent: the goal is sent once."""
@@ -429,11 +430,11 @@ class RosClient:
 
     wait = staticmethod(wait_for)     # the future's result, or TimeoutError
 
-    def memory(self, service: str, timeout: float = 10.0, **fields):
+    def memory(self, service: str, timeout: float = SERVICE_TIMEOUT, **fields):
         """`MemoryClient.call`: one of the skill memory's services."""
         return self.memory_client.call(service, timeout, **fields)
 
-    def rollout(self, task: str, tau, theta, timeout: float = 120.0,
+    def rollout(self, task: str, tau, theta, timeout: float = ROLLOUT_TIMEOUT,
                 feedback=None, new_goal=None,
                 new_goal_time: float = -1.0) -> ExecuteRollout.Result:
         """`RolloutClient.rollout` on the rollout worker of this namespace."""
@@ -445,7 +446,7 @@ class RosClient:
         """`RolloutClient.update_goal` on the rollout worker of this namespace."""
         self.worker.update_goal(goal, time_from_start, episode_ns, timeout)
 
-    def reset(self, task: str, tau, timeout: float = 10.0) -> ResetTask.Response:
+    def reset(self, task: str, tau, timeout: float = SERVICE_TIMEOUT) -> ResetTask.Response:
         return self.worker.reset(task, tau, timeout)
 
     def graph_ready(self, timeout: float) -> bool:
@@ -459,7 +460,7 @@ class RosClient:
         """`RolloutClient.wait_for_subscribers` on the rollout worker of this namespace."""
         self.worker.wait_for_subscribers(topics, extra, timeout, subscriptions)
 
-    def send_learn_goal(self, timeout: float = 30.0, feedback=None, **fields):
+    def send_learn_goal(self, timeout: float = GOAL_TIMEOUT, feedback=None, **fields):
         """`LearnClient.send_goal`."""
         return self.learner.send_goal(timeout, feedback, **fields)
 

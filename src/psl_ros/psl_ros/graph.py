@@ -130,15 +130,6 @@ def find_executable(package: str, executable: str) -> Path:
         'did you source scripts/env.sh?')
 
 
-def find_params_file(package: str, node: str) -> Path | None:
-    """The node's parameter file, ``share/<package>/config/<node>.yaml``, if it has one."""
-    for prefix in _prefixes():
-        path = prefix / 'share' / package / 'config' / f'{node}.yaml'
-        if path.is_file():
-            return path
-    return None
-
-
 @dataclasses.dataclass
 class NodeProcess:
     name: str
@@ -165,7 +156,7 @@ class Graph:
     and the learner spreads a population over them (its ``workers`` parameter); the skill
     memory and the learner run once, in ``<namespace>``."""
 
-    def __init__(self, task: str = 'reach_over_obstacle', mode: str = 'lockstep',
+    def __init__(self, task: str = '', mode: str = SIM_MODES[0],
                  namespace: str = '', log_dir: str | Path | None = None,
                  nodes: tuple = NODES, extra_params: dict[str, dict] | None = None,
                  workers: int = 0, reset: str = '',
@@ -186,11 +177,11 @@ class Graph:
         self.processes: list[NodeProcess] = []
 
     def params(self, name: str) -> dict:
-        """The -p parameters of a node: the task for the simulator and the controller, the
-        mode for the simulator, the reset for the executor, the workers for the learner, the
+        """The -p parameters of a node: the task for the simulator and the controller (none:
+        their default, psl_task.DEFAULT_TASK), the mode for the simulator, the reset for the executor, the workers for the learner, the
         memory folder
         (``PSL_MEMORY_DIR``, if set) for the skill memory, then `extra_params`."""
-        params = {'task': self.task} if name in ('sim', 'pd_controller') else {}
+        params = {'task': self.task} if self.task and name in ('sim', 'pd_controller') else {}
         if name == 'sim':
             params['mode'] = self.mode
         if name == 'dmp_executor' and self.reset:
@@ -227,9 +218,6 @@ class Graph:
         try:
             for label, name, package, executable, namespace in self._plan():
                 cmd = [str(find_executable(package, executable)), '--ros-args']
-                params_file = find_params_file(package, name)
-                if params_file is not None:
-                    cmd += ['--params-file', str(params_file)]
                 if namespace:
                     cmd += ['-r', f'__ns:={namespace}']
                 for key, value in self.params(name).items():

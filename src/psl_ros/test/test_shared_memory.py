@@ -90,21 +90,33 @@ NODE = ('import rclpy, time; rclpy.init(); node = rclpy.create_node("shm_test");
 
 def _start_node(started: list[subprocess.Popen]) -> tuple[subprocess.Popen, set[str]]:
     """A node process (in `started` before anything can fail) and the shared-memory segments
-    it made."""
-    before = set(os.listdir(SHM_DIR))
+    it made: those it maps (/proc/PID/maps). New files in /dev/shm are not enough: on two
+    workers another test's graph makes segments at the same time (seen: such a segment
+    counted as the killed node's, and stayed)."""
     process = subprocess.Popen([sys.executable, '-c', NODE], stdout=subprocess.PIPE, text=True,
                                start_new_session=True)
     started.append(process)
     assert read_line(process, 30.0) == 'up'
     deadline = time.monotonic() + 10
     while time.monotonic() < deadline:
-        segments = {f for f in set(os.listdir(SHM_DIR)) - before
-                    if f.startswith('fastrtps_') and not f.startswith('fastrtps_port')
-                    and not f.endswith('_el')}
+        segments = _mapped_segments(process.pid)
         if segments:
             return process, segments
         time.sleep(0.1)
     raise AssertionError('the node made no shared-memory segment')
+
+
+def _mapped_segments(pid: int) -> set[str]:
+    """The Fast DDS data segments (not the port segments) process `pid` has mapped."""
+    found = set()
+    with open(f'/proc/{pid}/maps') as maps:
+        for line in maps:
+            path = line.split(maxsplit=5)[-1].strip() if len(line.split()) >= 6 else ''
+            name = os.path.basename(path)
+            if path.startswith(f'{SHM_DIR}/fastrtps_') and not name.startswith('fastrtps_port') \
+                    and not name.endswith('_el'):
+                found.add(name)
+    return found
 
 
 def _older_than(paths: list[Path], age: float) -> bool:

@@ -38,7 +38,6 @@ from pathlib import Path
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, PoseStamped
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
@@ -48,13 +47,14 @@ from visualization_msgs.msg import Marker, MarkerArray
 from psl_msgs.msg import TaskInstance
 from psl_msgs.srv import ResetTask
 from psl_task.arm_model import ArmModel
+from psl_sim.sim_parameters import SimParameters
 from psl_sim.scene import PATH_SHAPE, Scene, Shape, ShapeKind
 from psl_ros import names
-from psl_ros.graph import SIM_MODES
 from psl_ros.realtime import raise_priority, sleep_until
 from psl_ros.hot_path import HotPath
 from psl_ros.matching import MatchReport
 from psl_ros.node_main import run_node
+from psl_ros.parameters import check_update, declare
 from psl_ros.qos import LATCHED, RELIABLE
 from psl_ros.service import create_service
 from psl_ros.stamps import NS_PER_S, time_msg
@@ -116,32 +116,14 @@ class SimNode(Node):
 
     def __init__(self):
         super().__init__('sim')
-        self.add_on_set_parameters_callback(self.on_set_parameters)   # also checks declarations
-        self.declare_parameter('task', 'reach_over_obstacle', ParameterDescriptor(
-            description='task loaded at start (name or YAML path); a reset may name another',
-            read_only=True))
-        self.declare_parameter('mode', 'lockstep', ParameterDescriptor(
-            description=' | '.join(SIM_MODES), read_only=True))
-        self.declare_parameter('episode_duration', 0.0, ParameterDescriptor(
-            description='episode length [s]; 0 = the task duration plus its settle time'))
-        self.declare_parameter('max_episode_duration', 600.0, ParameterDescriptor(
-            description='the longest episode a reset may ask for [s]'))
-        self.declare_parameter('scene_rate', 30.0, ParameterDescriptor(
-            description='scene markers per second of simulated time while someone subscribes '
-                        '[Hz]; 0 = only at resets and episode ends'))
-        self.declare_parameter('realtime_priority', 0, ParameterDescriptor(
-            description='realtime: SCHED_FIFO priority of the control loop (1..99) if the '
-                        'machine allows it; 0 = normal scheduling', read_only=True))
-        self.declare_parameter('spin_margin', 0.0, ParameterDescriptor(
-            description='realtime: the loop sleeps until this long before each deadline [s], '
-                        'then spins to it (0: sleep only; docs/benchmarks.md measured no gain)',
-            read_only=True))
-        self.mode = self.get_parameter('mode').value
-        if self.mode not in SIM_MODES:
-            raise ValueError(f'mode must be one of {SIM_MODES}, got {self.mode!r}')
+        # every update (and declaration) checked by SimParameters (one place)
+        self.add_on_set_parameters_callback(lambda params: check_update(self, SimParameters,
+                                                                        params))
+        self.parameters = declare(self, SimParameters)
+        self.mode = self.parameters.mode
         self._lock = threading.Lock()
         self._arms: dict[Path, ArmModel] = {}      # by task YAML
-        self.arm = self._arm(self.get_parameter('task').value)
+        self.arm = self._arm(self.parameters.task)
         # simulation time, monotonic over episodes; it starts one control period in, since a
         # stamp of zero means "the next episode / the next state" to the controller and the
         # evaluator (the first episode's replacement trajectories and goal changes need its
@@ -190,18 +172,6 @@ class SimNode(Node):
             + (f'; passive: {", ".join(self.arm.passive_joints)}'
                if self.arm.passive_joints else '')
             + f'); waiting for {self.resolve_service_name("~/reset")}')
-
-    def on_set_parameters(self, params) -> SetParametersResult:
-        for p in params:
-            if p.name == 'episode_duration' and not p.value >= 0.0:
-                return SetParametersResult(successful=False,
-                                           reason='episode_duration must be >= 0 seconds')
-            if p.name == 'max_episode_duration' and not 0.0 < p.value < 1e6:
-                return SetParametersResult(successful=False,
-                                           reason='max_episode_duration must be in (0, 1e6) s')
-            if p.name == 'scene_rate' and not p.value >= 0.0:
-                return SetParametersResult(successful=False, reason='scene_rate must be >= 0 Hz')
-        return SetParametersResult(successful=True)
 
     def _arm(self, task_name: str) -> ArmModel:
         task = load_task(task_name)
@@ -357,9 +327,9 @@ class SimNode(Node):
             self._publish_status(done)
 
     def _realtime_loop(self) -> None:
-        scheduling = raise_priority(self.get_parameter('realtime_priority').value)
+        scheduling = raise_priority(self.parameters.realtime_priority)
         self.get_logger().info(f'realtime loop: {scheduling}')
-        margin = self.get_parameter('spin_margin').value
+        margin = self.parameters.spin_margin
         next_tick = time.perf_counter()
         while not self._stop.is_set():
             with self._lock:

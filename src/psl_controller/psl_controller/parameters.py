@@ -1,0 +1,49 @@
+"""The parameters of the controller and the executor nodes (`psl_ros.parameters.declare` makes
+them; imports no ROS)."""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import field
+
+from psl_task import DEFAULT_TASK
+from psl_task.schema import RESETS
+
+FROM_TASK = (0.0,)      # a gain or limit parameter left to the task (its YAML, its model)
+
+
+@dataclasses.dataclass(frozen=True)
+class ControllerParameters:
+    """The PD + feed-forward controller's: the task that gives its default gains and torque
+    limits, and overrides of them (checked against the task's joints by the node)."""
+
+    task: str = field(default=DEFAULT_TASK, metadata={'doc': (
+        'task whose YAML gives the default gains and whose model the default torque limits')})
+    kp: tuple[float, ...] = field(default=FROM_TASK, metadata={'dynamic': True, 'doc': (
+        'proportional gains [N m/rad], one per joint; [0.0] = from the task')})
+    kd: tuple[float, ...] = field(default=FROM_TASK, metadata={'dynamic': True, 'doc': (
+        'derivative gains [N m s/rad], one per joint; [0.0] = from the task')})
+    torque_limit: tuple[float, ...] = field(default=FROM_TASK, metadata={
+        'dynamic': True,
+        'doc': 'symmetric torque limits [N m], one per joint; [0.0] = from the task'})
+    realtime_priority: int = field(default=0, metadata={'doc': (
+        'SCHED_FIFO priority of the thread that answers the states (1..99) if the machine '
+        'allows it; 0 = normal scheduling')})
+
+
+@dataclasses.dataclass(frozen=True)
+class ExecutorParameters:
+    """The DMP executor's: how long it waits for an evaluation, and how episodes begin."""
+
+    timeout_margin: float = field(default=10.0, metadata={'dynamic': True, 'doc': (
+        'seconds to wait for an evaluation beyond the episode length')})
+    reset: str = field(default='', metadata={'dynamic': True, 'doc': (
+        "how an episode begins: teleport | drive ('' = the task's homing.reset)")})
+
+    def __post_init__(self):
+        if not (self.timeout_margin > 0.0 and math.isfinite(self.timeout_margin)):
+            raise ValueError(f'timeout_margin must be a finite number of seconds > 0, got '
+                             f'{self.timeout_margin}')
+        if self.reset and self.reset not in RESETS:
+            raise ValueError(f'reset must be one of {", ".join(RESETS)} or empty, got '
+                             f'{self.reset!r}')

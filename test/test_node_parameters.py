@@ -1,0 +1,128 @@
+"""Every node parameter declared once: the running nodes declare exactly the fields of their
+parameter dataclasses (psl_cli.node_parameters), with the dataclasses' defaults and
+descriptions; `psl params` writes a file that gives back those defaults; a refused update says
+the dataclass's reason; and each default is written once in the sources."""
+import contextlib
+import dataclasses
+import re
+from pathlib import Path
+
+import pytest
+import yaml
+from rclpy.parameter import Parameter, parameter_value_to_python
+from rclpy.parameter_client import AsyncParameterClient
+
+from psl_cli.node_parameters import node_parameters, parameter_file
+from psl_ros.client import RosClient
+from psl_ros.futures import wait_for
+from psl_ros.graph import NODES, Graph
+from psl_ros.parameters import defaults
+
+NAMESPACE = 'params_test'
+ROOT = Path(__file__).resolve().parents[1]
+ROS_OWN = {'use_sim_time', 'start_type_description_service'}   # rclpy declares these itself
+
+
+@pytest.fixture(scope='module')
+def running(tmp_path_factory):
+    graph = Graph(namespace=NAMESPACE, log_dir=tmp_path_factory.mktemp('params_logs'))
+    try:
+        graph.start()
+        with RosClient(NAMESPACE) as client:
+            yield graph, client
+    finally:
+        graph.stop()
+
+
+@contextlib.contextmanager
+def parameter_client(client, node: str):
+    """rclpy's AsyncParameterClient of a node of the graph, its service clients destroyed at
+    the end (it has no destroy of its own in Jazzy)."""
+    parameters = AsyncParameterClient(client.node, f'/{NAMESPACE}/{node}')
+    try:
+        assert parameters.wait_for_services(timeout_sec=30.0), f'{node} serves no parameters'
+        yield parameters
+    finally:
+        for name, value in vars(parameters).items():
+            if name.endswith('_client'):
+                client.node.destroy_client(value)
+
+
+def _expected(node: str) -> dict:
+    out = {}
+    for cls in node_parameters()[node]:
+        out.update(defaults(cls))
+    return out
+
+
+def _declared(client, node: str) -> tuple[dict, dict]:
+    """(name -> value, name -> description) of what the running node declares."""
+    with parameter_client(client, node) as parameters:
+        listed = wait_for(parameters.list_parameters(), 10.0, 'list_parameters').result.names
+        names = [n for n in listed if n not in ROS_OWN]
+        values = wait_for(parameters.get_parameters(names), 10.0, 'get_parameters').values
+        described = wait_for(parameters.describe_parameters(names), 10.0,
+                             'describe_parameters').descriptors
+    return ({n: parameter_value_to_python(v) for n, v in zip(names, values)},
+            {d.name: d.description for d in described})
+
+
+@pytest.mark.parametrize('node', [name for name, _, _ in NODES])
+def test_a_running_node_declares_its_dataclasses_fields(running, node):
+    graph, client = running
+    values, descriptions = _declared(client, node)
+    expected = _expected(node)
+    assert set(values) == set(expected), (node, sorted(set(values) ^ set(expected)))
+    passed = graph.params(node)                 # what the launcher sets on the command line
+    for name, default in expected.items():
+        if name not in passed:
+            got = values[name]
+            got = got if isinstance(got, (str, bool, int, float)) else list(got)
+            assert got == default, (node, name, got, default)
+    for cls in node_parameters()[node]:
+        for field in dataclasses.fields(cls):
+            assert descriptions[field.name] == field.metadata['doc'], (node, field.name)
+
+
+def test_an_update_is_refused_with_the_dataclasses_reason(running):
+    _, client = running
+    with parameter_client(client, 'sim') as parameters:
+        (result,) = wait_for(parameters.set_parameters([Parameter('scene_rate', value=-1.0)]),
+                             10.0, 'set_parameters').results
+        assert not result.successful and result.reason == 'scene_rate must be >= 0 Hz'
+        # a valid one is taken (the default again: the other tests see the defaults)
+        default = _expected('sim')['scene_rate']
+        (result,) = wait_for(parameters.set_parameters([Parameter('scene_rate',
+                                                                  value=default)]),
+                             10.0, 'set_parameters').results
+        assert result.successful
+
+
+@pytest.mark.parametrize('node', sorted(node_parameters()))
+def test_psl_params_writes_the_defaults(node):
+    written = yaml.safe_load(parameter_file(node))['/**']['ros__parameters'] or {}
+    assert written == _expected(node)
+
+
+def test_every_dataclass_field_is_described():
+    for node, classes in node_parameters().items():
+        for cls in classes:
+            for field in dataclasses.fields(cls):
+                assert field.metadata.get('doc'), f'{node}: {cls.__name__}.{field.name}'
+
+
+@pytest.mark.parametrize('literal, home', [
+    ("'reach_over_obstacle'", 'src/psl_task/psl_task/__init__.py'),
+    ('120.0', 'src/psl_ros/psl_ros/timeouts.py'),
+])
+def test_a_default_is_written_once_in_the_sources(literal, home):
+    """The default task and the rollout timeout: one place in the code (tests, task files and
+    docs may name them)."""
+    found = [str(path.relative_to(ROOT)) for path in sorted(ROOT.glob('src/*/psl_*/**/*.py'))
+             if re.search(re.escape(literal) + r'(?![\d])', path.read_text())]
+    assert found == [home]
+
+
+def test_no_node_ships_a_parameter_file():
+    """A shipped file (psl up passed them) would win over the dataclasses silently."""
+    assert not sorted(ROOT.glob('src/*/config/*.yaml'))
