@@ -13,23 +13,32 @@ fix for
   ``policy.feedforward``;
 - **torque saturation**: the share of control periods of the demonstration's rollout (batch
   mode, the default instance) in which some joint's torque sits at its limit
-  (`SATURATION_WARNING`).
+  (`SATURATION_WARNING`);
+- **the reward's geometry**: what each measured (arm geom, obstacle geom) pair costs per
+  physics step (``mj_geomDistance``, timed here at the start posture) beside the physics step
+  itself; a task whose pairs cost more than `GEOMETRY_WARNING` physics steps is told which
+  pairs dominate (a visual mesh measured against an obstacle costs milliseconds).
 Imports no ROS.
 """
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import mujoco
 import numpy as np
 
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_task.arm_model import ArmModel
+from psl_task.model_spec import RestingContact, robot_contacts_at_rest
+from psl_task.reward_geometry import CUTOFF
 from psl_task.task import TaskDefinition
 
 SAG_WARNING = 0.005          # m of hand sag under PD alone worth a warning
 SATURATION_WARNING = 0.01    # share of saturated control periods worth a warning
 LIMIT_WARNING = 0.02         # rad (m): a posture this close to a joint limit is warned about
+GEOMETRY_WARNING = 5.0       # the reward's distances costing more physics steps than this
+TIMING_REPEATS = 20          # calls timed per pair (and physics steps per timing)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,6 +64,10 @@ class RobotReport:
     sag_rad: dict[str, np.ndarray]      # posture name -> (n,) rad
     sag_hand: dict[str, float]          # posture name -> m
     saturated_share: float
+    contacts_at_rest: list[RestingContact]   # the robot's parts in contact at rest
+    contacts_excluded: bool             # ... excluded from the simulation (the default)
+    step_seconds: float                 # one physics step of the model (no reward sensors)
+    pair_seconds: dict[str, float]      # 'arm geom / obstacle geom' -> one distance [s]
     warnings: list[str]
 
 
@@ -68,6 +81,49 @@ def hand_sag(arm: ArmModel, q: np.ndarray, kp: np.ndarray) -> tuple[np.ndarray, 
     jac = np.zeros((3, model.nv))
     mujoco.mj_jacSite(model, data, jac, None, arm.ee_site)
     return sag, float(np.linalg.norm(jac[:, arm.dof_adr] @ sag))
+
+
+def geometry_cost(arm: ArmModel) -> tuple[float, dict[str, float]]:
+    """Seconds of one physics step of the arm's model at the start posture, and of one signed
+    distance of each (arm geom, obstacle geom) pair the reward measures there (the least of
+    `TIMING_REPEATS` timings each: the cost, not the machine's noise)."""
+    model, data = arm.model, mujoco.MjData(arm.model)
+    data.qpos[arm.qpos_adr] = arm.task.start_posture
+    mujoco.mj_forward(model, data)
+    step = []
+    for _ in range(TIMING_REPEATS):
+        start = time.perf_counter()
+        mujoco.mj_step(model, data)
+        step.append(time.perf_counter() - start)
+    data.qpos[arm.qpos_adr] = arm.task.start_posture
+    mujoco.mj_forward(model, data)
+    fromto = np.zeros(6)
+    pairs = {}
+    for g1 in arm.arm_geoms:
+        for g2 in arm.task.reward.obstacle_geoms:
+            a, b = arm.geom(g1), arm.geom(g2)
+            times = []
+            for _ in range(TIMING_REPEATS):
+                start = time.perf_counter()
+                mujoco.mj_geomDistance(model, data, a, b, CUTOFF, fromto)
+                times.append(time.perf_counter() - start)
+            pairs[f'{g1} / {g2}'] = min(times)
+    return min(step), pairs
+
+
+def geometry_warning(step_seconds: float, pair_seconds: dict[str, float]) -> str:
+    """A warning when the reward's distances cost more than `GEOMETRY_WARNING` physics steps
+    ('' otherwise), naming the costliest pairs."""
+    total = sum(pair_seconds.values())
+    if not pair_seconds or total <= GEOMETRY_WARNING * step_seconds:
+        return ''
+    worst = sorted(pair_seconds, key=pair_seconds.get, reverse=True)[:3]
+    return (f"the reward's geometry: {len(pair_seconds)} distances cost "
+            f'{1e6 * total:.0f} us per physics step, {total / step_seconds:.0f} times the step '
+            f'itself ({1e6 * step_seconds:.0f} us); the costliest: '
+            + ', '.join(f'{p} {1e6 * pair_seconds[p]:.0f} us' for p in worst)
+            + ': list the colliding geoms (primitives, convex collision meshes) in '
+            'reward.arm_geoms, not visual meshes')
 
 
 def check_robot(task: TaskDefinition) -> RobotReport:
@@ -108,6 +164,17 @@ def check_robot(task: TaskDefinition) -> RobotReport:
             f'postures at a joint limit: {near}; the safety check refuses every candidate '
             'that moves past the range (about half of the search\'s steps there): move the '
             'postures and the demonstration inside the range')
+    resting = robot_contacts_at_rest(task)
+    excluded = task.contacts_at_rest == 'exclude'
+    if resting and not excluded:
+        warnings.append(
+            f'the robot is in contact with itself at rest ({_contacts(resting)}): MuJoCo '
+            'pushes the parts apart at every step and the arm chatters under any gains: set '
+            'robot.contacts_at_rest: exclude (the default), or fix the collision meshes')
+    step_seconds, pair_seconds = geometry_cost(arm)
+    costly = geometry_warning(step_seconds, pair_seconds)
+    if costly:
+        warnings.append(costly)
     if saturated > SATURATION_WARNING:
         joints_at = [arm.joint_names[j] for j in np.flatnonzero(np.any(at_limit, axis=0))]
         warnings.append(
@@ -122,7 +189,14 @@ def check_robot(task: TaskDefinition) -> RobotReport:
                                 f'{"s" if arm.n_substeps > 1 else ""}'),
                        scene=[o.name for o in task.scene], arm_geoms=list(arm.arm_geoms),
                        obstacle_geoms=list(task.reward.obstacle_geoms), sag_rad=sag_rad,
-                       sag_hand=sag_hand, saturated_share=saturated, warnings=warnings)
+                       sag_hand=sag_hand, saturated_share=saturated,
+                       contacts_at_rest=resting, contacts_excluded=excluded,
+                       step_seconds=step_seconds, pair_seconds=pair_seconds, warnings=warnings)
+
+
+def _contacts(resting: list[RestingContact]) -> str:
+    return ', '.join(f'{c.body1} / {c.body2} {100 * c.depth:.1f} cm deep at the '
+                     f'{" and ".join(c.postures)} posture' for c in resting)
 
 
 def _near_limits(arm: ArmModel, task: TaskDefinition) -> str:
@@ -165,6 +239,18 @@ def format_report(report: RobotReport) -> str:
     if report.obstacle_geoms:
         lines.append(f'reward measures {", ".join(report.arm_geoms)} against '
                      f'{", ".join(report.obstacle_geoms)}')
+        total = sum(report.pair_seconds.values())
+        lines.append(f"the reward's {len(report.pair_seconds)} distances per physics step: "
+                     f'{1e6 * total:.1f} us beside the step\'s {1e6 * report.step_seconds:.1f} '
+                     'us (' + ', '.join(f'{p} {1e6 * t:.1f}'
+                                        for p, t in report.pair_seconds.items()) + ' us)')
+    if report.contacts_at_rest:
+        lines.append(f'robot parts in contact at rest: {_contacts(report.contacts_at_rest)}: '
+                     + ('excluded from the simulation (MuJoCo contact exclusion; '
+                        'robot.contacts_at_rest: keep keeps them)' if report.contacts_excluded
+                        else 'kept (robot.contacts_at_rest: keep)'))
+    else:
+        lines.append('robot parts in contact at rest: none')
     for label in report.sag_hand:
         lines.append(f'gravity sag under PD alone at the {label} posture: hand '
                      f'{1000 * report.sag_hand[label]:.2f} mm, joints '

@@ -6,6 +6,7 @@ sees the same model. Imports no ROS.
 """
 from __future__ import annotations
 
+import dataclasses
 from xml.etree import ElementTree
 
 import mujoco
@@ -73,7 +74,76 @@ def task_spec(task: TaskDefinition) -> mujoco.MjSpec:
         body.add_geom(name=obj.name, type=GEOM_TYPES[obj.type], size=_geom_size(obj.size),
                       rgba=list(obj.rgba), contype=1 if obj.contacts else 0,
                       conaffinity=1 if obj.contacts else 0)
+    pairs = list(task.exclude_contacts)
+    if task.contacts_at_rest == 'exclude':
+        pairs += [(c.body1, c.body2) for c in contacts_at_rest(task, spec, driven)]
+    for body1, body2 in dict.fromkeys(pairs):
+        for name in (body1, body2):
+            if spec.body(name) is None:
+                raise TaskError(f'{task.path}: robot.exclude_contacts names the body {name!r}; '
+                                f'{task.model_path.name} has none of that name')
+        spec.add_exclude(bodyname1=body1, bodyname2=body2)
     return spec
+
+
+def robot_contacts_at_rest(task: TaskDefinition) -> list[RestingContact]:
+    """The robot's parts in contact at the start or goal posture of the task's model as it
+    comes (before any exclusion; `contacts_at_rest`), for `psl check` to name."""
+    kept = dataclasses.replace(task, contacts_at_rest='keep', exclude_contacts=())
+    spec = task_spec(kept)
+    return contacts_at_rest(kept, spec, driven_joints(kept, spec))
+
+
+@dataclasses.dataclass(frozen=True)
+class RestingContact:
+    """Two parts of the robot in contact at the start or the goal posture."""
+
+    body1: str
+    body2: str
+    depth: float                    # m, the deepest penetration of the pair
+    postures: tuple[str, ...]       # 'start', 'goal'
+
+
+def contacts_at_rest(task: TaskDefinition, spec: mujoco.MjSpec,
+                     driven: list[str]) -> list[RestingContact]:
+    """The pairs of robot bodies in contact at the start or the goal posture of the spec as it
+    stands (compiled here, default instance, the rest of the model at its reference pose):
+    two bodies the driven joints move, or such a body and the static body its chain hangs
+    from (its base, e.g. the world a URDF's fixed links are fused into), which MuJoCo's
+    parent-child filter leaves in when the parent is the world.
+
+    Such contacts are a model's artefact, not an event: no arm rests in itself. Coarse
+    collision meshes of neighbouring links overlap (TALOS's left arm from its ROS URDF: four
+    contacts 4.5-6.5 cm deep at every posture), MuJoCo pushes the parts apart at every step
+    and the arm chatters under any gains. `task_spec` excludes them (robot.contacts_at_rest:
+    exclude, the default; keep leaves them in) and `psl check` names them. A robot part
+    touching anything else at rest (a table, a scene object) is not among them."""
+    if len(driven) != task.n_joints:
+        return []       # the arm model refuses the task, naming the joints
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    joint_ids = np.array([model.joint(name).id for name in driven], dtype=int)
+    moved = robot_bodies(model, joint_ids)
+    qpos_adr = model.jnt_qposadr[joint_ids]
+    found: dict[tuple[str, str], RestingContact] = {}
+    for label, posture in (('start', task.start_posture), ('goal', task.goal_posture)):
+        mujoco.mj_resetData(model, data)
+        data.qpos[qpos_adr] = posture
+        mujoco.mj_forward(model, data)
+        for contact in data.contact[:data.ncon]:
+            b1, b2 = sorted((int(model.geom_bodyid[contact.geom1]),
+                             int(model.geom_bodyid[contact.geom2])))
+            robot_pair = moved[b1] and moved[b2]
+            on_base = not moved[b1] and moved[b2] and model.body_parentid[b2] == b1
+            if not (robot_pair or on_base):
+                continue
+            key = (model.body(b1).name, model.body(b2).name)
+            depth = max(0.0, -float(contact.dist))
+            old = found.get(key)
+            found[key] = RestingContact(
+                *key, depth=max(depth, old.depth if old else 0.0),
+                postures=tuple(dict.fromkeys((old.postures if old else ()) + (label,))))
+    return list(found.values())
 
 
 def urdf_text(task: TaskDefinition) -> str:
@@ -189,12 +259,28 @@ def robot_bodies(model: mujoco.MjModel, joint_ids: np.ndarray) -> np.ndarray:
     return moved & (model.body_mocapid < 0)
 
 
+def visual_only(model: mujoco.MjModel) -> np.ndarray:
+    """(ngeom,) True for geoms that are there to be seen: no contacts (contype = conaffinity =
+    0) and a geom group above 0. MuJoCo's URDF import puts a link's <visual> there (group 1,
+    no contacts) and model collections do likewise (robosuite: visual meshes in group 1,
+    collision geoms in group 0; MuJoCo Menagerie: classes visual (group 2) and collision
+    (group 3, contacts on)). A contact-free geom of group 0 (gymnasium's pusher arm) is the
+    robot's shape, not decoration."""
+    return (model.geom_contype == 0) & (model.geom_conaffinity == 0) & (model.geom_group > 0)
+
+
 def robot_geoms(model: mujoco.MjModel, joint_ids: np.ndarray) -> tuple[str, ...]:
-    """Names of the geoms on the bodies the driven joints (ids) move: the arm geoms the reward
-    measures when ``reward.arm_geoms`` is omitted (a passive object's geoms are not the arm's)."""
+    """Names of the geoms on the bodies the driven joints (ids) move, visual-only ones left
+    out (`visual_only`): the arm geoms the reward and the safety check measure when
+    ``reward.arm_geoms`` is omitted (a passive object's geoms are not the arm's). Measuring
+    the visual meshes too cost robosuite's Panda 45 geoms (38 of them visual mesh pieces)
+    against an obstacle at every step instead of its 7 collision meshes
+    (docs/benchmarks.md)."""
     moved = robot_bodies(model, joint_ids)
+    seen_only = visual_only(model)
     return tuple(model.geom(int(g)).name for g in range(model.ngeom)
-                 if moved[model.geom_bodyid[g]] and model.geom(int(g)).name)
+                 if moved[model.geom_bodyid[g]] and not seen_only[g]
+                 and model.geom(int(g)).name)
 
 
 def _geom_size(size: np.ndarray) -> list[float]:

@@ -212,6 +212,10 @@ class RobotSection(_Section):
     torque_limits: Vector | None = None    # (n,) N m for motors psl adds (else the model's)
     gravity_compensation: StrictBool = False
     joints: list[str] = []                 # the driven joints in command order
+    exclude_contacts: list[tuple[str, str]] = []   # body pairs MuJoCo never collides
+    # the robot's parts in contact at the start or goal posture (an overlap of coarse
+    # collision meshes): exclude them (the default, psl check names them) or keep them
+    contacts_at_rest: Literal['exclude', 'keep'] = 'exclude'
 
 
 class Demonstration(_Section):

@@ -82,6 +82,11 @@ class TaskDefinition:
     # robot.joints: the driven joints in command order (empty: every joint with an actuator,
     # or every hinge/slide joint of a model without actuators); the rest stay passive
     joints: tuple[str, ...] = ()
+    # robot.exclude_contacts: body pairs MuJoCo never collides; robot.contacts_at_rest:
+    # exclude (default) or keep the robot's parts in contact at the start or goal posture
+    # (psl_task.model_spec.contacts_at_rest)
+    exclude_contacts: tuple[tuple[str, str], ...] = ()
+    contacts_at_rest: str = 'exclude'
 
     @property
     def tau_names(self) -> list[str]:
@@ -363,6 +368,8 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         torque_limits=robot.torque_limits,
         gravity_compensation=robot.gravity_compensation,
         joints=tuple(robot.joints),
+        exclude_contacts=tuple(robot.exclude_contacts),
+        contacts_at_rest=robot.contacts_at_rest,
     )
 
 
