@@ -16,6 +16,7 @@ import numpy as np
 import psl_optimizer.learning as L
 import psl_optimizer.policy_search as PS
 from psl_optimizer.learning import Learner, LearnSettings
+from psl_optimizer.rollout_modes import make_rollouts
 from psl_task.task import load_task
 
 phase_log = []           # (task index, phase, rollouts, fulfilled at end)
@@ -47,7 +48,8 @@ out = []
 for seed in range(seeds):
     phase_log.clear(); current['task'] = -1
     folder = f'{root}/seed{seed}'
-    m = Learner(task, LearnSettings(strategy='hybrid', num_tasks=30, seed=seed), folder).run()
+    m = Learner(task, LearnSettings(strategy='hybrid', num_tasks=30, seed=seed), folder,
+                make_rollouts('batch', task)).run()
     r = np.array([t.rollouts for t in m.tasks])
     for block in range(3):
         idx = range(10 * block, 10 * block + 10)

@@ -157,6 +157,33 @@ def test_learn_in_graph_mode_cancels_on_ctrl_c_and_resumes(start_up, tmp_path):
         [t['best_reward'] for t in batch['tasks']], abs=1e-9)
 
 
+def test_where_a_session_runs_and_how_its_rollouts_run_are_two_choices(start_up, tmp_path):
+    """--learner here --mode graph: the session in this process, its rollouts through the
+    graph's workers; --learner node --mode batch: the session in the learner node, its
+    rollouts in-process there. Both learn what batch mode here learns (graph rollouts give
+    the batch rewards)."""
+    up = start_up()
+    session = ['--tasks', '2', '--budget', '12', '--seed', '5', '--test-tasks', '2']
+    up.wait_for_line('graph ready')
+    results = {}
+    for label, options in (('here_graph', ['--learner', 'here', '--mode', 'graph']),
+                           ('node_batch', ['--learner', 'node', '--mode', 'batch']),
+                           ('here_batch', [])):
+        out = tmp_path / label
+        done = subprocess.run(PSL + ['learn', *options, *session, '--out', str(out)],
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, (label, done.stderr)
+        results[label] = json.loads((out / 'metrics.json').read_text())
+    up.end()
+    want = results['here_batch']['tasks']
+    for label in ('here_graph', 'node_batch'):
+        got = results[label]['tasks']
+        assert [t['rollouts'] for t in got] == [t['rollouts'] for t in want], label
+        assert [t['fulfilled'] for t in got] == [t['fulfilled'] for t in want], label
+        assert [t['best_reward'] for t in got] == pytest.approx(
+            [t['best_reward'] for t in want], abs=1e-9), label
+
+
 # how long psl learn may take to notice that the learner has gone: a deadline for the event
 # (it notices within seconds: the server unseen for 2 s, a Fast DDS lease of 4 s), far below
 # the session's own timeout that a client waiting forever would run into

@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 
+from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
 from psl_ros.client import RosClient
@@ -23,7 +24,8 @@ SETTINGS = LearnSettings(strategy='bootstrap', num_tasks=2, seed=1, num_test=NUM
 
 
 def test_a_graph_mode_payload_session_runs_ilc_as_batch_mode_does(tmp_path):
-    reference = Learner(load_task(TASK), SETTINGS, tmp_path / 'batch').run().to_dict()
+    reference = Learner(load_task(TASK), SETTINGS, tmp_path / 'batch',
+                        BatchRollouts(load_task(TASK))).run().to_dict()
     # ILC did the work in batch mode: few rollouts, every task fulfilled
     assert all(r['fulfilled'] for r in reference['tasks'])
     assert sum(r['rollouts'] for r in reference['tasks']) <= 2 * 30

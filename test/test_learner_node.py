@@ -22,6 +22,7 @@ from psl_ros.client import RolloutClient, RosClient
 from psl_controller.policy import policy_for
 from psl_memory.skill_memory import SkillMemory
 from psl_msgs.msg import RolloutEvaluation
+from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
 from psl_task.task import load_task
@@ -44,7 +45,8 @@ def settings(strategy: str, num_tasks: int, budget: int, seed: int) -> LearnSett
 
 
 def in_process(s: LearnSettings, out) -> dict:
-    return Learner(load_task(TASK), s, out).run().to_dict()
+    task = load_task(TASK)
+    return Learner(task, s, out, BatchRollouts(task)).run().to_dict()
 
 
 def without_time(records):

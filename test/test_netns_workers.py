@@ -17,6 +17,7 @@ import time
 import numpy as np
 import pytest
 
+from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
 from psl_ros.bag_recorder import read_bag_summary
@@ -144,7 +145,8 @@ def test_a_session_across_two_network_namespaces_equals_batch_mode(namespaces, t
         g.stop()
         assert not [p.name for p in g.processes if p.process.poll() is None]
     metrics = json.loads((tmp_path / 'graph' / 'metrics.json').read_text())
-    reference = Learner(load_task(TASK), SETTINGS, tmp_path / 'batch').run().to_dict()
+    reference = Learner(load_task(TASK), SETTINGS, tmp_path / 'batch',
+                        BatchRollouts(load_task(TASK))).run().to_dict()
     got, want = metrics['tasks'], reference['tasks']
     assert [r['rollouts'] for r in got] == [r['rollouts'] for r in want]
     np.testing.assert_allclose([r['best_reward'] for r in got], [r['best_reward'] for r in want],

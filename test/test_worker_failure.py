@@ -14,6 +14,7 @@ import time
 import numpy as np
 import pytest
 
+from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
 from psl_ros.client import RosClient
@@ -115,7 +116,8 @@ def test_a_killed_worker_simulator_does_not_end_the_session(tmp_path, policy):
                 node.kill()
                 node.close()
     assert not left, f'psl up left {left} running'
-    reference = Learner(load_task(TASK), SETTINGS, tmp_path / 'batch').run().to_dict()
+    reference = Learner(load_task(TASK), SETTINGS, tmp_path / 'batch',
+                        BatchRollouts(load_task(TASK))).run().to_dict()
     got, want = metrics['tasks'], reference['tasks']
     assert [r['rollouts'] for r in got] == [r['rollouts'] for r in want]
     assert [r['fulfilled'] for r in got] == [r['fulfilled'] for r in want]

@@ -39,6 +39,7 @@ def session(task_name: str, optimiser: str, seed: int, num_tasks: int, budget: i
     [s]."""
     from psl_optimizer.ilc import ILCSettings
     from psl_optimizer.learning import Learner, LearnSettings
+    from psl_optimizer.rollout_modes import make_rollouts
     from psl_optimizer.policy_search import SearchSettings
     from psl_task.task import load_task
 
@@ -52,7 +53,7 @@ def session(task_name: str, optimiser: str, seed: int, num_tasks: int, budget: i
                              num_test=num_test, search=SearchSettings(max_rollouts=budget),
                              ilc=ilc, add_only_fulfilled=optimiser == 'ilc')
     start = time.perf_counter()
-    metrics = Learner(task, settings, folder).run()
+    metrics = Learner(task, settings, folder, make_rollouts('batch', task)).run()
     return metrics, time.perf_counter() - start
 
 

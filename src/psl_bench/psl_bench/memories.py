@@ -75,11 +75,13 @@ def session_samples(task_name: str, seed: int, out: Path, num_tasks: int,
     generated = False
     if not (folder / METRICS_FILE).is_file():
         from psl_optimizer.learning import Learner, LearnSettings
+        from psl_optimizer.rollout_modes import make_rollouts
         from psl_task.task import load_task
         if progress is not None:
             progress(f'seed {seed}: no session in {folder}, learning {num_tasks} tasks')
-        Learner(load_task(task_name), LearnSettings(strategy='bootstrap', num_tasks=num_tasks,
-                                                    seed=seed), folder).run()
+        task = load_task(task_name)
+        Learner(task, LearnSettings(strategy='bootstrap', num_tasks=num_tasks, seed=seed),
+                folder, make_rollouts('batch', task)).run()
         generated = True
     metrics = read_metrics(folder)
     if not metrics.complete or metrics.strategy != 'bootstrap':

@@ -6,6 +6,7 @@ import pytest
 
 from psl_bench import encodings as bench_encodings
 from psl_controller.policy import policy_for
+from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
 from psl_task.task import load_task
@@ -34,7 +35,8 @@ def test_the_selection_curve_is_the_sessions_zero_shot_success(selection):
         settings = LearnSettings(strategy='bootstrap', num_tasks=4, seed=2, num_test=6,
                                  task_selection=name, search=SearchSettings(max_rollouts=40))
         with tempfile.TemporaryDirectory() as out:
-            metrics = Learner(load_task(TASK), settings, out).run().to_dict()
+            task = load_task(TASK)
+            metrics = Learner(task, settings, out, BatchRollouts(task)).run().to_dict()
         assert row['total_rollouts'] == metrics['summary']['total_rollouts'] == used[-1]
         assert row['final_success'] == metrics['summary']['zero_shot_success_rate']
         reached = [i for i, (_, ok) in enumerate(row['curve']) if ok >= bench_encodings.TARGET]

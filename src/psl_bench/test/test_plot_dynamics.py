@@ -5,6 +5,7 @@ import pytest
 
 from psl_bench.plot_dynamics import dynamics_rollouts, plot_dynamics
 from psl_controller.policy import policy_for
+from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
 from psl_task.task import load_task
@@ -17,7 +18,8 @@ def run_folder(tmp_path_factory):
     folder = tmp_path_factory.mktemp('payload_run')
     settings = LearnSettings(strategy='bootstrap', num_tasks=3, seed=0, num_test=2,
                              search=SearchSettings(max_rollouts=40))
-    Learner(load_task('payload_transport'), settings, folder).run()
+    task = load_task('payload_transport')
+    Learner(task, settings, folder, BatchRollouts(task)).run()
     return folder
 
 

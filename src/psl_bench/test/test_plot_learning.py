@@ -170,7 +170,8 @@ def test_a_one_dimensional_task_plots(evaluator, tmp_path, monkeypatch):
     task_1d = load_task('reach_over_obstacle_1d')
     assert len(task_1d.parameters) == 1
     out = tmp_path / 'run'
-    Learner(task_1d, settings('bootstrap', 0, num_tasks=6, skill=BAYES), out).run()
+    Learner(task_1d, settings('bootstrap', 0, num_tasks=6, skill=BAYES), out,
+            BatchRollouts(task_1d)).run()
     skill = SkillMemory.read(out / 'memory.npz').get(task_1d.name)
     grid = variance_grid(skill, GRID)
     assert not grid.fitted and len(grid.axes) == 1 and grid.values.shape == (GRID,)
@@ -224,7 +225,8 @@ def test_the_task_variability_tasks_plot(name, tmp_path):
     """A target in 3-D (tau[2:] not drawn) and a duration beside a mass, learned for real."""
     target_task = load_task(name)
     out = tmp_path / 'run'
-    Learner(target_task, settings('bootstrap', 0, num_tasks=4, skill=BAYES), out).run()
+    Learner(target_task, settings('bootstrap', 0, num_tasks=4, skill=BAYES), out,
+            BatchRollouts(target_task)).run()
     skill = SkillMemory.read(out / 'memory.npz').get(target_task.name)
     grid = variance_grid(skill, GRID)
     assert len(grid.axes) == 2 and grid.values.shape == (GRID, GRID)
@@ -246,7 +248,7 @@ def test_a_run_keeps_its_task_and_plots_from_any_folder(tmp_path, monkeypatch):
     (folder / 'my_reach.yaml').write_text(yaml.safe_dump(data))
     mine = load_task(str(folder / 'my_reach.yaml'))
     out = tmp_path / 'run'
-    Learner(mine, settings('bootstrap', 0, num_tasks=2), out).run()
+    Learner(mine, settings('bootstrap', 0, num_tasks=2), out, BatchRollouts(mine)).run()
     metrics = read_metrics(out)
     assert metrics.task_path == str(folder / 'my_reach.yaml')
     assert yaml.safe_load(metrics.task_yaml)['name'] == 'my_reach'

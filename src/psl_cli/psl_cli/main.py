@@ -318,8 +318,9 @@ def _memory_options(p: argparse.ArgumentParser) -> None:
 
 # -- psl learn -------------------------------------------------------------------------------
 def cmd_learn(args) -> int:
-    """psl learn: one learning session, resumable from its output folder. Batch mode runs
-    in this process; graph mode sends the session to the running graph's learner node."""
+    """psl learn: one learning session, resumable from its output folder. Where it runs
+    (--learner: this process, or the running graph's learner node) and how its rollouts run
+    (--mode: batch, graph) are two choices (psl_optimizer.rollout_modes)."""
     from psl_cli.progress import LearnProgress
     from psl_task.task import load_task
 
@@ -336,21 +337,28 @@ def cmd_learn(args) -> int:
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     progress = LearnProgress(args.tasks, bar=False if args.verbose else None)
     try:
-        learn = _learn_in_graph if args.mode == 'graph' else _learn_in_process
+        learn = _learn_in_graph if _learner(args) == 'node' else _learn_in_process
         return learn(args, task, out, stop, progress)
     finally:
         progress.close()
         signal.signal(signal.SIGINT, previous)
 
 
+def _learner(args) -> str:
+    """Where the session runs: --learner, by default the node for graph mode (the rollout
+    workers' graph has a learner) and this process for batch mode."""
+    return args.learner or ('node' if args.mode == 'graph' else 'here')
+
+
 def _check_skill_map(args) -> None:
-    """--skill-map: elm, or a known baseline in batch mode (ValueError otherwise), checked
-    before the output folder is made."""
+    """--skill-map: elm, or a known baseline in a session in this process (ValueError
+    otherwise), checked before the output folder is made."""
     if args.skill_map == 'elm':
         return
-    if args.mode == 'graph':
-        raise ValueError(f'--skill-map {args.skill_map}: graph mode learns with the skill '
-                         'memory (elm) only; the baselines run in batch mode')
+    if _learner(args) == 'node':
+        raise ValueError(f'--skill-map {args.skill_map}: the learner node learns with the '
+                         'skill memory (elm) only; the baselines run in this process '
+                         '(--learner here)')
     from psl_optimizer.learning import SKILL_MAPS
     if args.skill_map not in SKILL_MAPS:
         raise ValueError(f'unknown skill map {args.skill_map!r}; known: {", ".join(SKILL_MAPS)}')
@@ -369,8 +377,23 @@ def _print_summary(args, metrics, out: Path) -> None:
 
 
 def _learn_in_process(args, task, out: Path, stop: threading.Event, progress) -> int:
+    """The session in this process; graph mode's rollouts through the running graph's
+    rollout workers (--workers N: worker0..N-1, else its own loop)."""
+    if args.mode == 'batch':
+        return _learn_here(args, task, out, stop, progress, workers=None)
+    from psl_ros.client import RolloutClient, RosClient
+
+    with RosClient(args.namespace) as client:
+        names = [f'worker{k}' for k in range(args.workers)] or ['']
+        workers = [RolloutClient(client.node, name) for name in names]
+        return _learn_here(args, task, out, stop, progress, workers=workers)
+
+
+def _learn_here(args, task, out: Path, stop: threading.Event, progress, workers) -> int:
     from psl_optimizer.learning import Learner, LearnSettings
     from psl_optimizer.policy_search import SearchSettings
+    from psl_optimizer.rollout_modes import make_rollouts
+    from psl_optimizer.rollouts import Stopped
 
     try:
         # --budget 0 is the default budget, as max_rollouts_per_task = 0 in a learn_skill goal
@@ -380,7 +403,9 @@ def _learn_in_process(args, task, out: Path, stop: threading.Event, progress) ->
                                                        or SearchSettings.max_rollouts),
                                  continue_from=args.continue_from or '',
                                  skill_map=args.skill_map)
-        learner = Learner(task, settings, out)
+        learner = Learner(task, settings, out,
+                          make_rollouts(args.mode, task, workers=workers,
+                                        should_stop=stop.is_set))
 
         def finished(record) -> None:
             progress.finished(record.index, record.best_reward, record.fulfilled,
@@ -390,6 +415,13 @@ def _learn_in_process(args, task, out: Path, stop: threading.Event, progress) ->
     except ValueError as exc:
         progress.close()
         return fail('psl learn', exc, 2)
+    except Stopped:             # graph mode: Ctrl-C between two rollouts of a task
+        progress.close()
+        return fail('psl learn', f'stopped after {len(learner.done)} of {args.tasks} tasks; '
+                    f'the same command resumes from {out}', 130)
+    except (TimeoutError, RuntimeError) as exc:     # graph mode: no graph, a worker gone
+        progress.close()
+        return fail('psl learn', exc, 1)
     progress.close(complete=metrics.complete)
     if not metrics.complete:
         return fail('psl learn', f'stopped after {len(metrics.tasks)} of {args.tasks} tasks; '
@@ -415,7 +447,7 @@ def _learn_in_graph(args, task, out: Path, stop: threading.Event, progress) -> i
             handle = client.send_learn_goal(
                 timeout=args.timeout, feedback=feedback, task=task_id(task),
                 strategy=args.strategy, num_tasks=args.tasks,
-                max_rollouts_per_task=args.budget, seed=args.seed, mode='graph',
+                max_rollouts_per_task=args.budget, seed=args.seed, mode=args.mode,
                 output_dir=str(out), task_selection=args.task_selection,
                 num_test=args.test_tasks, continue_from=args.continue_from or '')
             try:
@@ -458,8 +490,15 @@ def _learn_options(p: argparse.ArgumentParser) -> None:
     options.add_out(p, 'output folder (default runs/TASK-STRATEGY[-MAP]-seedK); the same '
                     'folder resumes the session')
     p.add_argument('--mode', choices=MODES, default=MODES[0],
-                   help='batch: rollouts in this process with mujoco.rollout (fast); graph: '
-                   "the running graph's learner node, rollouts through execute_rollout")
+                   help='how the rollouts run: batch, with mujoco.rollout in the process of '
+                   "the session (fast); graph, through the running graph's rollout workers "
+                   '(execute_rollout)')
+    p.add_argument('--learner', choices=('here', 'node'), default=None,
+                   help='where the session runs: here (this process) or node (the running '
+                   "graph's learner node); default: node with --mode graph, here with batch")
+    p.add_argument('--workers', type=options.non_negative_int, default=0,
+                   help='--learner here --mode graph: the graph runs N rollout workers '
+                   '(psl up --workers N); 0 (default): its own loop')
     p.add_argument('--task-selection', choices=TASK_SELECTIONS, default=TASK_SELECTIONS[0],
                    help='next instance: random, or the most uncertain of 20 candidates '
                    "(the skill's predictive variance)")

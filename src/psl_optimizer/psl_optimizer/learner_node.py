@@ -27,11 +27,10 @@ from rclpy.node import Node
 
 from psl_controller.policy import policy_for
 from psl_msgs.action import LearnSkill
-from psl_optimizer.batch_rollout import BatchRollouts
-from psl_optimizer.graph_rollout import GraphRollouts
 from psl_optimizer.learner_parameters import LearnerParameters
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import STRATEGIES, SearchSettings
+from psl_optimizer.rollout_modes import make_rollouts
 from psl_optimizer.rollouts import MODES, Rollouts, Stopped
 from psl_ros import names
 from psl_ros.action_server import ActionServer
@@ -118,7 +117,7 @@ class LearnerNode(Node):
         self.rollout_clients = [RolloutClient(self, worker, callback_group=clients)
                                 for worker in self.parameters.workers]
         self._busy = threading.Lock()
-        self._batch: dict[Path, BatchRollouts] = {}     # batch mode's rollouts per task
+        self._batch: dict[Path, Rollouts] = {}     # batch mode's rollouts per task
         self._server = ActionServer(
             self, LearnSkill, names.LEARN_SKILL, execute_callback=self.execute,
             # a second goal while a session runs is refused at once (the client hears it)
@@ -222,14 +221,15 @@ class LearnerNode(Node):
 
     # -- rollouts -----------------------------------------------------------------------------
     def _rollouts(self, task: TaskDefinition, mode: str, goal_handle) -> Rollouts:
-        """The session's rollouts: batch mode in this process (built once per task) or graph
-        mode through the rollout workers (stopping between two rollouts on a cancel)."""
+        """The session's rollouts (`make_rollouts`): batch mode in this process (built once
+        per task) or graph mode through the rollout workers (stopping between two rollouts
+        on a cancel)."""
         if mode == 'graph':
-            return GraphRollouts(task, self.rollout_clients,
+            return make_rollouts(mode, task, workers=self.rollout_clients,
                                  timeout=self.parameters.rollout_timeout,
                                  should_stop=lambda: goal_handle.is_cancel_requested)
         if task.path not in self._batch:
-            self._batch[task.path] = BatchRollouts(task)
+            self._batch[task.path] = make_rollouts(mode, task)
         return self._batch[task.path]
 
 

@@ -35,7 +35,6 @@ from psl_memory.nearest_neighbour_library import NearestNeighbourLibrary
 from psl_memory.parameterized_skill import scaler_around
 from psl_memory.skill_config import SkillConfig
 from psl_memory.skill_memory import MAX_FILE_BYTES, SkillMemory, write_npz_atomically
-from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.ilc import ILCSettings, ilc_search
 from psl_optimizer.inverse_dynamics import oracle_theta
 from psl_optimizer.metrics import Metrics, Summary, TaskRecord
@@ -266,18 +265,18 @@ class Learner:
     """Runs one learning session of one task, checkpointing into `out`.
 
     Args:
-        rollouts: where rollouts run (`Rollouts`: batch or graph mode); default: batch mode
-            in-process (`BatchRollouts`).
+        rollouts: how the rollouts run (`Rollouts`: batch or graph mode,
+            `psl_optimizer.rollout_modes.make_rollouts`).
         skill: object with query/variance/add/save/start/restore (InProcessSkill, or the
             skill_memory node behind its services); default: InProcessSkill.
     """
 
     def __init__(self, task: TaskDefinition, settings: LearnSettings, out: str | Path,
-                 rollouts: Rollouts | None = None, skill=None):
+                 rollouts: Rollouts, skill=None):
         self.task, self.settings, self.out = task, settings, Path(out)
         self.policy = policy_for(task)
         self.default_theta = self.policy.default_theta
-        self.rollouts = rollouts or BatchRollouts(task)
+        self.rollouts = rollouts
         self.skill = skill or in_process_skill(task, settings, self.default_theta)
         self.done: list[TaskRecord] = []    # finished tasks (from the checkpoint, then run)
 
@@ -306,15 +305,28 @@ class Learner:
         if any(state.get(k) != v for k, v in mine.items()):
             raise ValueError(f'{self.out} holds a checkpoint of another session '
                              f'({ {k: state.get(k) for k in mine} }); use another folder')
-        self.skill.restore(self.memory_path)
+        # the memory of the checkpoint's moment: the file it names if a kill left it there,
+        # else memory.npz, which it replaced
+        named = self.out / Path(str(state.get('memory', self.memory_path.name))).name
+        self.skill.restore(named if named.is_file() else self.memory_path)
         return [TaskRecord.from_dict(record) for record in state['tasks']]
 
     def _save_checkpoint(self, done: list[TaskRecord]) -> None:
-        self.skill.save(self.memory_path)             # atomic
-        state = {**self._identity(), 'tasks': [record.to_dict() for record in done]}
+        """The memory and the tasks of one moment, whenever the process is killed: the memory
+        after these tasks under a name of its own first, then the checkpoint naming it
+        (atomic), then it replaces memory.npz. (Before, a kill between saving memory.npz and
+        the checkpoint resumed with the last task's sample in the memory and the task to do
+        again: its sample was added twice.)"""
+        pending = self.out / f'memory.task{len(done)}.npz'
+        self.skill.save(pending)                        # atomic
+        state = {**self._identity(), 'tasks': [record.to_dict() for record in done],
+                 'memory': pending.name}
         tmp = self.checkpoint_path.with_suffix('.tmp')
         tmp.write_text(json.dumps(state))
         os.replace(tmp, self.checkpoint_path)
+        os.replace(pending, self.memory_path)
+        for stale in self.out.glob('memory.task*.npz'):    # one a kill left before its checkpoint
+            stale.unlink(missing_ok=True)
 
     # -- the loop -----------------------------------------------------------------------------
     def run(self, progress: Callable[[TaskRecord], None] | None = None,

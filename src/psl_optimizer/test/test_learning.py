@@ -224,3 +224,31 @@ def test_a_variance_selected_session_resumes_to_the_same_tasks(task, evaluator, 
     random = [t['tau'] for t in Learner(task, dataclasses.replace(s, task_selection='random'),
                                         tmp_path / 'random', evaluator).run().to_dict()['tasks']]
     assert random != [t['tau'] for t in full['tasks']]
+
+
+def test_a_session_killed_between_its_memory_and_its_checkpoint_resumes_alike(
+        task, evaluator, finished, tmp_path):
+    """The third task's memory is saved, then the process dies before its checkpoint: the
+    resumed session redoes the third task with the memory of the second (before, memory.npz
+    already held the third sample and the redo added it twice: 7 samples, not 6)."""
+    full_out, full = finished
+
+    class Killed(Exception):
+        pass
+    learner = Learner(task, SETTINGS, tmp_path, evaluator)
+    save, saved = learner.skill.save, []
+
+    def save_then_die(path):
+        save(path)
+        saved.append(path)
+        if len(saved) == 3:
+            raise Killed
+    learner.skill.save = save_then_die
+    with pytest.raises(Killed):
+        learner.run()
+    assert len(json.loads((tmp_path / 'checkpoint.json').read_text())['tasks']) == 2
+    resumed = Learner(task, SETTINGS, tmp_path, evaluator).run().to_dict()
+    assert_same_session(resumed['tasks'], full['tasks'])
+    assert_same_memory(memory_arrays(tmp_path / 'memory.npz'),
+                       memory_arrays(full_out / 'memory.npz'))
+    assert not sorted(tmp_path.glob('memory.task*.npz'))

@@ -4,6 +4,7 @@ import json
 
 import pytest
 
+from psl_optimizer.batch_rollout import BatchRollouts
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.metrics import METRICS_FILE, MetricsError, read_metrics
 from psl_optimizer.policy_search import SearchSettings
@@ -15,7 +16,8 @@ SMALL = dict(strategy='bootstrap', num_tasks=2, seed=1, num_test=3,
 
 @pytest.mark.parametrize('task_name', ['reach_over_obstacle', 'payload_transport'])
 def test_the_file_reads_back_to_the_same_metrics_and_the_same_text(task_name, tmp_path):
-    metrics = Learner(load_task(task_name), LearnSettings(**SMALL), tmp_path).run()
+    task = load_task(task_name)
+    metrics = Learner(task, LearnSettings(**SMALL), tmp_path, BatchRollouts(task)).run()
     text = (tmp_path / METRICS_FILE).read_text()
     again = read_metrics(tmp_path)
     assert again == metrics
@@ -32,8 +34,9 @@ def test_the_file_reads_back_to_the_same_metrics_and_the_same_text(task_name, tm
 
 def test_an_unfinished_session_has_no_summary(tmp_path):
     calls = iter([False, True])
-    metrics = Learner(load_task('reach_over_obstacle'), LearnSettings(**SMALL),
-                      tmp_path).run(should_stop=lambda: next(calls, True))
+    task = load_task('reach_over_obstacle')
+    metrics = Learner(task, LearnSettings(**SMALL), tmp_path,
+                      BatchRollouts(task)).run(should_stop=lambda: next(calls, True))
     assert not metrics.complete and metrics.summary is None and len(metrics.tasks) == 1
     assert 'summary' not in json.loads((tmp_path / METRICS_FILE).read_text())
     assert read_metrics(tmp_path) == metrics and metrics.num_tasks == SMALL['num_tasks']

@@ -154,5 +154,5 @@ def test_psl_learn_takes_a_skill_map(tmp_path, capsys):
     assert main(argv[:-1] + ['magic']) == 2
     assert 'unknown skill map' in capsys.readouterr().err
     assert main(argv + ['--mode', 'graph']) == 2
-    assert 'graph mode' in capsys.readouterr().err
+    assert 'the learner node learns with the skill memory (elm) only' in capsys.readouterr().err
     assert not (tmp_path / 'refused').exists()           # refused before the folder is made

@@ -286,7 +286,10 @@ class SimNode(Node):
 
     # -- commands -----------------------------------------------------------------------
     def on_command(self, msg: Float64MultiArray, info: dict | None = None) -> None:
-        arrived = time.perf_counter_ns()
+        # both clocks read at once: the transport (wall clock, from the controller's source
+        # timestamp) is a part of the wait (monotonic, from the state's publication); read
+        # after the lock, a busy machine made the transport longer than the wait
+        arrived, arrived_wall = time.perf_counter_ns(), time.time_ns()
         command = np.asarray(msg.data, dtype=float)
         n = len(self.arm.joint_names)
         if command.shape != (n,) or not np.isfinite(command).all():
@@ -306,7 +309,7 @@ class SimNode(Node):
             if self.mode == 'lockstep':
                 self.timing.add('wait', arrived - self._published_ns)
                 if published:
-                    self.timing.add('command_transport', time.time_ns() - published)
+                    self.timing.add('command_transport', arrived_wall - published)
                 self._advance(command)
             else:
                 self.pending = command
