@@ -90,32 +90,40 @@ NODE = ('import rclpy, time; rclpy.init(); node = rclpy.create_node("shm_test");
 
 def _start_node(started: list[subprocess.Popen]) -> tuple[subprocess.Popen, set[str]]:
     """A node process (in `started` before anything can fail) and the shared-memory segments
-    it made: those it maps (/proc/PID/maps). New files in /dev/shm are not enough: on two
-    workers another test's graph makes segments at the same time (seen: such a segment
-    counted as the killed node's, and stayed)."""
+    it made: those whose lock file it holds (/proc/locks). Not new files in /dev/shm (on two
+    workers another test's graph makes segments at the same time), nor the segments it maps
+    (a participant maps those of the participants it hears too: seen, the live node's
+    segment counted as the killed one's, and stayed)."""
     process = subprocess.Popen([sys.executable, '-c', NODE], stdout=subprocess.PIPE, text=True,
                                start_new_session=True)
     started.append(process)
     assert read_line(process, 30.0) == 'up'
     deadline = time.monotonic() + 10
     while time.monotonic() < deadline:
-        segments = _mapped_segments(process.pid)
+        segments = _own_segments(process.pid)
         if segments:
             return process, segments
         time.sleep(0.1)
     raise AssertionError('the node made no shared-memory segment')
 
 
-def _mapped_segments(pid: int) -> set[str]:
-    """The Fast DDS data segments (not the port segments) process `pid` has mapped."""
+def _own_segments(pid: int) -> set[str]:
+    """The Fast DDS data segments (not the port segments) whose lock file `pid` holds."""
+    held = set()
+    with open('/proc/locks') as locks:
+        for line in locks:
+            fields = line.split()      # N: FLOCK ADVISORY WRITE PID MAJ:MIN:INODE START END
+            if len(fields) >= 6 and fields[1] == 'FLOCK' and fields[4] == str(pid):
+                held.add(int(fields[5].rsplit(':', 1)[1]))
     found = set()
-    with open(f'/proc/{pid}/maps') as maps:
-        for line in maps:
-            path = line.split(maxsplit=5)[-1].strip() if len(line.split()) >= 6 else ''
-            name = os.path.basename(path)
-            if path.startswith(f'{SHM_DIR}/fastrtps_') and not name.startswith('fastrtps_port') \
-                    and not name.endswith('_el'):
-                found.add(name)
+    for name in os.listdir(SHM_DIR):
+        if name.startswith('fastrtps_') and not name.startswith('fastrtps_port') \
+                and name.endswith('_el'):
+            try:
+                if os.stat(SHM_DIR / name).st_ino in held:
+                    found.add(name[:-len('_el')])
+            except FileNotFoundError:
+                pass
     return found
 
 
