@@ -164,7 +164,7 @@ def check_robot(task: TaskDefinition) -> RobotReport:
             f'postures at a joint limit: {near}; the safety check refuses every candidate '
             'that moves past the range (about half of the search\'s steps there): move the '
             'postures and the demonstration inside the range')
-    resting = robot_contacts_at_rest(task)
+    resting = list(robot_contacts_at_rest(task))
     excluded = task.contacts_at_rest == 'exclude'
     if resting and not excluded:
         warnings.append(

@@ -7,6 +7,7 @@ sees the same model. Imports no ROS.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from xml.etree import ElementTree
 
 import mujoco
@@ -76,7 +77,7 @@ def task_spec(task: TaskDefinition) -> mujoco.MjSpec:
                       conaffinity=1 if obj.contacts else 0)
     pairs = list(task.exclude_contacts)
     if task.contacts_at_rest == 'exclude':
-        pairs += [(c.body1, c.body2) for c in contacts_at_rest(task, spec, driven)]
+        pairs += [(c.body1, c.body2) for c in robot_contacts_at_rest(task)]
     for body1, body2 in dict.fromkeys(pairs):
         for name in (body1, body2):
             if spec.body(name) is None:
@@ -86,12 +87,15 @@ def task_spec(task: TaskDefinition) -> mujoco.MjSpec:
     return spec
 
 
-def robot_contacts_at_rest(task: TaskDefinition) -> list[RestingContact]:
+@functools.lru_cache(maxsize=32)     # a task is hashed by identity; load_task caches tasks
+def robot_contacts_at_rest(task: TaskDefinition) -> tuple[RestingContact, ...]:
     """The robot's parts in contact at the start or goal posture of the task's model as it
-    comes (before any exclusion; `contacts_at_rest`), for `psl check` to name."""
+    comes (before any exclusion; `contacts_at_rest`): what `task_spec` excludes and `psl
+    check` names. Found once per task (a compile and a collision pass: 0.15 s for robosuite's
+    Panda with its visual meshes)."""
     kept = dataclasses.replace(task, contacts_at_rest='keep', exclude_contacts=())
     spec = task_spec(kept)
-    return contacts_at_rest(kept, spec, driven_joints(kept, spec))
+    return tuple(contacts_at_rest(kept, spec, driven_joints(kept, spec)))
 
 
 @dataclasses.dataclass(frozen=True)
