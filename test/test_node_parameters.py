@@ -126,3 +126,11 @@ def test_a_default_is_written_once_in_the_sources(literal, home):
 def test_no_node_ships_a_parameter_file():
     """A shipped file (psl up passed them) would win over the dataclasses silently."""
     assert not sorted(ROOT.glob('src/*/config/*.yaml'))
+
+
+def test_psl_params_names_the_nodes_for_an_unknown_one(capsys):
+    from psl_cli.main import main
+    assert main(['params', 'simulator']) == 2
+    assert "no node 'simulator'; nodes: sim, pd_controller" in capsys.readouterr().err
+    assert main(['params', 'learner']) == 0
+    assert 'rollout_timeout: 120.0' in capsys.readouterr().out
