@@ -290,11 +290,15 @@ def test_a_goal_whose_answer_is_given_up_does_not_run(participants, monkeypatch)
     other = participants('other')
     other_client = ActionClient(other.node, ExecuteRollout, NAME + '_action')
     deadline = time.monotonic() + WAIT
-    while not (other_client.server_is_ready() and never.node.count_publishers(
-            '/' + NAME + '_action/_action/status') > 0):
+    while not other_client.server_is_ready():
         assert time.monotonic() < deadline, 'the action server was not discovered'
         time.sleep(0.01)
-    assert goal_answer(never_client, 'unheard', 5.0) is None
+    # until the server has taken one (a goal sent before the unmatched client's request
+    # writer matched the server is lost on the way: seen on a busy machine); none answered
+    deadline = time.monotonic() + WAIT
+    while 'unheard' not in taken:
+        assert time.monotonic() < deadline, 'the server never took a goal of that client'
+        assert goal_answer(never_client, 'unheard', 2.0) is None
     answer = goal_answer(other_client, 'heard', 10.0)
     assert answer is not None and answer.accepted
     result = answer.get_result_async()
@@ -302,7 +306,7 @@ def test_a_goal_whose_answer_is_given_up_does_not_run(participants, monkeypatch)
     while not result.done():
         assert time.monotonic() < deadline, 'no result'
         time.sleep(0.01)
-    assert taken == ['unheard', 'heard'] and ran == ['heard']
+    assert taken[-1] == 'heard' and set(taken) == {'unheard', 'heard'} and ran == ['heard']
     assert list(acting._goal_handles) == [bytes(answer.goal_id.uuid)]
 
 
