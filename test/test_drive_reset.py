@@ -56,11 +56,17 @@ def consecutive_rollouts(tmp_path, reset: str, mode: str, wait_until):
 @pytest.mark.parametrize('mode', ['lockstep', 'realtime'])
 def test_drive_resets_keep_the_joint_states_continuous(tmp_path, mode, wait_until):
     task, first, second, q = consecutive_rollouts(tmp_path, 'drive', mode, wait_until)
-    steps = np.abs(np.diff(q, axis=0)).max()
-    assert steps < JUMP, f'a joint moved {steps:.3f} rad in one control period'
     # between the episodes the arm went back from the goal to the start, through the controller
     gap = (to_ns(second.evaluation.stamp) - to_ns(first.evaluation.stamp)) // \
         task.control_period_ns - first.evaluation.num_steps
+    # lockstep: every period; realtime: from the first episode's end through the homing into
+    # the second episode (inside an episode a loaded machine's deadline misses may jerk the
+    # arm: seen 0.056 rad in a period with a second test worker; docs/benchmarks.md measures
+    # the misses); a teleport jumps more than a radian there
+    around = slice(0, len(q)) if mode == 'lockstep' else \
+        slice(first.evaluation.num_steps - 10, first.evaluation.num_steps + gap + 10)
+    steps = np.abs(np.diff(q[around], axis=0)).max()
+    assert steps < JUMP, f'a joint moved {steps:.3f} rad in one control period'
     assert gap > 0.2 * task.control_rate            # homing periods on the clock
     start_of_second = q[first.evaluation.num_steps + gap]
     assert np.abs(start_of_second - task.start_posture).max() <= task.homing.tolerance
