@@ -67,7 +67,7 @@ UNKNOWN_NODE = '_UNKNOWN_'       # rmw's node name of an endpoint whose node is 
 NAME_PATIENCE = 2.0              # s to wait for it
 # phases of a lockstep step: the wait from sending a state to its answer's callback (the
 # controller and both transports; of it, the command's way from the controller's publish to
-# the callback), the physics, building and sending the state, then the rest (clock, pose,
+# the callback, as far as it lies within the wait), the physics, building and sending the state, then the rest (clock, pose,
 # scene, status: done while the controller works)
 STEP_PHASES = ('wait', 'command_transport', 'physics', 'state', 'extras')
 
@@ -307,9 +307,13 @@ class SimNode(Node):
                 self.stale_commands += 1            # an answer to an earlier state
                 return
             if self.mode == 'lockstep':
-                self.timing.add('wait', arrived - self._published_ns)
+                wait = arrived - self._published_ns
+                self.timing.add('wait', wait)
                 if published:
-                    self.timing.add('command_transport', arrived_wall - published)
+                    # the part of the wait the command spent on its way: the controller may
+                    # answer before this node's publish call has returned (the state reached
+                    # it first), and that overlap is the state's sending, not the wait
+                    self.timing.add('command_transport', min(arrived_wall - published, wait))
                 self._advance(command)
             else:
                 self.pending = command
