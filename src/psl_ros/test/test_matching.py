@@ -92,13 +92,17 @@ def serve(server: Participant, taken: list) -> None:
     psl_service.create_service(server.node, SetBool, NAME, callback)
 
 
-def ready(client) -> bool:
-    deadline = time.monotonic() + WAIT
-    while not client.service_is_ready():
+def wait_for(condition, timeout: float = WAIT) -> bool:
+    deadline = time.monotonic() + timeout
+    while not condition():
         if time.monotonic() > deadline:
             return False
-        time.sleep(0.01)
+        time.sleep(0.005)
     return True
+
+
+def ready(client) -> bool:
+    return wait_for(client.service_is_ready)
 
 
 def call(client, data: bool, timeout: float = 10.0):
@@ -209,14 +213,6 @@ def test_a_client_behind_the_answers_to_the_others_keeps_its_own(participants):
     assert future.result().message == 'yes'
 
 
-def wait_for(condition, timeout: float = WAIT) -> bool:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
-
 
 def test_the_report_follows_matches_and_a_matched_reader_gets_the_next_message(participants):
     server, client = participants('reporting'), participants('watching')
@@ -289,10 +285,7 @@ def test_a_goal_whose_answer_is_given_up_does_not_run(participants, monkeypatch)
                                     durability=DurabilityPolicy.TRANSIENT_LOCAL))
     other = participants('other')
     other_client = ActionClient(other.node, ExecuteRollout, NAME + '_action')
-    deadline = time.monotonic() + WAIT
-    while not other_client.server_is_ready():
-        assert time.monotonic() < deadline, 'the action server was not discovered'
-        time.sleep(0.01)
+    assert wait_for(other_client.server_is_ready), 'the action server was not discovered'
     # until the server has taken one (a goal sent before the unmatched client's request
     # writer matched the server is lost on the way: seen on a busy machine); none answered
     deadline = time.monotonic() + WAIT
@@ -302,18 +295,18 @@ def test_a_goal_whose_answer_is_given_up_does_not_run(participants, monkeypatch)
     answer = goal_answer(other_client, 'heard', 10.0)
     assert answer is not None and answer.accepted
     result = answer.get_result_async()
-    deadline = time.monotonic() + WAIT
-    while not result.done():
-        assert time.monotonic() < deadline, 'no result'
-        time.sleep(0.01)
+    assert wait_for(result.done), 'no result'
     assert taken[-1] == 'heard' and set(taken) == {'unheard', 'heard'} and ran == ['heard']
     assert list(acting._goal_handles) == [bytes(answer.goal_id.uuid)]
 
 
 def test_a_goal_answer_is_sent_once_its_client_is_matched(participants, monkeypatch):
     """The answer fails (as rmw's 100 ms timeout) until the client counts as matched, 1.5 s
-    later: it is then sent, and the goal runs once, after its answer."""
+    after the server took the goal: it is then sent, and the goal runs once, after its answer.
+    The client first has a probe goal answered, so its request writer is known to have matched
+    the server (a goal sent before that is lost on the way: seen on a busy machine)."""
     matched = threading.Event()
+    matched.set()
     answered = psl_action_server.answered
 
     def late(send):
@@ -322,25 +315,28 @@ def test_a_goal_answer_is_sent_once_its_client_is_matched(participants, monkeypa
             return False
         return answered(send)
     monkeypatch.setattr(psl_action_server, 'answered', late)
-    ran = []
+    ran, taken = [], []
     server = participants('acting')
-    action_server(server, ran)
+    action_server(server, ran, taken)
     waiting = participants('waiting')
     client = ActionClient(waiting.node, ExecuteRollout, NAME + '_action')
+    assert wait_for(client.server_is_ready), 'the action server was not discovered'
     deadline = time.monotonic() + WAIT
-    while not client.server_is_ready():
-        assert time.monotonic() < deadline, 'the action server was not discovered'
-        time.sleep(0.01)
+    while True:
+        assert time.monotonic() < deadline, 'no probe goal was answered'
+        probe = goal_answer(client, 'probe', 2.0)
+        if probe is not None:
+            break
+    assert probe.accepted
+    matched.clear()
     answer = []
     caller = threading.Thread(target=lambda: answer.append(goal_answer(client, 'late', 15.0)))
     caller.start()
+    assert wait_for(lambda: 'late' in taken), 'the server never took the goal'
     time.sleep(1.5)   # the time the client stays unmatched (not a synchronisation)
-    assert caller.is_alive() and not answer and not ran
+    assert caller.is_alive() and not answer and 'late' not in ran
     matched.set()
     caller.join(timeout=15.0)
     assert answer and answer[0] is not None and answer[0].accepted
-    deadline = time.monotonic() + WAIT
-    while not ran:
-        assert time.monotonic() < deadline, 'the accepted goal did not run'
-        time.sleep(0.01)
-    assert ran == ['late']
+    assert wait_for(lambda: 'late' in ran), 'the accepted goal did not run'
+    assert taken.count('late') == 1 and ran.count('late') == 1
