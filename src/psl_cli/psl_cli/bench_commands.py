@@ -137,6 +137,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument('--n-components', type=positive_int, default=6, help='GMR components')
     options.add_out(p, 'also write the report (with the learning curves) as JSON')
     p.add_argument('--figure', help='also draw the task-selection curves into this PNG')
+    p = bench('sim-to-real', 'a skill learned on the model, continued on a robot whose model is '
+              'wrong (batch mode, a model error): rollouts and zero-shot success on the robot, '
+              'scratch vs continued; tracking error of the simulated feed-forward and ILC',
+              task=None)
+    p.add_argument('--tasks', nargs='+', default=['reach_over_obstacle', 'payload_transport'],
+                   help='tasks (names or YAML files)')
+    p.add_argument('--model-error', default='mass_scale=1.3,frictionloss=0.05,damping=0.3',
+                   help='how the robot differs from the model: mass_scale=S,frictionloss=F,'
+                   'damping=D (any subset)')
+    p.add_argument('--nominal-seed', type=options.seed, default=3,
+                   help='seed of the session on the model')
+    p.add_argument('--nominal-tasks', type=positive_int, default=30,
+                   help='training tasks on the model')
+    p.add_argument('--seed', type=options.seed, default=11,
+                   help='seed of the training and held-out instances on the robot')
+    p.add_argument('--robot-tasks', type=positive_int, default=10,
+                   help='training tasks on the robot')
+    p.add_argument('--test-tasks', type=positive_int, default=20,
+                   help='held-out instances on the robot')
+    p.add_argument('--budget', type=positive_int, default=200, help='rollouts per task at most')
+    p.add_argument('--ilc-iterations', type=non_negative_int, default=10,
+                   help='ILC steps on the robot from the simulated skill (tracking table)')
+    p.add_argument('--continuations', nargs='+', default=['residual', 'samples'],
+                   help='ways of continuing the simulated skill, each a session: residual '
+                   '(the default of continue_from) and/or samples')
+    options.add_out(p, RUN_FOLDERS)
 
 
 def _progress(line: str) -> None:
@@ -240,10 +266,22 @@ def _encodings(args) -> tuple[dict, str]:
     return report, encodings.format_tables(report)
 
 
+def _sim_to_real(args) -> tuple[dict, str]:
+    from psl_bench import sim_to_real
+    report = sim_to_real.run(tasks=args.tasks, model_error=args.model_error,
+                             nominal_seed=args.nominal_seed, nominal_tasks=args.nominal_tasks,
+                             seed=args.seed, num_tasks=args.robot_tasks,
+                             num_test=args.test_tasks, budget=args.budget,
+                             ilc_iterations=args.ilc_iterations,
+                             continuations=args.continuations, out=_folder(args.out),
+                             progress=_progress)
+    return report, sim_to_real.format_table(report)
+
+
 BENCHES = {'graph': _graph, 'rollout': _rollout, 'memory': _memory,
            'memory-load': _memory_load, 'cli': _cli, 'recording': _recording, 'workers': _workers,
            'learn': _learn, 'dynamics': _dynamics, 'memories': _memories,
-           'encodings': _encodings}
+           'encodings': _encodings, 'sim-to-real': _sim_to_real}
 
 
 def run(args) -> int:

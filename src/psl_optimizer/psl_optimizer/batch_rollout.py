@@ -15,6 +15,13 @@ law runs in Python once per control period (`BatchRollouts._run_held`). The rewa
 over steps either. Every candidate's reference passes the task's safety check
 (`psl_task.safety_check`) first; a refused one is not simulated and gets the penalty. Imports no
 ROS.
+
+Sim to real (``model_error``, `psl_task.model_error.ModelError`): the simulated robot differs
+from the task's model (heavier, with joint friction and damping), as a real robot does. The
+error is applied to the simulated models only (the batch model after compile, and the held
+model); everything the skill computes from a model — the safety check, the inverse-dynamics
+feed-forward, the reward geometry — keeps the task's nominal model, as it must on a real robot.
+The identity error (the default) leaves every result bit-identical.
 """
 from __future__ import annotations
 
@@ -32,6 +39,7 @@ from psl_controller.policy import Reference
 from psl_optimizer.reward import Reward
 from psl_optimizer.rollouts import RolloutResult, Rollouts, refused_result
 from psl_task.arm_model import ArmModel
+from psl_task.model_error import ModelError
 from psl_task.model_spec import task_spec
 from psl_task.reward_geometry import RewardGeometry
 from psl_task.safety_check import SafetyCheck
@@ -48,9 +56,11 @@ def stacked(references: list[Reference]) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 def batch_model(task: TaskDefinition, law: PDLaw, geometry: RewardGeometry,
-                joint_of_actuator: np.ndarray) -> mujoco.MjModel:
+                joint_of_actuator: np.ndarray,
+                model_error: ModelError = ModelError()) -> mujoco.MjModel:
     """The task's model with the law as its actuators and the reward's sensors; actuator a
-    drives joint ``joint_of_actuator[a]`` of the law (command order)."""
+    drives joint ``joint_of_actuator[a]`` of the law (command order); the robot made to differ
+    from the model by `model_error` (after compile; the identity: untouched)."""
     spec = task_spec(task)
     bias = law.actuator_bias()
     for actuator, i in zip(spec.actuators, joint_of_actuator):
@@ -62,7 +72,9 @@ def batch_model(task: TaskDefinition, law: PDLaw, geometry: RewardGeometry,
         actuator.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
         actuator.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
     geometry.add_sensors(spec)
-    return spec.compile()
+    model = spec.compile()
+    model_error.apply(model, geometry.arm.joint_ids)
+    return model
 
 
 class BatchRollouts(Rollouts):
@@ -72,10 +84,14 @@ class BatchRollouts(Rollouts):
         task: the task.
         n_threads: MjData per thread of ``mujoco.rollout``.
         law: the PD + feed-forward law (default: the task's, `law_for`).
+        model_error: how the simulated robot differs from the task's model (sim to real; see
+            the module docstring); the default is none.
     """
 
-    def __init__(self, task: TaskDefinition, n_threads: int = 2, law: PDLaw | None = None):
+    def __init__(self, task: TaskDefinition, n_threads: int = 2, law: PDLaw | None = None,
+                 model_error: ModelError = ModelError()):
         super().__init__(task)
+        self.model_error = model_error
         self.arm = ArmModel(task)
         self.law = law or law_for(task)
         self.geometry = RewardGeometry(self.arm)
@@ -83,7 +99,8 @@ class BatchRollouts(Rollouts):
         self.safety = SafetyCheck(self.arm)
         # the law is in command order (ArmModel.joint_names); the actuators in model order
         self.joint_of_actuator = np.argsort(self.arm.actuator_ids)
-        self.model = batch_model(task, self.law, self.geometry, self.joint_of_actuator)
+        self.model = batch_model(task, self.law, self.geometry, self.joint_of_actuator,
+                                 model_error)
         self.datas = [mujoco.MjData(self.model) for _ in range(max(1, n_threads))]
         # a thread pool of its own, kept from call to call (ended with this object)
         self.pool = mj_rollout.Rollout(nthread=len(self.datas) if len(self.datas) > 1 else 0)
@@ -129,10 +146,12 @@ class BatchRollouts(Rollouts):
     def held_model(self) -> mujoco.MjModel:
         """For a task with substeps: the task's model with its plain motors (the law runs in
         Python, once per control period, as the controller node does) and the reward's
-        sensors."""
+        sensors; the robot made to differ by `model_error`."""
         spec = task_spec(self.task)
         self.geometry.add_sensors(spec)
-        return spec.compile()
+        model = spec.compile()
+        self.model_error.apply(model, self.arm.joint_ids)
+        return model
 
     def run(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
         """Roll out thetas (B, F) on task instances taus (B, E) or one tau (E,)."""

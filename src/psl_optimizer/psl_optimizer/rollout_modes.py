@@ -12,26 +12,37 @@ from typing import Callable, Sequence
 
 from psl_optimizer.rollouts import MODES, Rollouts
 from psl_ros.timeouts import ROLLOUT_TIMEOUT
+from psl_task.model_error import ModelError
 from psl_task.task import TaskDefinition
 
 
 def make_rollouts(mode: str, task: TaskDefinition, *, workers: Sequence | None = None,
                   timeout: float = ROLLOUT_TIMEOUT,
-                  should_stop: Callable[[], bool] | None = None) -> Rollouts:
+                  should_stop: Callable[[], bool] | None = None,
+                  model_error: ModelError | str = '') -> Rollouts:
     """The rollouts of `mode` for `task`.
 
     Args:
+        model_error: batch mode: how the simulated robot differs from the task's model
+            (`ModelError`, or its text for `ModelError.parse`; sim to real). Graph mode rolls
+            out on the graph's robot, which is what it is: only the identity is accepted.
         workers: graph mode: one `psl_ros.client.RolloutClient` per rollout worker.
         timeout: graph mode: seconds to wait for one rollout.
         should_stop: graph mode: asked between two rollouts (e.g. a cancelled goal).
 
     Raises:
-        ValueError: an unknown mode, or graph mode without workers.
+        ValueError: an unknown mode, graph mode without workers or with a model error, or a
+            model error that does not parse.
     """
+    if isinstance(model_error, str):
+        model_error = ModelError.parse(model_error)
     if mode == 'batch':
         from psl_optimizer.batch_rollout import BatchRollouts
-        return BatchRollouts(task)
+        return BatchRollouts(task, model_error=model_error)
     if mode == 'graph':
+        if not model_error.is_identity:
+            raise ValueError('a model error is for batch mode: graph mode rolls out on the '
+                             "graph's robot (a simulator's error is its own setting)")
         if not workers:
             raise ValueError('graph mode needs the rollout workers (RolloutClient per worker)')
         from psl_optimizer.graph_rollout import GraphRollouts
