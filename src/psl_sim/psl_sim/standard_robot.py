@@ -13,14 +13,18 @@ One control period (the node calls these at each tick, in this order):
 2. `advance`: the torque due now is applied over the task's substeps (`ArmModel.step`).
 Commands (`receive`) arriving between two ticks belong to the period between them; with
 ``latency_periods`` n, the command latest at a tick is applied n ticks later. The command
-timeout is counted in periods of robot time: a command received after k advances is in force
-at the advances k .. k + timeout_periods - 1 (before latency), zero torque afterwards.
+timeout is counted on the robot's `clock`: a tick at which the latest command is
+``command_timeout`` old or older sends zero torque into the latency pipeline. The default clock
+is robot time (deterministic: a command received after k advances is then in force at the
+advances k .. k + timeout periods - 1); the node gives the wall clock (`time.monotonic`), as a
+robot's safety layer counts, so a loop that falls behind does not stretch the timeout.
 Imports no ROS.
 """
 from __future__ import annotations
 
 import collections
 import dataclasses
+from typing import Callable
 
 import mujoco
 import numpy as np
@@ -30,6 +34,9 @@ from psl_sim.standard_robot_parameters import (DEFAULT_TIMEOUT_PERIODS, FROM_TAS
 from psl_task.arm_model import ArmModel
 from psl_task.model_error import ModelError
 from psl_task.task import load_task
+
+
+TIME_TOLERANCE = 1e-9      # s
 
 
 class CommandRefused(ValueError):
@@ -56,7 +63,8 @@ class StandardRobot:
     """
 
     def __init__(self, parameters: StandardRobotParameters,
-                 rng: np.random.Generator | None = None):
+                 rng: np.random.Generator | None = None,
+                 clock: Callable[[], float] | None = None):
         self.parameters = p = parameters
         task = load_task(p.task)
         self.arm = arm = ArmModel(task)
@@ -83,13 +91,14 @@ class StandardRobot:
         arm.data.qpos[arm.qpos_adr] = posture
         mujoco.mj_forward(arm.model, arm.data)
         self.rng = rng if rng is not None else np.random.default_rng(p.seed)
-        self.timeout_periods = (DEFAULT_TIMEOUT_PERIODS if p.command_timeout == 0.0
-                                else max(1, int(round(p.command_timeout / self.period))))
+        self.command_timeout = p.command_timeout or DEFAULT_TIMEOUT_PERIODS * self.period
+        # [s] what the timeout is counted on (`clock()`): robot time unless given
+        self.clock = clock if clock is not None else lambda: self.periods * self.period
         n = len(driven)
         self.periods = 0                     # advances done: robot time = periods * period
         self.applied = np.zeros(n)           # task order: the torque of the last advance
         self._command: np.ndarray | None = None      # task order, clipped: the latest command
-        self._command_period = 0             # `periods` when it arrived
+        self._command_time = 0.0             # clock() when it arrived
         # torques sampled at the last latency_periods ticks, not yet applied (zero at start)
         self._pipeline = collections.deque(np.zeros(n) for _ in range(p.latency_periods))
 
@@ -118,13 +127,15 @@ class StandardRobot:
         torque = np.empty_like(command)
         torque[self._command_index] = command
         self._command = self.arm.clip_torque(torque)
-        self._command_period = self.periods
+        self._command_time = self.clock()
         return self._command
 
     def due(self) -> np.ndarray:
         """The latest command if it is younger than the command timeout, else zero (task
         order): what this tick sends into the latency pipeline."""
-        if self._command is None or self.periods - self._command_period >= self.timeout_periods:
+        # (a rounding tolerance: on robot time the age is a whole number of periods)
+        age = self.clock() - self._command_time
+        if self._command is None or age >= self.command_timeout - TIME_TOLERANCE:
             return np.zeros_like(self.applied)
         return self._command
 

@@ -5,8 +5,8 @@ with the node's clock, system time, at each tick; joints in ``joint_order`` then
 ``extra_joints``; effort = the torque applied in the period before) and takes
 ``effort_command`` (std_msgs/Float64MultiArray in ``command_joints`` order: an effort
 forward_command_controller). Remap them to a real robot's names, e.g. ``--ros-args -r
-joint_states:=/joint_states -r effort_command:=/effort_controller/commands``. Reads the latched
-``task_instance`` (psl_msgs/TaskInstance) of its task and places that instance in its world
+joint_states:=/joint_states -r effort_command:=/effort_controller/commands``. Applies zero torque once no command has come for ``command_timeout`` (wall clock). Reads the
+latched ``task_instance`` (psl_msgs/TaskInstance) of its task and places that instance in its world
 (obstacles, payload) without touching the arm. No services, no /clock, no episodes: it steps on
 the wall clock at the task's control rate from start to end. The physics, noise, latency, model
 error and command timeout are `psl_sim.standard_robot.StandardRobot`.
@@ -44,7 +44,8 @@ class StandardRobotNode(Node):
             self.parameters = declare(self, StandardRobotParameters)
         except InvalidParameterValueException as exc:   # one line from run_node, no traceback
             raise ValueError(str(exc)) from None
-        self.robot = StandardRobot(self.parameters)
+        # the command timeout on the wall clock, as a robot's safety layer counts it
+        self.robot = StandardRobot(self.parameters, clock=time.monotonic)
         self._lock = threading.Lock()       # the robot: the loop thread and the callbacks
         self.deadline_misses = 0            # control periods the loop fell behind by
         self.refused_commands = 0
@@ -59,8 +60,8 @@ class StandardRobotNode(Node):
             f'standard robot: task {robot.arm.task.name!r} at {1.0 / robot.period:g} Hz; '
             f'joint_states {robot.names}, effort_command {robot.command_joints}; noise '
             f'{p.position_noise:g} rad, {p.velocity_noise:g} rad/s; latency '
-            f'{p.latency_periods} period(s); command timeout {robot.timeout_periods} '
-            f'period(s); model error {robot.model_error}')
+            f'{p.latency_periods} period(s); command timeout {robot.command_timeout:g} s; '
+            f'model error {robot.model_error}')
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, daemon=True)
         self._thread.start()

@@ -42,8 +42,8 @@ class StandardRobotParameters:
         "how the robot differs from the task's model, e.g. "
         "'mass_scale=1.3,frictionloss=0.05,damping=0.3' (psl_task.model_error); '' = none")})
     command_timeout: float = field(default=0.0, metadata={'doc': (
-        'after this long without a command the robot applies zero torque [s], counted in '
-        f'whole control periods of robot time; 0 = {DEFAULT_TIMEOUT_PERIODS} control periods')})
+        'after this long without a command the robot applies zero torque [s] (wall clock); '
+        f'0 = {DEFAULT_TIMEOUT_PERIODS} control periods')})
     seed: int = field(default=0, metadata={'doc': 'seed of the measurement noise'})
     initial_posture: tuple[float, ...] = field(default=FROM_TASK, metadata={'doc': (
         "joint positions at start, in the task's joint order (its start_posture's); "

@@ -50,8 +50,7 @@ def test_a_torque_step_is_applied_exactly_latency_periods_later(latency):
 
 
 def test_zero_torque_after_the_command_timeout():
-    r = robot(command_timeout=0.006)                # 3 periods of 2 ms
-    assert r.timeout_periods == 3
+    r = robot(command_timeout=0.006)                # 3 periods of 2 ms (on robot time)
     r.advance()
     r.receive([5.0, 5.0, 5.0])
     applied = [r.advance().copy() for _ in range(6)]
@@ -63,6 +62,19 @@ def test_zero_torque_after_the_command_timeout():
     d = robot()
     d.receive([1.0, 1.0, 1.0])
     assert [bool(np.any(d.advance())) for _ in range(7)] == [True] * 5 + [False] * 2
+
+
+def test_the_timeout_counts_on_the_clock_given():
+    now = [100.0]                                   # a wall clock that the test moves
+    r = StandardRobot(StandardRobotParameters(task=TASK, command_timeout=0.05),
+                      clock=lambda: now[0])
+    r.receive([1.0, 1.0, 1.0])
+    for _ in range(100):                            # robot time runs, the clock stands
+        assert np.any(r.advance())
+    now[0] += 0.049
+    assert np.any(r.advance())
+    now[0] += 0.001                                 # 0.05 s since the command
+    assert not np.any(r.advance())
 
 
 def test_the_timeout_counts_from_the_arrival_not_from_the_application():
