@@ -5,8 +5,9 @@ with the node's clock, system time, at each tick; joints in ``joint_order`` then
 ``extra_joints``; effort = the torque applied in the period before) and takes
 ``effort_command`` (std_msgs/Float64MultiArray in ``command_joints`` order: an effort
 forward_command_controller). Remap them to a real robot's names, e.g. ``--ros-args -r
-joint_states:=/joint_states -r effort_command:=/effort_controller/commands``. Applies zero torque once no command has come for ``command_timeout`` (wall clock). Reads the
-latched ``task_instance`` (psl_msgs/TaskInstance) of its task and places that instance in its world
+joint_states:=/joint_states -r effort_command:=/effort_controller/commands``. Applies zero
+torque once no command has come for ``command_timeout`` (wall clock). Reads the latched
+``task_instance`` (psl_msgs/TaskInstance) of its task and places that instance in its world
 (obstacles, payload) without touching the arm. No services, no /clock, no episodes: it steps on
 the wall clock at the task's control rate from start to end. The physics, noise, latency, model
 error and command timeout are `psl_sim.standard_robot.StandardRobot`.
