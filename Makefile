@@ -3,7 +3,7 @@
 SHELL := /bin/bash
 ENV := source scripts/env.sh
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo test test-robot bench clean
 
 setup:
 	@bash scripts/setup
@@ -15,6 +15,10 @@ demo: setup
 # the order of the files and of the tests in them is shuffled (pytest-randomly)
 test: setup
 	@$(ENV) && python -m pytest -n 2 --dist loadfile
+
+# psl against a robot process it does not simulate, on the wall clock (needs idle cores)
+test-robot: setup
+	@$(ENV) && python -m pytest -p no:randomly -m robot_on_the_wall_clock test/test_external_robot.py
 
 bench: setup
 	@$(ENV) && psl bench graph

@@ -36,6 +36,19 @@ goal from a switch time on):
 
 Every reference that reaches the controller passes the task's safety check: the rollout's,
 a live goal change's spliced one, and a drive reset's homing quintic.
+
+A robot psl does not simulate (``robot: external``): it only publishes ``joint_states`` (its
+stamps, its joint order) and takes ``effort_command``; nobody serves ``sim/reset``. psl runs
+each episode itself, from the measured joint states alone: a homing quintic from the measured
+posture to the start posture (always: the robot is wherever it was left), stamped to start
+`LEAD` s after the newest state, announced on ``task_instance`` with ``homing: true`` (the
+world's tau: psl's simulator playing a robot places it), run until a state at its end came,
+then checked against ``homing.tolerance`` on the mean of the last `SETTLE_STATES` states
+(noise), again each new state for up to another ``homing.settle_time`` (a robot settles in
+its own time); then the primitive, stamped the same way, its episode announced on ``task_instance``
+by the executor; the evaluator matches states and references by the robot's stamps
+(`psl_optimizer.episode_grid`). A state loss the controller's watchdog reports for the
+episode's trajectory fails the rollout at once, with the controller's reason.
 """
 from __future__ import annotations
 
@@ -52,13 +65,14 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from diagnostic_msgs.msg import DiagnosticArray
+from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from psl_controller.homing import homing_reference
 from psl_controller.parameters import ExecutorParameters
 from psl_controller.policy import Reference, TaskPolicy, policy_for
 from psl_msgs.action import ExecuteRollout
-from psl_msgs.msg import GoalUpdate, RolloutEvaluation
+from psl_msgs.msg import GoalUpdate, RolloutEvaluation, TaskInstance
 from psl_msgs.srv import GoalChange, ResetTask
 from psl_ros import names
 from psl_ros.action_server import ActionServer
@@ -67,9 +81,10 @@ from psl_ros.guard import guard_subscription
 from psl_ros.matching import MatchReport
 from psl_ros.node_main import run_node
 from psl_ros.parameters import check_update, declare
-from psl_ros.qos import RELIABLE, SERVICES
+from psl_ros.qos import LATCHED, RELIABLE, SERVICES
 from psl_ros.stamps import duration_msg, time_msg, to_ns
 from psl_task.arm_model import ArmModel, joint_names_of
+from psl_task.joint_selection import JointSelection
 from psl_task.safety_check import SafetyCheck
 from psl_task.task import TaskDefinition, TaskError, load_task
 
@@ -80,6 +95,9 @@ LOAD_FACTOR = 3.0       # computing and publishing a trajectory during an episod
 LIVE_ATTEMPTS = 4       # switch times tried, each later, before a live change gives up
 DEFAULT_RATE = 5000.0   # steps/s assumed before the simulator has reported any
 ACK_TIMEOUT = 5.0       # s for a subscriber or service to appear, a message to be acknowledged
+LEAD = 0.1              # s from the newest state of an external robot to a trajectory's start
+STALE = 0.5             # s: an external robot whose newest state is older is not streaming
+SETTLE_STATES = 25      # the states averaged for the homing check on an external robot
 
 
 def trajectory_msg(joint_names: list[str], ref: Reference) -> JointTrajectory:
@@ -143,6 +161,19 @@ class DMPExecutor(Node):
                                                      callback_group=group, qos_profile=SERVICES)
         self.matches.create_subscription(GoalUpdate, names.GOAL_UPDATE, self.on_goal_update,
                                          10, callback_group=group)
+        # an external robot: psl runs the episodes from its joint states
+        self.external = self.get_parameter('robot').value == 'external'
+        self._states: list[tuple] = []          # (stamp [ns], q, qd, names), the newest last
+        self._state_seen = 0.0                  # monotonic time of the newest
+        self._selections: dict[tuple, JointSelection] = {}
+        self._faults: dict[int, str] = {}       # trajectory start [ns] -> the controller's reason
+        if self.external:
+            self.pub_task = self.matches.create_publisher(TaskInstance, names.TASK_INSTANCE,
+                                                          LATCHED)
+            self.create_subscription(JointState, names.JOINT_STATES,
+                                     guard_subscription(self.get_logger(), names.JOINT_STATES,
+                                                        self.on_state), RELIABLE,
+                                     callback_group=group)
         self._rollout_lock = threading.Lock()
         self._safety_checks: dict = {}          # task path -> SafetyCheck
         # gains per task: the controller gets a rollout's task's gains when they differ from
@@ -169,10 +200,46 @@ class DMPExecutor(Node):
             self._evaluations[to_ns(msg.stamp)] = msg
             self._cv.notify_all()
 
+    def on_state(self, msg: JointState) -> None:
+        """An external robot's joint state: the task's joints by name, kept (the newest few)."""
+        self._states.append((to_ns(msg.header.stamp), np.asarray(msg.position, dtype=float),
+                             np.asarray(msg.velocity, dtype=float), list(msg.name)))
+        del self._states[:-SETTLE_STATES]
+        self._state_seen = time.monotonic()
+
+    def _measured(self, task: TaskDefinition, count: int = 1) -> tuple[int, np.ndarray,
+                                                                        np.ndarray]:
+        """(stamp of the newest, mean q, mean qd) of the robot's newest `count` states, the
+        task's joints; RuntimeError when the robot does not stream or lacks a joint."""
+        deadline = time.monotonic() + ACK_TIMEOUT       # the first: discovery may take this
+        while not self._states or time.monotonic() - self._state_seen > STALE:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f'the robot publishes no joint states on '
+                                   f'{self.resolve_topic_name(names.JOINT_STATES)} (none for '
+                                   f'{STALE:g} s, waited {ACK_TIMEOUT:g} s)')
+            time.sleep(0.01)
+        joints = tuple(joint_names_of(task))
+        select = self._selections.setdefault(joints, JointSelection(joints))
+        states = self._states[-count:]
+        try:
+            q = np.mean([select.pick(names_, q) for _, q, _, names_ in states], axis=0)
+            qd = np.mean([select.pick(names_, qd) for _, _, qd, names_ in states], axis=0)
+        except ValueError as exc:
+            raise RuntimeError(f'the robot: {exc}') from None
+        return states[-1][0], q, qd
+
     def on_diagnostics(self, msg: DiagnosticArray) -> None:
-        """The simulator reports episode progress about every tenth of an episode. /diagnostics
-        is shared by every rollout worker: only this namespace's simulator counts."""
-        mine = self.get_namespace().rstrip('/') + '/sim:'
+        """The simulator reports episode progress about every tenth of an episode; the
+        controller a state loss. /diagnostics is shared by every rollout worker: only this
+        namespace's nodes count."""
+        namespace = self.get_namespace().rstrip('/')
+        for status in msg.status:
+            if status.name == f'{namespace}/pd_controller: state loss':
+                values = {kv.key: kv.value for kv in status.values}
+                with self._cv:
+                    self._faults[int(values.get('trajectory_start_ns', 0))] = status.message
+                    self._cv.notify_all()
+        mine = namespace + '/sim:'
         for status in msg.status:
             if not status.name.startswith(mine):
                 continue
@@ -224,7 +291,7 @@ class DMPExecutor(Node):
                 task=goal.task, tau=list(goal.tau), reward=verdict.penalty(task.safety.penalty),
                 fulfilled=False, component_names=['safety_violation'],
                 component_values=[verdict.violation]), [verdict.reason], verdict.reason
-        if not self.reset_client.wait_for_service(timeout_sec=5.0):
+        if not self.external and not self.reset_client.wait_for_service(timeout_sec=5.0):
             raise RuntimeError('the simulator service sim/reset is not available')
         # joint order of the simulator, which the controller maps by name
         run = _Rollout(goal=goal, task=task, policy=policy, joint_names=joint_names_of(task),
@@ -233,7 +300,8 @@ class DMPExecutor(Node):
         with self._live_lock:
             self._running = run
         try:
-            response = self._start_episode(run, changes, compute_cost)
+            response = (self._robot_episode if self.external else self._start_episode)(
+                run, changes, compute_cost)
             with self._live_lock:
                 run.t0, run.num_steps = to_ns(response.stamp), response.num_steps
                 if run.pending is not None:
@@ -287,6 +355,93 @@ class DMPExecutor(Node):
             raise
         return response
 
+    def _robot_episode(self, run: _Rollout, changes: bool,
+                       compute_cost: float) -> ResetTask.Response:
+        """`_start_episode` on an external robot: psl homes the arm and starts the episode
+        itself, announcing it on task_instance; a reset's response as if the simulator had."""
+        goal, task = run.goal, run.task
+        self._wait_for_subscriber(self.pub_trajectory, 'controller')
+        self._set_gains(run)
+        self._home_robot(run)
+        if changes:
+            self._announce(GoalUpdate(time_from_start=goal.new_goal_time,
+                                      goal=list(goal.new_goal),
+                                      last_reference=run.reference.q[-1].tolist()))
+        try:
+            building = time.monotonic()
+            trajectory = trajectory_msg(run.joint_names, run.reference)
+            run.prepare_cost = compute_cost + (time.monotonic() - building)
+            num_steps = task.num_steps_of(np.asarray(goal.tau))
+            t0 = self._start_on_robot(trajectory, TaskInstance(
+                task=goal.task, tau=list(goal.tau), num_steps=num_steps,
+                control_period=task.control_period), task)
+            run.reset_sent = time.monotonic()
+        except BaseException:
+            if changes:        # no episode: the evaluator's next one has no goal change
+                self._withdraw(GoalUpdate())
+            raise
+        return ResetTask.Response(success=True, stamp=time_msg(t0), num_steps=num_steps,
+                                  message='episode started by psl')
+
+    def _start_on_robot(self, trajectory: JointTrajectory, episode: TaskInstance,
+                        task: TaskDefinition) -> int:
+        """Send the controller `trajectory` stamped to start LEAD s after the robot's newest
+        state, and announce `episode` (stamped the same) on task_instance; the start [ns]. Sent
+        again, later, if the robot's states passed the start before the controller had it."""
+        for _ in range(3):
+            newest, _, _ = self._measured(task)
+            t0 = newest + int(LEAD * 1e9)
+            trajectory.header.stamp = episode.stamp = time_msg(t0)
+            publishing = time.monotonic()
+            self.pub_trajectory.publish(trajectory)
+            self._acked(self.pub_trajectory, 'the controller did not receive the trajectory')
+            self.pub_task.publish(episode)
+            self._acked(self.pub_task, 'the evaluator did not receive the episode')
+            if self._measured(task)[0] < t0:
+                return t0
+            self.get_logger().warning(f'the robot passed the start before the trajectory was '
+                                      f'in place ({time.monotonic() - publishing:.3f} s): '
+                                      'sending it again')
+        raise RuntimeError(f'the trajectory did not reach the controller within {LEAD:g} s '
+                           'of the robot\'s newest state, three times')
+
+    def _home_robot(self, run: _Rollout) -> None:
+        """`_home` on an external robot, from its measured joint states (module docstring)."""
+        goal, task, spec = run.goal, run.task, run.task.homing
+        _, q0, qd0 = self._measured(task)
+        start = task.start_posture
+        reference = homing_reference(q0, qd0, start, spec, task.control_period)
+        verdict = self._safety(task).check(np.asarray(goal.tau), reference.q, reference.qd)
+        if not verdict.safe:
+            raise ValueError(f'homing refused by the safety check: {verdict.reason}')
+        duration = float(reference.t[-1])
+        t0 = self._start_on_robot(trajectory_msg(run.joint_names, reference), TaskInstance(
+            task=goal.task, tau=list(goal.tau), num_steps=len(reference.t) - 1,
+            control_period=task.control_period, homing=True), task)
+        end = t0 + int(round(duration * 1e9))
+        deadline = time.monotonic() + LEAD + duration + self.get_parameter(
+            'timeout_margin').value
+        with self._cv:
+            while True:
+                if t0 in self._faults:
+                    raise RuntimeError(f'homing: {self._faults[t0]}')
+                if self._states and self._states[-1][0] >= end:
+                    break
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f'homing: no joint state of its end within '
+                                       f'{duration:.1f} s + the timeout margin')
+                self._cv.wait(timeout=0.01)
+        # a robot settles in its own time: the check is made again, each new state, for up
+        # to another settle_time (the mean of the newest SETTLE_STATES: the noise averaged)
+        until = time.monotonic() + spec.settle_time
+        while True:
+            _, q, qd = self._measured(task, SETTLE_STATES)
+            if time.monotonic() > until or np.maximum(np.abs(q - task.start_posture),
+                                                      np.abs(qd)).max() <= spec.tolerance:
+                break
+            time.sleep(task.control_period)
+        self._check_homed(run, q, qd, duration + spec.settle_time)
+
     def _set_gains(self, run: _Rollout) -> None:
         """The controller's gains := the task's (``controller.kp/kd``) when they differ from
         the gains it runs (at first: those of the task it was started with): two tasks of
@@ -299,7 +454,8 @@ class DMPExecutor(Node):
             self._gains = self._controller_task_gains()
         if wanted == self._gains:
             return
-        self._probe(run.goal)          # the simulator runs this task's robot, or says why not
+        if not self.external:
+            self._probe(run.goal)      # the simulator runs this task's robot, or says why not
         future = self.controller_parameters.set_parameters([
             Parameter('kp', value=list(wanted[0])), Parameter('kd', value=list(wanted[1]))])
         response = wait_for(future, 10.0, 'pd_controller/set_parameters')
@@ -351,14 +507,21 @@ class DMPExecutor(Node):
         if not probe.success:
             raise RuntimeError(f'homing: the homing episode did not end within '
                                f'{reference.t[-1]:.1f} s + the timeout margin: {probe.message}')
-        q, qd = np.asarray(probe.position), np.asarray(probe.velocity)
+        self._check_homed(run, np.asarray(probe.position), np.asarray(probe.velocity),
+                          float(reference.t[-1]))
+
+    def _check_homed(self, run: _Rollout, q: np.ndarray, qd: np.ndarray,
+                     duration: float) -> None:
+        """RuntimeError naming the joint unless q is within homing.tolerance of the start
+        posture, at rest."""
+        start, spec = run.task.start_posture, run.task.homing
         error = np.maximum(np.abs(q - start), np.abs(qd))
         if error.max() > spec.tolerance:
             j = int(np.argmax(error))
             raise RuntimeError(
                 f'homing did not settle: joint {run.joint_names[j]!r} is at {q[j]:.4g} rad '
                 f'({qd[j]:.3g} rad/s), start posture {start[j]:.4g}, after '
-                f'{reference.t[-1]:.2f} s (tolerance {spec.tolerance:g}): raise the '
+                f'{duration:.2f} s (tolerance {spec.tolerance:g}): raise the '
                 'controller gains or homing.settle_time, or relax homing.tolerance')
 
     def _probe(self, goal, quiet: bool = False) -> ResetTask.Response:
@@ -380,6 +543,8 @@ class DMPExecutor(Node):
             while t0 not in self._evaluations:
                 if goal_handle.is_cancel_requested:
                     raise RuntimeError('rollout canceled')
+                if t0 in self._faults:
+                    raise RuntimeError(self._faults[t0])
                 if time.monotonic() > deadline:
                     done = self._progress.get(t0)
                     raise RuntimeError(
@@ -394,6 +559,7 @@ class DMPExecutor(Node):
                     last = feedback.progress
             evaluation = self._evaluations.pop(t0)
             self._evaluations.clear()
+            self._faults.clear()
             self._progress.clear()
             self._reports.clear()
         return evaluation
@@ -503,6 +669,8 @@ class DMPExecutor(Node):
         return LEAD_STEPS + math.ceil(self._rate(run) * seconds)
 
     def _rate(self, run: _Rollout) -> float:
+        if self.external:               # a robot runs on the wall clock
+            return RATE_MARGIN / run.task.control_period
         report = self._reports.get(run.t0)
         rate = report[1] if report is not None and report[1] > 0 else self._last_rate
         return RATE_MARGIN * rate

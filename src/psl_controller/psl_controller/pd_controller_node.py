@@ -1,7 +1,10 @@
 """The low-level controller node: PD + feed-forward on a sampled joint trajectory.
 
 Answers every ``joint_states`` message with one ``effort_command``
-(std_msgs/Float64MultiArray, joint order of the state):
+(std_msgs/Float64MultiArray, in ``command_joints`` order: a forward_command_controller's
+joints; by default the task's command order). The state is read by joint name
+(`psl_task.joint_selection`): any order, extra joints ignored, a state that lacks a task joint
+gets no command and a throttled error naming it. The law:
 ``u = Kp (q_ref - q) + Kd (qd_ref - qd) + u_ffwd``, clipped to the torque limits.
 The reference comes from ``joint_trajectory`` (trajectory_msgs/JointTrajectory; effort field =
 feed-forward, the ros2_control convention) sampled at the state's time stamp. A trajectory
@@ -13,10 +16,21 @@ trajectory the controller holds the position of the first state it saw; after th
 holds the last point. Each command's reference is published on ``reference``
 (sensor_msgs/JointState: position = q_ref, velocity = qd_ref, effort = u_ffwd) with the
 state's stamp, so the tracking error can be computed and recorded.
+
+Watchdog (``state_timeout`` > 0, for a robot that never waits for the controller): when no
+joint state came for that long (the wall clock), the controller drops its trajectory, reports
+the loss on /diagnostics (level ERROR, ``trajectory_start_ns`` of the trajectory it dropped, so
+the executor fails that rollout with the reason) and commands ``on_state_loss`` (zero torque,
+or the last torque again) every control period until states come again; then it holds the
+position of the first new state.
 """
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
@@ -30,10 +44,12 @@ from psl_ros import names
 from psl_ros.hot_path import HotPath
 from psl_ros.matching import MatchReport
 from psl_ros.node_main import run_node
-from psl_ros.parameters import declare
+from psl_ros.parameters import check_update, declare
 from psl_ros.qos import RELIABLE
 from psl_ros.realtime import raise_priority
 from psl_ros.stamps import to_ns
+from psl_task.arm_model import joint_names_of
+from psl_task.joint_selection import JointSelection
 from psl_task.task import load_task
 
 
@@ -71,19 +87,29 @@ class PDController(Node):
     def __init__(self):
         super().__init__('pd_controller')
         self.parameters = declare(self, ControllerParameters)
-        self.default_law = law_for(load_task(self.parameters.task))
+        task = load_task(self.parameters.task)
+        self.default_law = law_for(task)
         self.n_joints = self.default_law.n_joints
+        self.period = task.control_period
+        # the task's joints (command order) by name in each state
+        self.joint_names = joint_names_of(task)
+        self.selection = JointSelection(self.joint_names)
+        self.command_order = self._command_order(self.parameters.command_joints)
         self.law = self._law({name: getattr(self.parameters, name)
                               for name in ('kp', 'kd', 'torque_limit')})
         self.add_on_set_parameters_callback(self.on_set_parameters)
 
-        self.joint_names: list[str] | None = None
         self.trajectory: SampledTrajectory | None = None
         self.trajectory_msg: JointTrajectory | None = None
         self.start_ns: int | None = None
         self.served_ns: int | None = None     # time of the last state served, from start_ns
         self.hold: np.ndarray | None = None
 
+        # watchdog: the wall time of the last state, and whether their loss is reported
+        self._state_lock = threading.Lock()
+        self._last_state = time.monotonic()
+        self._lost = False
+        self._last_torque = np.zeros(self.n_joints)
         self.matches = MatchReport(self)        # what the loop's endpoints matched
         self.pub_command = self.matches.create_publisher(Float64MultiArray, names.EFFORT_COMMAND,
                                                          RELIABLE)
@@ -100,6 +126,10 @@ class PDController(Node):
         self.matches.subscribe(self.hot_path, JointState, names.JOINT_STATES, self.on_state,
                                RELIABLE)
         self.hot_path.start()
+        self.pub_diag = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
+        self.state_timeout = self.parameters.state_timeout
+        self.watchdog = (self.create_timer(self.period, self.on_watchdog)
+                         if self.state_timeout > 0.0 else None)
         law = self.law
         self.get_logger().info(
             f'PD + feed-forward controller, kp={law.kp.tolist()} kd={law.kd.tolist()} '
@@ -123,7 +153,20 @@ class PDController(Node):
                      d.torque_low if limit is None else -limit,
                      d.torque_high if limit is None else limit)
 
+    def _command_order(self, command_joints) -> np.ndarray:
+        """Index into the task's joints of each effort_command entry (ValueError unless
+        `command_joints` is a permutation of the task's joints, or [''])."""
+        if tuple(command_joints) == ('',):
+            return np.arange(self.n_joints)
+        if sorted(command_joints) != sorted(self.joint_names):
+            raise ValueError(f'command_joints {list(command_joints)} must name each of the '
+                             f"task's joints {self.joint_names} once")
+        return np.array([self.joint_names.index(name) for name in command_joints])
+
     def on_set_parameters(self, params) -> SetParametersResult:
+        checked = check_update(self, ControllerParameters, params)
+        if not checked.successful:
+            return checked
         names = ('kp', 'kd', 'torque_limit')
         values = {name: self.get_parameter(name).value for name in names}
         values.update({p.name: p.value for p in params if p.name in names})
@@ -136,8 +179,7 @@ class PDController(Node):
 
     def on_trajectory(self, msg: JointTrajectory) -> None:
         self.trajectory_msg = msg
-        if self.joint_names is not None:
-            self._load_trajectory()
+        self._load_trajectory()
 
     def _load_trajectory(self) -> None:
         msg, self.trajectory_msg = self.trajectory_msg, None
@@ -161,14 +203,19 @@ class PDController(Node):
         self.start_ns = start if start > 0 else None   # None: the next state starts it
 
     def on_state(self, msg: JointState) -> None:
-        if self.joint_names is None:
-            self.joint_names = list(msg.name)
-            if self.trajectory_msg is not None:
-                self._load_trajectory()
-        q = np.asarray(msg.position, dtype=float)
-        qd = np.asarray(msg.velocity, dtype=float)
-        if q.shape != (self.n_joints,) or qd.shape != q.shape or msg.name != self.joint_names:
-            self.get_logger().warning('joint_states does not match the robot joints',
+        with self._state_lock:
+            self._last_state = time.monotonic()
+            if self._lost:
+                self._lost = False
+                self.get_logger().warning('joint states come again: holding the position')
+        try:
+            q = self.selection.pick(msg.name, msg.position)
+            qd = self.selection.pick(msg.name, msg.velocity)
+        except ValueError as exc:            # MissingJoints too
+            self.get_logger().error(f'no command: {exc}', throttle_duration_sec=1.0)
+            return
+        if q.shape != (self.n_joints,) or qd.shape != q.shape:
+            self.get_logger().warning('no command: joint_states lacks positions or velocities',
                                       throttle_duration_sec=1.0)
             return
         if not (np.isfinite(q).all() and np.isfinite(qd).all()):
@@ -176,18 +223,20 @@ class PDController(Node):
                                       throttle_duration_sec=1.0)
             return
         t = to_ns(msg.header.stamp)
-        if self.trajectory is not None:
+        trajectory = self.trajectory        # the watchdog may drop it meanwhile
+        if trajectory is not None:
             if self.start_ns is None:
                 self.start_ns = t
             self.served_ns = t - self.start_ns
-            q_ref, qd_ref, u_ffwd = self.trajectory.sample(self.served_ns)
+            q_ref, qd_ref, u_ffwd = trajectory.sample(self.served_ns)
         else:
             if self.hold is None:
                 self.hold = q.copy()
             q_ref, qd_ref, u_ffwd = self.hold, np.zeros_like(q), np.zeros_like(q)
         u = self.law.torque(q, qd, q_ref, qd_ref, u_ffwd)
+        self._last_torque = u
         command = self._command
-        command.data = u.tolist()
+        command.data = u[self.command_order].tolist()
         self.pub_command.publish(command)
         ref = self._reference
         ref.header.stamp = msg.header.stamp
@@ -195,6 +244,30 @@ class PDController(Node):
         ref.position, ref.velocity, ref.effort = q_ref.tolist(), qd_ref.tolist(), u_ffwd.tolist()
         self.pub_reference.publish(ref)
 
+    def on_watchdog(self) -> None:
+        """Every control period: states lost for state_timeout? Then the trajectory is
+        dropped (reported once) and on_state_loss is commanded."""
+        timeout = self.state_timeout
+        with self._state_lock:
+            silent = time.monotonic() - self._last_state
+            if silent <= timeout:
+                return
+            first, self._lost = not self._lost, True
+        if first:
+            start = self.start_ns or 0
+            # the next state starts from scratch: hold where the arm is then
+            self.trajectory, self.start_ns, self.served_ns, self.hold = None, None, None, None
+            mode = self.get_parameter('on_state_loss').value
+            reason = (f'joint states stopped: none for {silent:.3f} s (state_timeout '
+                      f'{timeout:g} s); the controller dropped its trajectory and commands '
+                      f'{"zero torque" if mode == "zero" else "the last torque"}')
+            self.get_logger().error(reason)
+            self.pub_diag.publish(DiagnosticArray(status=[DiagnosticStatus(
+                level=DiagnosticStatus.ERROR, name=f'{self.get_fully_qualified_name()}: state loss',
+                message=reason, values=[KeyValue(key='trajectory_start_ns', value=str(start))])]))
+        torque = (np.zeros(self.n_joints) if self.get_parameter('on_state_loss').value == 'zero'
+                  else self._last_torque)
+        self.pub_command.publish(Float64MultiArray(data=torque[self.command_order].tolist()))
 
     def destroy_node(self):
         self.hot_path.stop()

@@ -9,6 +9,14 @@ psl_msgs/RolloutEvaluation stamped with the episode's first state, carrying the 
 episode (joint angles, velocities, applied torques and the controller's reference of each
 state) for learners that need it (ILC in graph mode).
 
+A robot psl does not simulate stamps its states with its own clock (jitter, a state late or
+missing): when the states are not on the control grid, the episode is complete once a state
+and a reference past its end have come, and both streams are interpolated onto the grid
+(`psl_optimizer.episode_grid`; a gap of more than `MAX_GAP` is logged and the episode not
+scored). States are read by joint name (`psl_task.joint_selection`: the robot's
+order, extra joints ignored); a robot that reports no effort is scored with zero torque (a
+warning says so).
+
 A goal change the executor made (``~/goal_change``, psl_msgs/GoalChange: stamped with the
 episode's start, or zero for the next episode) makes the episode's goal the new goal's
 position (`Reward.goal_position_of`) if the controller tracked it: its reference of the
@@ -28,6 +36,7 @@ from sensor_msgs.msg import JointState
 
 from psl_msgs.msg import GoalUpdate, RolloutEvaluation, TaskInstance
 from psl_msgs.srv import GoalChange
+from psl_optimizer.episode_grid import grid, on_grid
 from psl_optimizer.reward import Reward
 from psl_ros import names
 from psl_ros.hot_path import HotPath
@@ -37,6 +46,7 @@ from psl_ros.qos import LATCHED, RELIABLE, WHOLE_EPISODE
 from psl_ros.service import create_service
 from psl_ros.stamps import to_ns
 from psl_task.arm_model import ArmModel
+from psl_task.joint_selection import JointSelection
 from psl_task.reward_geometry import RewardGeometry
 from psl_task.task import TaskError, load_task
 # [s] rest of the taking thread after each wake-up: the evaluator is not on the lockstep path,
@@ -45,6 +55,9 @@ from psl_task.task import TaskError, load_task
 # episode (docs/benchmarks.md), an evaluation at most this much later
 TAKE_PAUSE = 0.005
 BUFFER = 5000   # messages kept per stream while the episode announcement is on its way
+KEEP_BEFORE = 100_000_000   # ns of states kept before an episode's start (interpolation)
+MAX_GAP = 300_000_000       # ns: a longer gap in a robot's states spoils the episode (the
+                            # controller's watchdog, psl_ros.graph.STATE_TIMEOUT, stops first)
 
 
 class RewardEvaluator(Node):
@@ -52,6 +65,9 @@ class RewardEvaluator(Node):
     def __init__(self):
         super().__init__('reward_evaluator')
         self._rewards: dict[str, Reward] = {}       # by task id
+        self._selections: dict[str, JointSelection] = {}    # by task id
+        self._warned_effort = False
+        self.newest: dict[int, int] = {}       # id of a stream -> its newest stamp [ns]
         self.episode: TaskInstance | None = None
         self.states: dict[int, JointState] = {}
         self.references: dict[int, JointState] = {}
@@ -84,7 +100,7 @@ class RewardEvaluator(Node):
         self.episode = msg
         t0 = to_ns(msg.stamp)
         for stream in (self.states, self.references):
-            for t in [t for t in stream if t < t0]:
+            for t in [t for t in stream if t < t0 - KEEP_BEFORE]:
                 del stream[t]
         with self.goal_lock:
             for t in [t for t in self.goal_changes if t < t0]:
@@ -118,36 +134,87 @@ class RewardEvaluator(Node):
         self._store(self.references, msg)
 
     def _store(self, stream: dict[int, JointState], msg: JointState) -> None:
-        stream[to_ns(msg.header.stamp)] = msg
+        t = to_ns(msg.header.stamp)
+        stream[t] = msg
+        self.newest[id(stream)] = max(t, self.newest.get(id(stream), t))
         if len(stream) > BUFFER:
             del stream[min(stream)]
         self._try_finish()
 
     def _try_finish(self) -> None:
         ep = self.episode
-        if ep is None:
-            return
-        if min(len(self.states), len(self.references)) <= ep.num_steps:
+        if ep is None or not self.states or not self.references:
             return
         t0, period = to_ns(ep.stamp), int(round(ep.control_period * 1e9))
         times = [t0 + k * period for k in range(ep.num_steps + 1)]
-        if not all(t in self.states and t in self.references for t in times):
-            return
+        end = times[-1]
+        on_the_grid = (min(len(self.states), len(self.references)) > ep.num_steps
+                       and all(t in self.states and t in self.references for t in times))
+        if not on_the_grid and not (self.newest[id(self.states)] > end
+                                    and self.newest[id(self.references)] > end):
+            return                  # a robot's stamps: wait for a state past the end
         with self.goal_lock:
             self.episode, self.evaluated_ns = None, t0
             change = self.goal_changes.pop(t0, None)
-        states = [self.states.pop(t) for t in times]
-        refs = [self.references.pop(t) for t in times]
         try:
-            self.pub.publish(self._evaluate(ep, states, refs, change))
-        except (TaskError, ValueError) as exc:
+            if on_the_grid:
+                states = [self.states.pop(t) for t in times]
+                refs = [self.references.pop(t) for t in times]
+                self.pub.publish(self._evaluate(ep, states, refs, change))
+            else:
+                self.pub.publish(self._evaluate(ep, *self._interpolated(ep, t0, period),
+                                                change))
+        except (TaskError, ValueError) as exc:      # EpisodeGap too
             self.get_logger().error(f'cannot evaluate episode of {ep.task!r}: {exc}')
+
+    def _interpolated(self, ep: TaskInstance, t0: int,
+                      period: int) -> tuple[list[JointState], list[JointState]]:
+        """The episode's states and references on the control grid, interpolated from the
+        robot's stamps (`episode_grid.on_grid`), as JointStates of the task's joints."""
+        times = grid(t0, period, ep.num_steps)
+        select = self._selection(ep.task)
+        streams = []
+        for stream in (self.states, self.references):
+            stamps = np.array(sorted(stream), dtype=np.int64)
+            messages = [stream[t] for t in stamps]
+            fields = {}
+            for field in ('position', 'velocity', 'effort'):
+                rows = [select.pick(m.name, getattr(m, field)) for m in messages]
+                if any(r.size == 0 for r in rows):
+                    if field == 'effort' and not self._warned_effort:
+                        self._warned_effort = True
+                        self.get_logger().warning('the robot reports no effort: episodes are '
+                                                  'scored with zero torque')
+                    rows = [np.zeros(len(select.joints)) for _ in rows]
+                fields[field] = on_grid(stamps, np.array(rows), times,
+                                        MAX_GAP)
+            streams.append([JointState(name=list(select.joints),
+                                       position=fields['position'][k].tolist(),
+                                       velocity=fields['velocity'][k].tolist(),
+                                       effort=fields['effort'][k].tolist())
+                            for k in range(len(times))])
+            for t in [t for t in stream if t <= times[-1]]:
+                del stream[t]
+        return streams[0], streams[1]
+
+    def _selection(self, task: str) -> JointSelection:
+        if task not in self._selections:
+            self._selections[task] = JointSelection(
+                ArmModel(load_task(task)).joint_names)
+        return self._selections[task]
 
     def _evaluate(self, ep: TaskInstance, states, refs,
                   change: GoalUpdate | None) -> RolloutEvaluation:
         if ep.task not in self._rewards:
             task = load_task(ep.task)
             self._rewards[ep.task] = Reward(task, RewardGeometry(ArmModel(task)))
+        select = self._selection(ep.task)
+        if list(states[0].name) != list(select.joints):     # the robot's order, extra joints
+            states = [JointState(header=s.header, name=list(select.joints),
+                                 position=select.pick(s.name, s.position).tolist(),
+                                 velocity=select.pick(s.name, s.velocity).tolist(),
+                                 effort=select.pick(s.name, s.effort).tolist())
+                      for s in states]
         q = np.array([[s.position for s in states]])             # a population of one
         torque = np.array([[s.effort for s in states]])
         q_ref = np.array([[r.position for r in refs]])

@@ -241,18 +241,28 @@ class RolloutClient:
                     + ', '.join(f'{node} {n}' for node, n in short.items()) + ')')
         return ''
 
+    def external(self) -> bool:
+        """True when the worker's executor runs the episodes itself (``robot: external``: it
+        announces them on task_instance; a robot psl does not simulate, no sim/reset)."""
+        reports = self.matched.counts(PUBLISHER, self.topic(names.TASK_INSTANCE))
+        return any(node.endswith('/dmp_executor') for node in reports)
+
     def missing_endpoints(self) -> str:
         """What the worker's loop still lacks, as text ('' when complete): the action server,
         the reset service, and for every topic of the loop its endpoints discovered and
         matched on both sides (each publisher has matched every subscriber of the loop, each
-        subscription every publisher)."""
+        subscription every publisher). With an external robot (`external`): the action
+        server and psl's own topics (the robot's are the executor's to check, each rollout)."""
         missing = []
         if not self.rollout_client.server_is_ready():
             missing.append(f'{self.node.resolve_service_name(self.name)} action server')
-        if not self.reset_client.service_is_ready():
+        external = self.external()
+        if not external and not self.reset_client.service_is_ready():
             missing.append(f'{self.node.resolve_service_name(self.reset_client.srv_name)} '
                            'service')
         for topic, (pubs, subs) in names.LOOP_TOPICS.items():
+            if external and topic in names.ROBOT_TOPICS:
+                continue
             topic = self.topic(topic)
             p, s = self.node.count_publishers(topic), self.node.count_subscribers(topic)
             if p < pubs or s < subs:
@@ -273,7 +283,7 @@ class RolloutClient:
         def left() -> float:
             return max(0.0, deadline - time.monotonic())
         return (wait_for_server(self.rollout_client, timeout)
-                and wait_for_service(self.reset_client, left())
+                and (self.external() or wait_for_service(self.reset_client, left()))
                 and wait_until(lambda: not self.missing_endpoints(), left(),
                                self.node.context))
 

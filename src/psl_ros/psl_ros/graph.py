@@ -37,7 +37,14 @@ NODES = (  # (name, package, executable)
     ('learner', 'psl_optimizer', 'learner'),
 )
 # the nodes of one rollout worker: with Graph(workers=N) each worker runs under <ns>/worker<k>
-WORKER_NODES = ('sim', 'pd_controller', 'dmp_executor', 'reward_evaluator')
+WORKER_NODES = ('sim', 'robot', 'pd_controller', 'dmp_executor', 'reward_evaluator')
+# what the loop runs on: psl's simulator (it starts the episodes); psl's simulator playing a
+# standard ros2_control robot (joint_states and effort_command only); or a robot of the user's,
+# running already (psl starts no robot). With the last two psl runs the episodes itself.
+ROBOTS = ('sim', 'standard', 'external')
+STANDARD_ROBOT = ('robot', 'psl_sim', 'standard_robot')
+STATE_TIMEOUT = 0.3     # [s] the controller's watchdog on a robot psl does not simulate (0.105 s
+                        # gaps seen in a Python robot loop on a loaded 2-core machine)
 
 
 def pid_alive(pid: int) -> bool:
@@ -76,7 +83,7 @@ class NodeHandle:
         # read with the pidfd held: if its process runs still, what was read was its own (an
         # empty command line: it is exiting, its memory already released)
         if self.alive() and any(cmdline):
-            package, executable = next((p, e) for n, p, e in NODES
+            package, executable = next((p, e) for n, p, e in NODES + (STANDARD_ROBOT,)
                                        if n == label.rsplit('/', 1)[-1])
             if ppid != parent or not any(arg.endswith(f'/lib/{package}/{executable}')
                                          for arg in cmdline):
@@ -160,9 +167,18 @@ class Graph:
                  namespace: str = '', log_dir: str | Path | None = None,
                  nodes: tuple = NODES, extra_params: dict[str, dict] | None = None,
                  workers: int = 0, reset: str = '',
-                 launch_prefix: dict[str, list[str]] | None = None):
+                 launch_prefix: dict[str, list[str]] | None = None,
+                 robot: str = ROBOTS[0], robot_topics: dict[str, str] | None = None):
         if mode not in SIM_MODES:
             raise ValueError(f'mode must be one of {SIM_MODES}, got {mode!r}')
+        if robot not in ROBOTS:
+            raise ValueError(f'robot must be one of {", ".join(ROBOTS)}, got {robot!r}')
+        # the robot's topics, by psl's name (joint_states, effort_command): remaps of the loop
+        self.robot, self.robot_topics = robot, dict(robot_topics or {})
+        if robot != 'sim':
+            nodes = tuple(n for n in nodes if n[0] != 'sim')
+            if robot == 'standard':
+                nodes = (STANDARD_ROBOT,) + nodes
         if workers < 0:
             raise ValueError(f'workers must be >= 0, got {workers}')
         self.workers, self.reset = workers, reset
@@ -181,9 +197,14 @@ class Graph:
         their default, psl_task.DEFAULT_TASK), the mode for the simulator, the reset for the executor, the workers for the learner, the
         memory folder
         (``PSL_MEMORY_DIR``, if set) for the skill memory, then `extra_params`."""
-        params = {'task': self.task} if self.task and name in ('sim', 'pd_controller') else {}
+        params = ({'task': self.task} if self.task and name in ('sim', 'robot', 'pd_controller')
+                  else {})
         if name == 'sim':
             params['mode'] = self.mode
+        if self.robot != 'sim' and name == 'dmp_executor':
+            params['robot'] = 'external'
+        if self.robot != 'sim' and name == 'pd_controller':
+            params['state_timeout'] = STATE_TIMEOUT
         if name == 'dmp_executor' and self.reset:
             params['reset'] = self.reset          # teleport | drive ('' = the task's)
         if name == 'learner' and self.workers:
@@ -222,6 +243,8 @@ class Graph:
                     cmd += ['-r', f'__ns:={namespace}']
                 for key, value in self.params(name).items():
                     cmd += ['-p', f'{key}:={value}']
+                for topic, remapped in self.robot_topics.items():
+                    cmd += ['-r', f'{topic}:={remapped}']
                 worker = namespace if self.workers and name in WORKER_NODES else ''
                 prefix = self.launch_prefix.get(worker.rsplit('/', 1)[-1], [])
                 self.processes.append(self._spawn(label, list(prefix) + cmd, worker))

@@ -33,6 +33,9 @@ SKILL_MEMORY = 'skill_memory'           # the memory node: services skill_memory
 # topic -> (publishers, subscribers) one rollout worker's loop has before its first episode
 LOOP_TOPICS = {JOINT_STATES: (1, 2), EFFORT_COMMAND: (1, 1), REFERENCE: (1, 1),
                TASK_INSTANCE: (1, 1), JOINT_TRAJECTORY: (1, 1), ROLLOUT_EVALUATION: (1, 1)}
+# the loop's topics a robot offers (a robot psl does not simulate: its joint_state_broadcaster
+# and effort forward_command_controller, remapped)
+ROBOT_TOPICS = (JOINT_STATES, EFFORT_COMMAND)
 # topic -> subscribers a rollout worker's own nodes have on it, beyond LOOP_TOPICS (the
 # executor reads /diagnostics)
 OWN_SUBSCRIBERS = {**{topic: subs for topic, (_, subs) in LOOP_TOPICS.items()}, DIAGNOSTICS: 1}
