@@ -163,6 +163,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help='ways of continuing the simulated skill, each a session: residual '
                    '(the default of continue_from) and/or samples')
     options.add_out(p, RUN_FOLDERS)
+    p = bench('false-successes', 'a noisy robot (measurement noise): samples added on a lucky '
+              'rollout, with and without confirming a success (k of n)', task=None)
+    p.add_argument('--tasks', nargs='+', default=['reach_over_obstacle', 'payload_transport'],
+                   help='tasks (names or YAML files)')
+    p.add_argument('--noise', nargs='+', metavar='LEVEL',
+                   help='noise levels for every task, each position=RAD,velocity=RAD_S[,seed=N] '
+                   "(default: each task's realistic level and one at the edge)")
+    p.add_argument('--confirms', nargs='+', default=['1/1', '2/3', '3/3'], metavar='K/N',
+                   help='confirmations, each a session: k of n rollouts must fulfil (1/1: off)')
+    p.add_argument('--seed', type=options.seed, default=21)
+    p.add_argument('--tasks-per-session', type=positive_int, default=20,
+                   help='training tasks per session')
+    p.add_argument('--test-tasks', type=positive_int, default=20)
+    p.add_argument('--budget', type=positive_int, default=200, help='rollouts per task at most')
+    p.add_argument('--reruns', type=positive_int, default=10,
+                   help='noisy re-runs of every added sample')
+    options.add_out(p, RUN_FOLDERS)
 
 
 def _progress(line: str) -> None:
@@ -278,10 +295,21 @@ def _sim_to_real(args) -> tuple[dict, str]:
     return report, sim_to_real.format_table(report)
 
 
+def _false_successes(args) -> tuple[dict, str]:
+    from psl_bench import false_successes
+    report = false_successes.run(
+        tasks=args.tasks, noise=args.noise,
+        confirms=[false_successes.parse_confirm(c) for c in args.confirms], seed=args.seed,
+        num_tasks=args.tasks_per_session, num_test=args.test_tasks, budget=args.budget,
+        reruns=args.reruns, out=_folder(args.out), progress=_progress)
+    return report, false_successes.format_table(report)
+
+
 BENCHES = {'graph': _graph, 'rollout': _rollout, 'memory': _memory,
            'memory-load': _memory_load, 'cli': _cli, 'recording': _recording, 'workers': _workers,
            'learn': _learn, 'dynamics': _dynamics, 'memories': _memories,
-           'encodings': _encodings, 'sim-to-real': _sim_to_real}
+           'encodings': _encodings, 'sim-to-real': _sim_to_real,
+           'false-successes': _false_successes}
 
 
 def run(args) -> int:

@@ -22,11 +22,22 @@ error is applied to the simulated models only (the batch model after compile, an
 model); everything the skill computes from a model — the safety check, the inverse-dynamics
 feed-forward, the reward geometry — keeps the task's nominal model, as it must on a real robot.
 The identity error (the default) leaves every result bit-identical.
+
+A noisy robot (``measurement_noise``, `MeasurementNoise`): the joint angles and velocities the
+controller and the reward see are the true ones plus Gaussian noise, drawn per rollout and step
+from the noise's seeded generator. The PD law acts on the measurement; in the actuators the law
+is ``ctrl + b_1 q + b_2 qd`` with the true state, so a noise sample n_q, n_qd of step k enters
+exactly as the extra control ``-(Kp n_q + Kd n_qd)`` in that step's ctrl (before the force
+range clips the sum, as the law clips). The reward is computed on the measured angles, its
+geometry from their kinematic replay (as the graph's evaluator scores joint states); the results
+carry the measured angles. No noise (the default) leaves every result bit-identical.
 """
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
+import math
 import time
 import weakref
 
@@ -47,6 +58,48 @@ from psl_task.task import TaskDefinition
 
 FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
 CONTROL = mujoco.mjtState.mjSTATE_CTRL | mujoco.mjtState.mjSTATE_MOCAP_POS
+
+
+@dataclasses.dataclass(frozen=True)
+class MeasurementNoise:
+    """Gaussian noise on the measured joint angles and velocities of a noisy robot."""
+
+    position: float = 0.0        # [rad] standard deviation on every measured joint angle
+    velocity: float = 0.0        # [rad/s] standard deviation on every measured joint velocity
+    seed: int = 0                # of the generator every draw comes from, in rollout order
+
+    def __post_init__(self):
+        for name in ('position', 'velocity'):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0.0:
+                raise ValueError(f'measurement noise {name} must be a finite number >= 0, '
+                                 f'not {value!r}')
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f'measurement noise seed must be a whole number >= 0, not '
+                             f'{self.seed!r}')
+
+    @property
+    def is_off(self) -> bool:
+        return self.position == 0.0 and self.velocity == 0.0
+
+    @classmethod
+    def parse(cls, text: str) -> 'MeasurementNoise':
+        """From ``"position=0.001,velocity=0.01,seed=0"`` (any subset; empty: none).
+        ValueError naming what is wrong."""
+        values: dict = {}
+        fields = {f.name for f in dataclasses.fields(cls)}
+        for part in filter(None, (p.strip() for p in text.split(','))):
+            key, sep, value = part.partition('=')
+            key = key.strip()
+            if not sep or key not in fields:
+                raise ValueError(f'measurement noise {part!r}: give KEY=VALUE with KEY one of '
+                                 f'{", ".join(sorted(fields))}')
+            try:
+                values[key] = int(value) if key == 'seed' else float(value)
+            except ValueError:
+                raise ValueError(f'measurement noise {key}: {value.strip()!r} is not a '
+                                 f'{"whole number" if key == "seed" else "number"}') from None
+        return cls(**values)
 
 
 def stacked(references: list[Reference]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -86,12 +139,17 @@ class BatchRollouts(Rollouts):
         law: the PD + feed-forward law (default: the task's, `law_for`).
         model_error: how the simulated robot differs from the task's model (sim to real; see
             the module docstring); the default is none.
+        measurement_noise: the noise on the measured joint states (`MeasurementNoise`; see
+            the module docstring); the default is none.
     """
 
     def __init__(self, task: TaskDefinition, n_threads: int = 2, law: PDLaw | None = None,
-                 model_error: ModelError = ModelError()):
+                 model_error: ModelError = ModelError(),
+                 measurement_noise: MeasurementNoise = MeasurementNoise()):
         super().__init__(task)
         self.model_error = model_error
+        self.measurement_noise = measurement_noise
+        self._noise_rng = np.random.default_rng(measurement_noise.seed)
         self.arm = ArmModel(task)
         self.law = law or law_for(task)
         self.geometry = RewardGeometry(self.arm)
@@ -185,8 +243,21 @@ class BatchRollouts(Rollouts):
         if self.arm.n_substeps > 1:
             return self._run_held(references, taus, q_ref)
         control = self.controls(q_ref, qd_ref, u_ffwd, taus)
+        noise = self._noise(q_ref.shape)
+        if noise is not None:     # the law on the measurement: -(Kp n_q + Kd n_qd) more ctrl
+            extra = -(self.law.kp * noise[0] + self.law.kd * noise[1])       # (B, N+1, n)
+            control[..., :self.model.nu] += extra[..., self.joint_of_actuator]
         state, sensors = self._simulate(self.models(taus), control)
-        return self._results(references, taus, q_ref, qd_ref, u_ffwd, state, sensors)
+        return self._results(references, taus, q_ref, qd_ref, u_ffwd, state, sensors, noise)
+
+    def _noise(self, shape: tuple) -> tuple[np.ndarray, np.ndarray] | None:
+        """Measurement noise n_q, n_qd of shape (B, N+1, n) for the next rollouts (None: a
+        robot without noise)."""
+        noise = self.measurement_noise
+        if noise.is_off:
+            return None
+        return (self._noise_rng.normal(0.0, noise.position, shape),
+                self._noise_rng.normal(0.0, noise.velocity, shape))
 
     def _simulate(self, models: mujoco.MjModel | list[mujoco.MjModel],
                   control: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -202,18 +273,26 @@ class BatchRollouts(Rollouts):
 
     def _results(self, references: list[Reference], taus: np.ndarray, q_ref: np.ndarray,
                  qd_ref: np.ndarray, u_ffwd: np.ndarray, state: np.ndarray,
-                 sensors: np.ndarray) -> list[RolloutResult]:
-        """The measured rollouts and their rewards from `_simulate`'s states and sensors."""
+                 sensors: np.ndarray, noise: tuple[np.ndarray, np.ndarray] | None = None
+                 ) -> list[RolloutResult]:
+        """The measured rollouts and their rewards from `_simulate`'s states and sensors
+        (with measurement noise: on the measured states, the geometry replayed)."""
         n, count = len(self.arm.joint_names), len(references)
         qpos = state[:, :, 1 + self.arm.qpos_adr]                    # states 1..N+1
         qvel = state[:, :, 1 + self.model.nq + self.arm.dof_adr]
         q = np.concatenate([np.broadcast_to(self.task.start_posture, (count, 1, n)),
                             qpos[:, :-1]], axis=1)                   # S_0..S_N
         qd = np.concatenate([np.zeros((count, 1, n)), qvel[:, :-1]], axis=1)
+        if noise is not None:                       # what the controller and reward measure
+            q, qd = q + noise[0], qd + noise[1]
         # torque applied in step k: the law on state k (the actuator's force, clipped alike)
         u = self.law.torque(q, qd, q_ref, qd_ref, u_ffwd)
         torque = np.concatenate([np.zeros((count, 1, n)), u[:, :-1]], axis=1)
-        evaluations = self.reward.evaluate(q, torque, q_ref, self.geometry.read(sensors), taus)
+        if noise is not None:
+            evaluations = self.reward.evaluate_replayed(q, torque, q_ref, taus)
+        else:
+            evaluations = self.reward.evaluate(q, torque, q_ref, self.geometry.read(sensors),
+                                               taus)
         return [RolloutResult(evaluation=evaluations[b], q=q[b], torque=torque[b],
                               reference=references[b]) for b in range(len(references))]
 
@@ -230,6 +309,7 @@ class BatchRollouts(Rollouts):
         qd = np.empty_like(q)
         torque = np.zeros_like(q)
         sensors = np.empty((len(taus), n_steps, self.held_model.nsensordata))
+        noise = self._noise(q.shape)
         start = time.perf_counter()          # the stepping with its law counts as simulation
         for b, (reference, tau) in enumerate(zip(references, taus)):
             model = self.held_model
@@ -242,6 +322,9 @@ class BatchRollouts(Rollouts):
             mujoco.mj_forward(model, data)
             for k in range(n_steps):
                 q[b, k], qd[b, k] = data.qpos[arm.qpos_adr], data.qvel[arm.dof_adr]
+                if noise is not None:                 # the law on the measurement
+                    q[b, k] += noise[0][b, k]
+                    qd[b, k] += noise[1][b, k]
                 u = law.torque(q[b, k], qd[b, k], reference.q[k], reference.qd[k],
                                reference.u_ffwd[k])
                 data.ctrl[arm.actuator_ids] = u
@@ -251,6 +334,10 @@ class BatchRollouts(Rollouts):
                 if k + 1 < n_steps:
                     torque[b, k + 1] = u
         self.simulation_seconds += time.perf_counter() - start
-        evaluations = self.reward.evaluate(q, torque, q_ref, self.geometry.read(sensors), taus)
+        if noise is not None:
+            evaluations = self.reward.evaluate_replayed(q, torque, q_ref, taus)
+        else:
+            evaluations = self.reward.evaluate(q, torque, q_ref, self.geometry.read(sensors),
+                                               taus)
         return [RolloutResult(evaluation=evaluations[b], q=q[b], torque=torque[b],
                               reference=references[b]) for b in range(len(taus))]

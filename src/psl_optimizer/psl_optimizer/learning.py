@@ -44,6 +44,18 @@ lambda 0.7 / 0.9 / 0.97 needed 33 / 43 / 48 rollouts, zero-shot 10 / 5 / 0 %: fo
 needs many robot samples to outweigh 30 simulated ones, and winds up P meanwhile; the
 simulated samples weighted down in the Bayesian readout's statistics by 0.01 / 0.1 / 0.3:
 29 / 38 / 47 rollouts, 60 / 10 / 0 %.
+
+A noisy robot (`LearnSettings.measurement_noise`): a candidate whose rollout fulfils its
+instance may have been lucky. With `LearnSettings.confirm` = (k, n) the search's successful
+theta is rolled out n - 1 more times and its sample enters the skill only if at least k of the
+n rollouts fulfil the instance (the extra rollouts count; `TaskRecord.unconfirmed` marks a
+success that did not confirm). Measured (``psl bench false-successes``, 20 tasks of seed 21;
+a false success is an added sample whose theta fails most of 10 fresh noisy rollouts):
+reach_over_obstacle at 0.22 mrad / 0.02 rad/s: 7 of 20 added samples false without
+confirmation, 1 of 18 with 2 of 3 (130 rollouts instead of 200), 0 of 14 with 3 of 3;
+payload_transport at 0.3 rad/s velocity noise: 7 of 20, 0 of 14 (2 of 3), 0 of 10 (3 of 3).
+At 1 mrad / 0.01 rad/s nothing is learned on either task: the reward's smoothness term,
+computed on the measured angles, is then dominated by the noise (docs/benchmarks.md).
 """
 from __future__ import annotations
 
@@ -133,6 +145,14 @@ class LearnSettings:
     # its samples); '' = the skill slot's own way (in-process: residual; the memory node:
     # samples)
     continuation: str = ''
+    # a noisy robot (batch mode): `psl_optimizer.batch_rollout.MeasurementNoise.parse` text,
+    # '' = none; recorded here, the rollouts must have the same (the `Learner` checks it with
+    # the rollouts' own parser: the loop imports no rollout implementation)
+    measurement_noise: str = ''
+    # (k, n): a search's success is confirmed before its sample enters the skill: the
+    # candidate is rolled out n - 1 more times and enters only if at least k of the n rollouts
+    # fulfil the instance (the extra rollouts count); (1, 1): off
+    confirm: tuple[int, int] = (1, 1)
 
     def __post_init__(self):
         if self.num_tasks < 1 or self.num_test < 1:
@@ -150,6 +170,10 @@ class LearnSettings:
             raise ValueError(f'continue_from needs the elm skill map; the {self.skill_map!r} '
                              'baseline starts empty')
         ModelError.parse(self.model_error)          # ValueError naming what is wrong
+        k, n = self.confirm
+        if not (isinstance(k, int) and isinstance(n, int) and 1 <= k <= n):
+            raise ValueError(f'confirm (k, n) needs whole numbers 1 <= k <= n, got '
+                             f'{self.confirm}')
         if self.continuation not in ('', *CONTINUATIONS):
             raise ValueError(f'unknown continuation {self.continuation!r}; known: '
                              f'{", ".join(CONTINUATIONS)}')
@@ -362,8 +386,9 @@ class Learner:
             ``continuations`` (default ('samples',)) say how it can continue a skill.
 
     Raises:
-        ValueError: the rollouts' model error is not the settings' (`LearnSettings.
-            model_error`), or the skill cannot continue the way the settings ask.
+        ValueError: the rollouts' model error or measurement noise is not the settings'
+            (`LearnSettings.model_error`, `measurement_noise`), or the skill cannot continue
+            the way the settings ask.
     """
 
     def __init__(self, task: TaskDefinition, settings: LearnSettings, out: str | Path,
@@ -373,6 +398,15 @@ class Learner:
         if simulated != error:
             raise ValueError(f'the rollouts run with model error {simulated}, the settings say '
                              f'{error}: give both the same (make_rollouts(model_error=...))')
+        measured = getattr(rollouts, 'measurement_noise', None)
+        if measured is None and settings.measurement_noise:
+            raise ValueError('measurement noise is a setting of batch rollouts; these rollouts '
+                             'have none')
+        if measured is not None and measured != type(measured).parse(
+                settings.measurement_noise):
+            raise ValueError(f'the rollouts run with {measured}, the settings say '
+                             f'{settings.measurement_noise!r}: give both the same '
+                             '(make_rollouts(measurement_noise=...))')
         self.policy = policy_for(task)
         self.default_theta = self.policy.default_theta
         self.skill = skill or in_process_skill(task, settings, self.default_theta)
@@ -453,13 +487,17 @@ class Learner:
                 self.task, self.skill.variance, s.selection_candidates, s.seed, index)
             start, refused = time.perf_counter(), self.rollouts.refused
             result = self._search(tau, index, centre, scale)
-            if result.fulfilled or not s.add_only_fulfilled:
+            confirmed, extra = self._confirm(tau, result)
+            if confirmed or not s.add_only_fulfilled:
                 self.skill.add(tau, result.theta)
-            done.append(TaskRecord(index=index, tau=tau.tolist(), rollouts=result.rollouts,
+            done.append(TaskRecord(index=index, tau=tau.tolist(),
+                                   rollouts=result.rollouts + extra,
                                    fulfilled=result.fulfilled, best_reward=result.reward,
                                    start_reward=result.rewards[0],
                                    seconds=time.perf_counter() - start,
-                                   refused=self.rollouts.refused - refused))
+                                   refused=self.rollouts.refused - refused,
+                                   unconfirmed=result.fulfilled and not confirmed,
+                                   confirm_rollouts=extra))
             self._save_checkpoint(done)
             if progress is not None:
                 progress(done[-1])
@@ -471,6 +509,17 @@ class Learner:
                           task_path=str(self.task.path), task_yaml=self.task.path.read_text())
         metrics.write(self.out)
         return metrics
+
+    def _confirm(self, tau: np.ndarray, result: SearchResult) -> tuple[bool, int]:
+        """Whether the search's success holds (`LearnSettings.confirm`: at least k of n
+        rollouts of its theta fulfil the instance, the search's own first one counted) and the
+        extra rollouts it took. A failed search, or confirm off: (fulfilled, 0)."""
+        k, n = self.settings.confirm
+        if not result.fulfilled or n == 1:
+            return result.fulfilled, 0
+        _, fulfilled = self.rollouts.evaluate(np.tile(result.theta, (n - 1, 1)),
+                                              np.tile(tau, (n - 1, 1)))
+        return 1 + int(np.sum(fulfilled)) >= k, n - 1
 
     def _search(self, tau: np.ndarray, index: int, centre: np.ndarray,
                 scale: np.ndarray) -> SearchResult:
@@ -511,6 +560,8 @@ class Learner:
                     if self.policy.has_feedforward else None)
         return Summary(total_rollouts=int(sum(rollouts)), rollouts_per_task=rollouts,
                        fulfilled_tasks=int(sum(d.fulfilled for d in done)),
+                       unconfirmed_tasks=int(sum(d.unconfirmed for d in done)),
+                       confirm_rollouts=int(sum(d.confirm_rollouts for d in done)),
                        test_taus=test.tolist(), test_rewards=[float(r) for r in rewards],
                        zero_shot_success_rate=float(np.mean(fulfilled)),
                        zero_shot_mean_reward=float(np.mean(rewards)),

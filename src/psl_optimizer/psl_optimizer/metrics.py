@@ -35,6 +35,10 @@ class TaskRecord:
     seconds: float              # wall time of the search
     refused: int = 0            # of the candidates, those the safety check refused: not
                                 # executed (executed rollouts = rollouts - refused)
+    # LearnSettings.confirm: a fulfilled search whose theta then did not confirm (its sample
+    # did not enter the skill), and the confirming rollouts (counted in rollouts too)
+    unconfirmed: bool = False
+    confirm_rollouts: int = 0
 
     @classmethod
     def from_dict(cls, data: dict) -> 'TaskRecord':
@@ -42,7 +46,9 @@ class TaskRecord:
                    rollouts=int(data['rollouts']), fulfilled=bool(data['fulfilled']),
                    best_reward=float(data['best_reward']),
                    start_reward=float(data['start_reward']), seconds=float(data['seconds']),
-                   refused=int(data.get('refused', 0)))
+                   refused=int(data.get('refused', 0)),
+                   unconfirmed=bool(data.get('unconfirmed', False)),
+                   confirm_rollouts=int(data.get('confirm_rollouts', 0)))
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -64,6 +70,10 @@ class Summary:
     # and its mean over the instances
     tracking_rmse: dict[str, list[float]] | None = None
     tracking_rmse_mean: dict[str, float] | None = None
+    # LearnSettings.confirm: fulfilled tasks whose success did not confirm (no sample added),
+    # and the confirming rollouts (of total_rollouts)
+    unconfirmed_tasks: int = 0
+    confirm_rollouts: int = 0
 
     @classmethod
     def from_dict(cls, data: dict) -> 'Summary':
@@ -79,7 +89,9 @@ class Summary:
                    test_rewards=[float(r) for r in data['test_rewards']],
                    zero_shot_success_rate=float(data['zero_shot_success_rate']),
                    zero_shot_mean_reward=float(data['zero_shot_mean_reward']),
-                   tracking_rmse=tracking, tracking_rmse_mean=means)
+                   tracking_rmse=tracking, tracking_rmse_mean=means,
+                   unconfirmed_tasks=int(data.get('unconfirmed_tasks', 0)),
+                   confirm_rollouts=int(data.get('confirm_rollouts', 0)))
 
     def to_dict(self) -> dict:
         """The JSON form: the tracking errors as flat keys tracking_rmse_<variant>[_mean]."""
