@@ -38,8 +38,18 @@ def cmd_up(args) -> int:
         return fail('psl up', exc, 2)
     if args.memory_dir is not None:
         os.environ['PSL_MEMORY_DIR'] = os.path.abspath(args.memory_dir)  # the memory node's
+    extra = {}
+    if args.command_joints:
+        extra['pd_controller'] = {'command_joints': '[' + ','.join(args.command_joints) + ']'}
+    if args.state_timeout is not None:
+        extra.setdefault('pd_controller', {})['state_timeout'] = args.state_timeout
+    if args.robot_param:
+        extra['robot'] = dict(args.robot_param)
+    topics = {name: topic for name, topic in (('joint_states', args.joint_states),
+                                              ('effort_command', args.effort_command)) if topic}
     graph = Graph(task=args.task, mode=args.mode, namespace=args.namespace,
-                  workers=args.workers, log_dir=log_dir, reset=args.reset)
+                  workers=args.workers, log_dir=log_dir, reset=args.reset, robot=args.robot,
+                  robot_topics=topics, extra_params=extra)
     names = {name for name, *_ in graph.nodes_spec}
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -126,8 +136,16 @@ def create_task_skill(task_name: str, namespace: str = '', timeout: float = 30.0
     return response.message
 
 
+def _robot_param(text: str) -> tuple[str, str]:
+    key, sep, value = text.partition(':=')
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f'{text!r}: give NAME:=VALUE (a standard_robot '
+                                         'parameter, psl params standard_robot)')
+    return key, value
+
+
 def _up_options(p: argparse.ArgumentParser) -> None:
-    from psl_ros.graph import LOG_ROOT_VARIABLE, SIM_MODES
+    from psl_ros.graph import LOG_ROOT_VARIABLE, ROBOTS, SIM_MODES, STATE_TIMEOUT
 
     options.add_task(p)
     p.add_argument('--mode', choices=SIM_MODES, default=SIM_MODES[0])
@@ -140,6 +158,29 @@ def _up_options(p: argparse.ArgumentParser) -> None:
                    '(simulation only) or drive it there through the controller (a homing '
                    "quintic within the task's homing limits, then settled); default: the "
                    "task's homing.reset (teleport)")
+    p.add_argument('--robot', choices=ROBOTS, default=ROBOTS[0],
+                   help="sim (default): psl's simulator, which starts the episodes; standard: "
+                   "psl's simulator playing a ros2_control robot (joint_states and "
+                   'effort_command only, the wall clock); external: your robot, running '
+                   'already (psl starts none). With standard and external psl runs each '
+                   'episode itself from the joint states (docs/your_robot.md)')
+    p.add_argument('--joint-states', metavar='TOPIC', default='',
+                   help="the robot's JointState topic (e.g. /joint_states); default: "
+                   'joint_states in the namespace')
+    p.add_argument('--effort-command', metavar='TOPIC', default='',
+                   help="the robot's Float64MultiArray torque topic (e.g. "
+                   '/effort_controller/commands); default: effort_command in the namespace')
+    p.add_argument('--command-joints', nargs='+', metavar='JOINT',
+                   help="the joint order of the robot's torque command (its "
+                   "forward_command_controller's joints); default: the task's order")
+    p.add_argument('--state-timeout', type=options.positive_float, metavar='S',
+                   help='the controller stops commanding (zero torque) when no joint state '
+                   f'came for S seconds; default with --robot standard/external: '
+                   f'{STATE_TIMEOUT:g}')
+    p.add_argument('--robot-param', type=_robot_param, action='append', metavar='NAME:=VALUE',
+                   help='a parameter of the standard robot (--robot standard), e.g. '
+                   'position_noise:=0.001, latency_periods:=1, '
+                   "model_error:='mass_scale=1.3,frictionloss=0.05,damping=0.3'")
     p.add_argument('--worker-death', choices=('restart', 'drop'), default='restart',
                    help='with --workers N > 1, when a node of one worker dies: restart that '
                    "worker's nodes (default) or go on without it; the learner re-sends its "

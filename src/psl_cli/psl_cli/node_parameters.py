@@ -19,11 +19,11 @@ def node_parameters() -> dict[str, tuple[type, ...]]:
     from psl_sim.sim_parameters import SimParameters
     from psl_sim.standard_robot_parameters import StandardRobotParameters
 
-    return {'sim': (SimParameters,), 'standard_robot': (StandardRobotParameters,),
-            'pd_controller': (ControllerParameters,),
+    return {'sim': (SimParameters,), 'pd_controller': (ControllerParameters,),
             'dmp_executor': (ExecutorParameters,),
             'skill_memory': (SkillConfig, MemoryLimits, MemoryFiles),
-            'learner': (LearnerParameters,), 'reward_evaluator': ()}
+            'learner': (LearnerParameters,), 'reward_evaluator': (),
+            'standard_robot': (StandardRobotParameters,)}
 
 
 def parameter_file(node: str) -> str:

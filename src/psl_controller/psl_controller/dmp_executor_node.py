@@ -78,10 +78,10 @@ from psl_ros import names
 from psl_ros.action_server import ActionServer
 from psl_ros.futures import wait_for
 from psl_ros.guard import guard_subscription
-from psl_ros.matching import MatchReport
+from psl_ros.matching import PUBLISHER, SUBSCRIPTION, MatchedEndpoints, MatchReport
 from psl_ros.node_main import run_node
 from psl_ros.parameters import check_update, declare
-from psl_ros.qos import LATCHED, RELIABLE, SERVICES
+from psl_ros.qos import LATCHED, NEWEST, RELIABLE, SERVICES
 from psl_ros.stamps import duration_msg, time_msg, to_ns
 from psl_task.arm_model import ArmModel, joint_names_of
 from psl_task.joint_selection import JointSelection
@@ -95,7 +95,8 @@ LOAD_FACTOR = 3.0       # computing and publishing a trajectory during an episod
 LIVE_ATTEMPTS = 4       # switch times tried, each later, before a live change gives up
 DEFAULT_RATE = 5000.0   # steps/s assumed before the simulator has reported any
 ACK_TIMEOUT = 5.0       # s for a subscriber or service to appear, a message to be acknowledged
-LEAD = 0.1              # s from the newest state of an external robot to a trajectory's start
+LEAD = 0.3              # s from the newest state of an external robot to a trajectory's start
+                        # (it must reach the controller meanwhile: > 0.1 s seen under load)
 STALE = 0.5             # s: an external robot whose newest state is older is not streaming
 SETTLE_STATES = 25      # the states averaged for the homing check on an external robot
 
@@ -168,11 +169,13 @@ class DMPExecutor(Node):
         self._selections: dict[tuple, JointSelection] = {}
         self._faults: dict[int, str] = {}       # trajectory start [ns] -> the controller's reason
         if self.external:
+            # the controller's report of its robot topics (remapped as this node's)
+            self.loop_reports = MatchedEndpoints(self, callback_group=group)
             self.pub_task = self.matches.create_publisher(TaskInstance, names.TASK_INSTANCE,
                                                           LATCHED)
             self.create_subscription(JointState, names.JOINT_STATES,
                                      guard_subscription(self.get_logger(), names.JOINT_STATES,
-                                                        self.on_state), RELIABLE,
+                                                        self.on_state), NEWEST,
                                      callback_group=group)
         self._rollout_lock = threading.Lock()
         self._safety_checks: dict = {}          # task path -> SafetyCheck
@@ -361,6 +364,7 @@ class DMPExecutor(Node):
         itself, announcing it on task_instance; a reset's response as if the simulator had."""
         goal, task = run.goal, run.task
         self._wait_for_subscriber(self.pub_trajectory, 'controller')
+        self._robot_connected()
         self._set_gains(run)
         self._home_robot(run)
         if changes:
@@ -382,6 +386,22 @@ class DMPExecutor(Node):
             raise
         return ResetTask.Response(success=True, stamp=time_msg(t0), num_steps=num_steps,
                                   message='episode started by psl')
+
+    def _robot_connected(self) -> None:
+        """Wait (ACK_TIMEOUT) until the controller reports its command publisher matched with
+        a subscriber (the robot's command controller) and its state subscription with a
+        publisher (the robot's broadcaster), both halves; RuntimeError naming the topic."""
+        controller = self.get_namespace().rstrip('/') + '/pd_controller'
+        wanted = ((PUBLISHER, names.EFFORT_COMMAND, 'nothing takes the commands on'),
+                  (SUBSCRIPTION, names.JOINT_STATES, 'nothing publishes joint states on'))
+        deadline = time.monotonic() + ACK_TIMEOUT
+        for kind, name, missing in wanted:
+            topic = self.resolve_topic_name(name)
+            while self.loop_reports.counts(kind, topic).get(controller, 0) < 1:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f'the controller reaches no robot: {missing} {topic} '
+                                       f'(waited {ACK_TIMEOUT:g} s)')
+                time.sleep(0.01)
 
     def _start_on_robot(self, trajectory: JointTrajectory, episode: TaskInstance,
                         task: TaskDefinition) -> int:

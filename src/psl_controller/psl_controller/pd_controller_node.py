@@ -45,7 +45,7 @@ from psl_ros.hot_path import HotPath
 from psl_ros.matching import MatchReport
 from psl_ros.node_main import run_node
 from psl_ros.parameters import check_update, declare
-from psl_ros.qos import RELIABLE
+from psl_ros.qos import NEWEST, RELIABLE
 from psl_ros.realtime import raise_priority
 from psl_ros.stamps import to_ns
 from psl_task.arm_model import joint_names_of
@@ -123,8 +123,10 @@ class PDController(Node):
         self.hot_path = HotPath(self)
         self.matches.subscribe(self.hot_path, JointTrajectory, names.JOINT_TRAJECTORY,
                                self.on_trajectory, RELIABLE)
+        # a robot on the wall clock (the watchdog on): answer the newest state, never work
+        # through a backlog of old ones (a late answer is stale; psl's simulator waits for each)
         self.matches.subscribe(self.hot_path, JointState, names.JOINT_STATES, self.on_state,
-                               RELIABLE)
+                               NEWEST if self.parameters.state_timeout > 0.0 else RELIABLE)
         self.hot_path.start()
         self.pub_diag = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self.state_timeout = self.parameters.state_timeout

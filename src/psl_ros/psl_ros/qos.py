@@ -38,6 +38,9 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 RELIABLE = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
 WHOLE_EPISODE = QoSProfile(depth=20000, reliability=ReliabilityPolicy.RELIABLE)
+# the newest message only: a reader that watches a stream it need not take whole (the executor
+# watching a robot's joint states) never works through a backlog of old ones (seen: 4 s behind)
+NEWEST = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 SERVICES = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE,
