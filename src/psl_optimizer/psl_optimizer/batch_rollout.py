@@ -24,8 +24,11 @@ feed-forward, the reward geometry — keeps the task's nominal model, as it must
 The identity error (the default) leaves every result bit-identical.
 
 A noisy robot (``measurement_noise``, `MeasurementNoise`): the joint angles and velocities the
-controller and the reward see are the true ones plus Gaussian noise, drawn per rollout and step
-from the noise's seeded generator. The PD law acts on the measurement; in the actuators the law
+controller and the reward see are the true ones plus Gaussian noise, drawn per rollout from a
+generator seeded by the noise's seed, the rollout itself (its reference and task instance:
+`rollout_key`) and how often this object rolled that out before, so a session resumed from a
+checkpoint draws the noise the uninterrupted one drew, and a repeated rollout new noise. The
+PD law acts on the measurement; in the actuators the law
 is ``ctrl + b_1 q + b_2 qd`` with the true state, so a noise sample n_q, n_qd of step k enters
 exactly as the extra control ``-(Kp n_q + Kd n_qd)`` in that step's ctrl (before the force
 range clips the sum, as the law clips). The reward is computed on the measured angles, its
@@ -37,6 +40,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import functools
+import hashlib
 import math
 import time
 import weakref
@@ -82,6 +86,12 @@ class MeasurementNoise:
     def is_off(self) -> bool:
         return self.position == 0.0 and self.velocity == 0.0
 
+    def sample(self, key: int, occurrence: int, shape: tuple) -> tuple[np.ndarray, np.ndarray]:
+        """n_q, n_qd (shape each, (N+1, n)) of the `occurrence`-th rollout (0: the first) of
+        the rollout `key` (`rollout_key`)."""
+        rng = np.random.default_rng([self.seed, key, occurrence])
+        return rng.normal(0.0, self.position, shape), rng.normal(0.0, self.velocity, shape)
+
     @classmethod
     def parse(cls, text: str) -> 'MeasurementNoise':
         """From ``"position=0.001,velocity=0.01,seed=0"`` (any subset; empty: none).
@@ -100,6 +110,15 @@ class MeasurementNoise:
                 raise ValueError(f'measurement noise {key}: {value.strip()!r} is not a '
                                  f'{"whole number" if key == "seed" else "number"}') from None
         return cls(**values)
+
+
+def rollout_key(reference: Reference, tau: np.ndarray) -> int:
+    """A rollout's identity for its noise: a 64-bit digest of its reference (q, qd, u_ffwd)
+    and task instance."""
+    digest = hashlib.blake2b(digest_size=8)
+    for array in (reference.q, reference.qd, reference.u_ffwd, tau):
+        digest.update(np.ascontiguousarray(array, dtype=float).tobytes())
+    return int.from_bytes(digest.digest(), 'little')
 
 
 def stacked(references: list[Reference]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -149,7 +168,7 @@ class BatchRollouts(Rollouts):
         super().__init__(task)
         self.model_error = model_error
         self.measurement_noise = measurement_noise
-        self._noise_rng = np.random.default_rng(measurement_noise.seed)
+        self._occurrences: dict[int, int] = {}     # rollout_key -> rollouts so far
         self.arm = ArmModel(task)
         self.law = law or law_for(task)
         self.geometry = RewardGeometry(self.arm)
@@ -243,21 +262,29 @@ class BatchRollouts(Rollouts):
         if self.arm.n_substeps > 1:
             return self._run_held(references, taus, q_ref)
         control = self.controls(q_ref, qd_ref, u_ffwd, taus)
-        noise = self._noise(q_ref.shape)
+        noise = self._noise(references, taus)
         if noise is not None:     # the law on the measurement: -(Kp n_q + Kd n_qd) more ctrl
             extra = -(self.law.kp * noise[0] + self.law.kd * noise[1])       # (B, N+1, n)
             control[..., :self.model.nu] += extra[..., self.joint_of_actuator]
         state, sensors = self._simulate(self.models(taus), control)
         return self._results(references, taus, q_ref, qd_ref, u_ffwd, state, sensors, noise)
 
-    def _noise(self, shape: tuple) -> tuple[np.ndarray, np.ndarray] | None:
-        """Measurement noise n_q, n_qd of shape (B, N+1, n) for the next rollouts (None: a
-        robot without noise)."""
+    def _noise(self, references: list[Reference], taus: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Measurement noise n_q, n_qd, each (B, N+1, n), of these rollouts (None: a robot
+        without noise), each rollout's from `MeasurementNoise.sample`."""
         noise = self.measurement_noise
         if noise.is_off:
             return None
-        return (self._noise_rng.normal(0.0, noise.position, shape),
-                self._noise_rng.normal(0.0, noise.velocity, shape))
+        n_q, n_qd = [], []
+        for reference, tau in zip(references, taus):
+            key = rollout_key(reference, tau)
+            occurrence = self._occurrences.get(key, 0)
+            self._occurrences[key] = occurrence + 1
+            a, b = noise.sample(key, occurrence, reference.q.shape)
+            n_q.append(a)
+            n_qd.append(b)
+        return np.array(n_q), np.array(n_qd)
 
     def _simulate(self, models: mujoco.MjModel | list[mujoco.MjModel],
                   control: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -309,7 +336,7 @@ class BatchRollouts(Rollouts):
         qd = np.empty_like(q)
         torque = np.zeros_like(q)
         sensors = np.empty((len(taus), n_steps, self.held_model.nsensordata))
-        noise = self._noise(q.shape)
+        noise = self._noise(references, taus)
         start = time.perf_counter()          # the stepping with its law counts as simulation
         for b, (reference, tau) in enumerate(zip(references, taus)):
             model = self.held_model

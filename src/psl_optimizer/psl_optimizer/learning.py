@@ -51,9 +51,11 @@ theta is rolled out n - 1 more times and its sample enters the skill only if at 
 n rollouts fulfil the instance (the extra rollouts count; `TaskRecord.unconfirmed` marks a
 success that did not confirm). Measured (``psl bench false-successes``, 20 tasks of seed 21;
 a false success is an added sample whose theta fails most of 10 fresh noisy rollouts):
-reach_over_obstacle at 0.22 mrad / 0.02 rad/s: 7 of 20 added samples false without
-confirmation, 1 of 18 with 2 of 3 (130 rollouts instead of 200), 0 of 14 with 3 of 3;
-payload_transport at 0.3 rad/s velocity noise: 7 of 20, 0 of 14 (2 of 3), 0 of 10 (3 of 3).
+reach_over_obstacle at 0.23 mrad / 0.02 rad/s: without confirmation all 20 added samples are
+false (zero-shot 0 %: each success was luck); 2 of 3 lets 2 of them in (both false) and 3 of 3
+none; payload_transport at 0.3 rad/s velocity noise: 9 of 20 added samples false without
+confirmation (zero-shot 50 %), 3 of 13 with 2 of 3, 0 of 11 with 3 of 3 (70 %, 109 rollouts
+instead of 70).
 At 1 mrad / 0.01 rad/s nothing is learned on either task: the reward's smoothness term,
 computed on the measured angles, is then dominated by the noise (docs/benchmarks.md).
 """

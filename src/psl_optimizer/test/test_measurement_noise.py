@@ -7,7 +7,7 @@ import pytest
 from psl_controller.pd_law import law_for
 from psl_controller.policy import policy_for
 from psl_memory.skill_memory import SkillMemory
-from psl_optimizer.batch_rollout import BatchRollouts, MeasurementNoise
+from psl_optimizer.batch_rollout import BatchRollouts, MeasurementNoise, rollout_key
 from psl_optimizer.learning import Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
 from psl_optimizer.rollout_modes import make_rollouts
@@ -31,17 +31,19 @@ def test_no_noise_is_bit_identical_to_no_option(task):
 
 
 def test_the_law_acts_on_the_noisy_measurement_as_stepped_in_python(task):
-    """The same noise samples (the generator of the noise's seed) fed to the law step by
-    step: the true trajectory (measured minus noise) and the torques agree."""
+    """The same noise samples (`MeasurementNoise.sample` of the rollout) fed to the law step
+    by step: the true trajectory (measured minus noise) and the torques agree."""
     theta = policy_for(task).default_theta
     tau = task.tau_default
-    result = BatchRollouts(task, measurement_noise=NOISE).run(theta[None], tau)[0]
-    n_steps, n = result.q.shape
-    rng = np.random.default_rng(NOISE.seed)
-    n_q = rng.normal(0.0, NOISE.position, (1, n_steps, n))[0]
-    n_qd = rng.normal(0.0, NOISE.velocity, (1, n_steps, n))[0]
-    law, arm = law_for(task), ArmModel(task)
+    rollouts = BatchRollouts(task, measurement_noise=NOISE)
+    result = rollouts.run(theta[None], tau)[0]
     ref = policy_for(task).reference(theta)
+    n_q, n_qd = NOISE.sample(rollout_key(ref, tau), 0, ref.q.shape)
+    n_steps, n = result.q.shape
+    law, arm = law_for(task), ArmModel(task)
+    # the same rollout again: other noise
+    again = rollouts.run(theta[None], tau)[0]
+    assert not np.array_equal(again.q, result.q)
     arm.reset(tau)
     q, torque = [arm.q.copy()], [np.zeros(n)]
     for k in range(n_steps - 1):
@@ -93,3 +95,24 @@ def test_a_success_enters_the_skill_only_if_it_confirms(task, tmp_path):
     assert metrics.summary.unconfirmed_tasks == sum(r.unconfirmed for r in records)
     assert metrics.summary.total_rollouts == sum(r.rollouts for r in records)
     assert metrics.settings['confirm'] == [3, 3]
+
+
+def test_a_resumed_noisy_session_makes_the_same_decisions(task, tmp_path):
+    """The noise of a rollout depends on the rollout and its occurrence, not on what this
+    process rolled out before: a session stopped after two tasks and resumed (new rollouts)
+    equals the uninterrupted one."""
+    noise = 'position=0.00022,velocity=0.02'
+    settings = LearnSettings(seed=21, num_tasks=4, num_test=2, measurement_noise=noise,
+                             confirm=(2, 3), search=SearchSettings(max_rollouts=30))
+    whole = Learner(task, settings, tmp_path / 'whole', make_rollouts(
+        'batch', task, measurement_noise=noise)).run()
+    calls = iter(range(100))
+    first = Learner(task, settings, tmp_path / 'resumed', make_rollouts(
+        'batch', task, measurement_noise=noise))
+    first.run(should_stop=lambda: next(calls) >= 2)
+    resumed = Learner(task, settings, tmp_path / 'resumed', make_rollouts(
+        'batch', task, measurement_noise=noise)).run()
+    key = ('tau', 'rollouts', 'fulfilled', 'best_reward', 'unconfirmed')
+    assert ([[getattr(t, k) for k in key] for t in resumed.tasks]
+            == [[getattr(t, k) for k in key] for t in whole.tasks])
+    assert resumed.summary.test_rewards == whole.summary.test_rewards
