@@ -433,7 +433,8 @@ class Learner:
         """What a checkpoint must match to be resumed by this session."""
         s = self.settings
         return {'task': self.task.name, 'strategy': s.strategy, 'seed': s.seed,
-                'task_selection': s.task_selection, 'model_error': s.model_error}
+                'task_selection': s.task_selection, 'model_error': s.model_error,
+                'measurement_noise': s.measurement_noise, 'confirm': list(s.confirm)}
 
     def _load_checkpoint(self) -> list[TaskRecord]:
         if not self.checkpoint_path.is_file():
@@ -442,7 +443,8 @@ class Learner:
         state = json.loads(self.checkpoint_path.read_text())
         mine = self._identity()
         state.setdefault('task_selection', 'random')      # checkpoints from before the option
-        state.setdefault('model_error', '')
+        for key, value in (('model_error', ''), ('measurement_noise', ''), ('confirm', [1, 1])):
+            state.setdefault(key, value)                   # checkpoints from before them
         if any(state.get(k) != v for k, v in mine.items()):
             raise ValueError(f'{self.out} holds a checkpoint of another session '
                              f'({ {k: state.get(k) for k in mine} }); use another folder')

@@ -116,3 +116,16 @@ def test_a_resumed_noisy_session_makes_the_same_decisions(task, tmp_path):
     assert ([[getattr(t, k) for k in key] for t in resumed.tasks]
             == [[getattr(t, k) for k in key] for t in whole.tasks])
     assert resumed.summary.test_rewards == whole.summary.test_rewards
+
+
+def test_a_checkpoint_of_another_noise_or_confirmation_is_not_resumed(task, tmp_path):
+    noise = 'velocity=0.02'
+    settings = LearnSettings(seed=1, num_tasks=2, num_test=1, measurement_noise=noise,
+                             search=SearchSettings(max_rollouts=20))
+    Learner(task, settings, tmp_path, make_rollouts('batch', task, measurement_noise=noise)).run(
+        should_stop=iter([False, True]).__next__)
+    for change in ({'confirm': (2, 3)}, {'measurement_noise': 'velocity=0.03'}):
+        other = LearnSettings(**{**settings.__dict__, **change})
+        rollouts = make_rollouts('batch', task, measurement_noise=other.measurement_noise)
+        with pytest.raises(ValueError, match='another session'):
+            Learner(task, other, tmp_path, rollouts).run()
