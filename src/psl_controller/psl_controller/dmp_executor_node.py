@@ -167,7 +167,9 @@ class DMPExecutor(Node):
         self._states: list[tuple] = []          # (stamp [ns], q, qd, names), the newest last
         self._state_seen = 0.0                  # monotonic time of the newest
         self._selections: dict[tuple, JointSelection] = {}
-        self._faults: dict[int, str] = {}       # trajectory start [ns] -> the controller's reason
+        # trajectory start [ns] -> (what, why) the controller reported: 'state loss' (the
+        # rollout fails), 'late trajectory' (sent again with a later start)
+        self._faults: dict[int, tuple[str, str]] = {}
         if self.external:
             # the controller's report of its robot topics (remapped as this node's)
             self.loop_reports = MatchedEndpoints(self, callback_group=group)
@@ -237,10 +239,13 @@ class DMPExecutor(Node):
         namespace's nodes count."""
         namespace = self.get_namespace().rstrip('/')
         for status in msg.status:
-            if status.name == f'{namespace}/pd_controller: state loss':
+            if status.name in (f'{namespace}/pd_controller: state loss',
+                               f'{namespace}/pd_controller: late trajectory'):
                 values = {kv.key: kv.value for kv in status.values}
+                kind = status.name.rsplit(': ', 1)[-1]
                 with self._cv:
-                    self._faults[int(values.get('trajectory_start_ns', 0))] = status.message
+                    self._faults[int(values.get('trajectory_start_ns', 0))] = (kind,
+                                                                               status.message)
                     self._cv.notify_all()
         mine = namespace + '/sim:'
         for status in msg.status:
@@ -412,16 +417,25 @@ class DMPExecutor(Node):
             newest, _, _ = self._measured(task)
             t0 = newest + int(LEAD * 1e9)
             trajectory.header.stamp = episode.stamp = time_msg(t0)
-            publishing = time.monotonic()
             self.pub_trajectory.publish(trajectory)
-            self._acked(self.pub_trajectory, 'the controller did not receive the trajectory')
             self.pub_task.publish(episode)
-            self._acked(self.pub_task, 'the evaluator did not receive the episode')
-            if self._measured(task)[0] < t0:
-                return t0
-            self.get_logger().warning(f'the robot passed the start before the trajectory was '
-                                      f'in place ({time.monotonic() - publishing:.3f} s): '
-                                      'sending it again')
+            # the controller refuses a trajectory whose start has passed, and says so: wait
+            # until the robot's states are a few periods past the start, then look
+            deadline = time.monotonic() + LEAD + ACK_TIMEOUT
+            while self._measured(task)[0] < t0 + 5 * int(task.control_period * 1e9):
+                if time.monotonic() > deadline:
+                    raise RuntimeError('the robot\'s clock did not reach the trajectory\'s '
+                                       f'start within {LEAD + ACK_TIMEOUT:g} s')
+                time.sleep(task.control_period)
+            time.sleep(0.05)                 # the controller's report on its way
+            with self._cv:
+                fault = self._faults.get(t0)
+                if fault is None:
+                    return t0
+                if fault[0] != 'late trajectory':
+                    raise RuntimeError(fault[1])
+                del self._faults[t0]
+            self.get_logger().warning(f'{fault[1]}: sending it again')
         raise RuntimeError(f'the trajectory did not reach the controller within {LEAD:g} s '
                            'of the robot\'s newest state, three times')
 
@@ -444,7 +458,7 @@ class DMPExecutor(Node):
         with self._cv:
             while True:
                 if t0 in self._faults:
-                    raise RuntimeError(f'homing: {self._faults[t0]}')
+                    raise RuntimeError(f'homing: {self._faults[t0][1]}')
                 if self._states and self._states[-1][0] >= end:
                     break
                 if time.monotonic() > deadline:
@@ -564,7 +578,7 @@ class DMPExecutor(Node):
                 if goal_handle.is_cancel_requested:
                     raise RuntimeError('rollout canceled')
                 if t0 in self._faults:
-                    raise RuntimeError(self._faults[t0])
+                    raise RuntimeError(self._faults[t0][1])
                 if time.monotonic() > deadline:
                     done = self._progress.get(t0)
                     raise RuntimeError(

@@ -17,6 +17,10 @@ holds the last point. Each command's reference is published on ``reference``
 (sensor_msgs/JointState: position = q_ref, velocity = qd_ref, effort = u_ffwd) with the
 state's stamp, so the tracking error can be computed and recorded.
 
+A trajectory stamped with a start the states have passed already (a robot's clock runs on while
+it travels) is refused and reported on /diagnostics (``late trajectory``, with its start): the
+executor sends it again with a later start.
+
 Watchdog (``state_timeout`` > 0, for a robot that never waits for the controller): when no
 joint state came for that long (the wall clock), the controller drops its trajectory, reports
 the loss on /diagnostics (level ERROR, ``trajectory_start_ns`` of the trajectory it dropped, so
@@ -104,6 +108,7 @@ class PDController(Node):
         self.start_ns: int | None = None
         self.served_ns: int | None = None     # time of the last state served, from start_ns
         self.hold: np.ndarray | None = None
+        self.last_state_ns = 0                # stamp of the newest state served
 
         # watchdog: the wall time of the last state, and whether their loss is reported
         self._state_lock = threading.Lock()
@@ -191,6 +196,12 @@ class PDController(Node):
             self.get_logger().error(f'refused trajectory: {exc}')
             return
         start = to_ns(msg.header.stamp)
+        if 0 < start < self.last_state_ns and start != self.start_ns:
+            # a robot's clock has passed the start already: following it would jump
+            self._report('late trajectory', start, (
+                f'the trajectory came {(self.last_state_ns - start) * 1e-9:.3f} s after its '
+                'start (stamp): refused, the controller holds'))
+            return
         if start > 0 and start == self.start_ns and self.served_ns is not None:
             # a replacement of the running trajectory: the steps served stay as they were
             old, new = self.trajectory.sample(self.served_ns), trajectory.sample(self.served_ns)
@@ -225,6 +236,7 @@ class PDController(Node):
                                       throttle_duration_sec=1.0)
             return
         t = to_ns(msg.header.stamp)
+        self.last_state_ns = t
         trajectory = self.trajectory        # the watchdog may drop it meanwhile
         if trajectory is not None:
             if self.start_ns is None:
@@ -263,13 +275,18 @@ class PDController(Node):
             reason = (f'joint states stopped: none for {silent:.3f} s (state_timeout '
                       f'{timeout:g} s); the controller dropped its trajectory and commands '
                       f'{"zero torque" if mode == "zero" else "the last torque"}')
-            self.get_logger().error(reason)
-            self.pub_diag.publish(DiagnosticArray(status=[DiagnosticStatus(
-                level=DiagnosticStatus.ERROR, name=f'{self.get_fully_qualified_name()}: state loss',
-                message=reason, values=[KeyValue(key='trajectory_start_ns', value=str(start))])]))
+            self._report('state loss', start, reason)
         torque = (np.zeros(self.n_joints) if self.get_parameter('on_state_loss').value == 'zero'
                   else self._last_torque)
         self.pub_command.publish(Float64MultiArray(data=torque[self.command_order].tolist()))
+
+    def _report(self, what: str, start_ns: int, reason: str) -> None:
+        """Log `reason` and report it on /diagnostics (level ERROR, ``<node>: <what>``) for
+        the trajectory that starts at `start_ns`: the executor fails that rollout with it."""
+        self.get_logger().error(reason)
+        self.pub_diag.publish(DiagnosticArray(status=[DiagnosticStatus(
+            level=DiagnosticStatus.ERROR, name=f'{self.get_fully_qualified_name()}: {what}',
+            message=reason, values=[KeyValue(key='trajectory_start_ns', value=str(start_ns))])]))
 
     def destroy_node(self):
         self.hot_path.stop()
