@@ -259,7 +259,11 @@ def test_memory_files_go_to_the_memory_dir_and_a_session_continues_from_one(star
                               capture_output=True, text=True, timeout=300)
         assert done.returncode == 0, done.stderr
     from psl_memory.skill_memory import SkillMemory
+    from psl_optimizer.learning import CORRECTION_SUFFIX
     kept = SkillMemory.read(first / 'memory.npz').get('reach_over_obstacle').num_samples
-    goes_on = SkillMemory.read(second / 'memory.npz').get('reach_over_obstacle')
+    goes_on = SkillMemory.read(second / 'memory.npz')
     added = sum(t['fulfilled'] for t in json.loads((second / 'metrics.json').read_text())['tasks'])
-    assert kept > 0 and goes_on.num_samples == kept + added
+    # continued the residual way: the skill it started from unchanged, the new solutions
+    # taught to its correction (psl_optimizer.learning)
+    assert kept > 0 and goes_on.get('reach_over_obstacle').num_samples == kept
+    assert goes_on.get('reach_over_obstacle' + CORRECTION_SUFFIX).num_samples == added

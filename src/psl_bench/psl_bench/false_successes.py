@@ -28,8 +28,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from psl_task import DEFAULT_TASK
+
 REALISTIC = 'position=0.001,velocity=0.01'
-NOISE_LEVELS = {'reach_over_obstacle': (REALISTIC, 'position=0.00023,velocity=0.02'),
+NOISE_LEVELS = {DEFAULT_TASK: (REALISTIC, 'position=0.00023,velocity=0.02'),
                 'payload_transport': (REALISTIC, 'velocity=0.3')}
 CONFIRMS = ((1, 1), (2, 3), (3, 3))
 

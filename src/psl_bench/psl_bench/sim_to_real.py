@@ -27,9 +27,11 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from psl_task import DEFAULT_TASK
+
 # the stand-in "real" robot of the measurements (docs/benchmarks.md)
 REAL_ROBOT = 'mass_scale=1.3,frictionloss=0.05,damping=0.3'
-TASKS = ('reach_over_obstacle', 'payload_transport')
+TASKS = (DEFAULT_TASK, 'payload_transport')
 TRACKING = ('pd_only', 'simulated', 'oracle', 'ilc')      # PS_sim's path on the robot
 
 

@@ -12,7 +12,9 @@ import sys
 from pathlib import Path
 
 from psl_bench.dynamics import OPTIMISERS
+from psl_bench.false_successes import NOISE_LEVELS
 from psl_bench.memories import MEMORIES, STARTS
+from psl_bench.sim_to_real import REAL_ROBOT, TASKS as SIM_TO_REAL_TASKS
 from psl_cli import options
 from psl_cli.options import fail, non_negative_int, positive_int
 from psl_memory.registry import READOUTS
@@ -141,9 +143,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
               'wrong (batch mode, a model error): rollouts and zero-shot success on the robot, '
               'scratch vs continued; tracking error of the simulated feed-forward and ILC',
               task=None)
-    p.add_argument('--tasks', nargs='+', default=['reach_over_obstacle', 'payload_transport'],
+    p.add_argument('--tasks', nargs='+', default=list(SIM_TO_REAL_TASKS),
                    help='tasks (names or YAML files)')
-    p.add_argument('--model-error', default='mass_scale=1.3,frictionloss=0.05,damping=0.3',
+    p.add_argument('--model-error', default=REAL_ROBOT,
                    help='how the robot differs from the model: mass_scale=S,frictionloss=F,'
                    'damping=D (any subset)')
     p.add_argument('--nominal-seed', type=options.seed, default=3,
@@ -165,7 +167,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     options.add_out(p, RUN_FOLDERS)
     p = bench('false-successes', 'a noisy robot (measurement noise): samples added on a lucky '
               'rollout, with and without confirming a success (k of n)', task=None)
-    p.add_argument('--tasks', nargs='+', default=['reach_over_obstacle', 'payload_transport'],
+    p.add_argument('--tasks', nargs='+', default=list(NOISE_LEVELS),
                    help='tasks (names or YAML files)')
     p.add_argument('--noise', nargs='+', metavar='LEVEL',
                    help='noise levels for every task, each position=RAD,velocity=RAD_S[,seed=N] '

@@ -369,6 +369,7 @@ def cmd_learn(args) -> int:
         task = load_task(args.task)
         warn_about('psl learn', check_task(args.task), args.task)
         _check_skill_map(args)
+        _check_here_only(args)
         map_part = '' if args.skill_map == 'elm' else f'-{args.skill_map}'
         out = options.output_folder(args.out or f'runs/{task.name}-{args.strategy}{map_part}'
                                     f'-seed{args.seed}')
@@ -389,6 +390,25 @@ def _learner(args) -> str:
     """Where the session runs: --learner, by default the node for graph mode (the rollout
     workers' graph has a learner) and this process for batch mode."""
     return args.learner or ('node' if args.mode == 'graph' else 'here')
+
+
+# psl learn options of a session in this process only (the LearnSkill goal has no fields for
+# them): option -> its default
+HERE_ONLY = {'model_error': '', 'continuation': None, 'measurement_noise': '',
+             'confirm': (1, 1)}
+
+
+def _check_here_only(args) -> None:
+    """ValueError when a session of the learner node is given an option of HERE_ONLY."""
+    given = [name for name, default in HERE_ONLY.items() if getattr(args, name) != default]
+    if given and _learner(args) == 'node':
+        raise ValueError(f'--{given[0].replace("_", "-")}: a session in this process only '
+                         '(--learner here); the learner node continues by samples, on the '
+                         "graph's robot")
+    if (args.model_error or args.measurement_noise) and args.mode != 'batch':
+        raise ValueError('--model-error and --measurement-noise are batch mode\'s: in graph '
+                         'mode the robot is what it is (psl up --robot standard '
+                         '--robot-param ...)')
 
 
 def _check_skill_map(args) -> None:
@@ -443,10 +463,15 @@ def _learn_here(args, task, out: Path, stop: threading.Event, progress, workers)
                                  search=SearchSettings(max_rollouts=args.budget
                                                        or SearchSettings.max_rollouts),
                                  continue_from=args.continue_from or '',
-                                 skill_map=args.skill_map)
+                                 skill_map=args.skill_map, model_error=args.model_error,
+                                 continuation=args.continuation or '',
+                                 measurement_noise=args.measurement_noise,
+                                 confirm=args.confirm)
         learner = Learner(task, settings, out,
                           make_rollouts(args.mode, task, workers=workers,
-                                        should_stop=stop.is_set))
+                                        should_stop=stop.is_set,
+                                        model_error=args.model_error,
+                                        measurement_noise=args.measurement_noise))
 
         def finished(record) -> None:
             progress.finished(record.index, record.best_reward, record.fulfilled,
@@ -551,6 +576,19 @@ def _learn_options(p: argparse.ArgumentParser) -> None:
                    help='start from the skill this memory file holds instead of an empty one '
                    "(graph mode: a file of the memory node's memory folder); a resumed session "
                    'starts from its checkpoint')
+    p.add_argument('--continuation', choices=('residual', 'samples'),
+                   help="how --continue-from's skill is continued: residual (default in this "
+                   "process: the robot's correction learned on top of it) or samples (the new "
+                   "solutions added to its samples; the learner node's only way)")
+    p.add_argument('--model-error', default='', metavar='KEY=VALUE,...',
+                   help="batch mode: the robot differs from the task's model (sim to real): "
+                   'mass_scale=S,frictionloss=N_M,damping=N_M_S_PER_RAD (any subset)')
+    p.add_argument('--measurement-noise', default='', metavar='KEY=VALUE,...',
+                   help='batch mode: a noisy robot: position=RAD,velocity=RAD_S[,seed=N] '
+                   '(Gaussian std on the measured joint angles and velocities)')
+    p.add_argument('--confirm', type=options.k_of_n, default=(1, 1), metavar='K/N',
+                   help='a success enters the skill only if K of N rollouts of its theta '
+                   'fulfil the instance (the extra rollouts count; 1/1: off)')
     options.add_graph(p, timeout=30.0,
                       waits_for='the learner node to take the goal (graph mode)')
     p.add_argument('--verbose', action='store_true',

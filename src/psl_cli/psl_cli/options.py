@@ -46,6 +46,15 @@ def seed(text: str) -> int:
     return value
 
 
+def k_of_n(text: str) -> tuple[int, int]:
+    """An argparse type: K/N, whole numbers with 1 <= K <= N (K of N rollouts)."""
+    k, sep, n = text.partition('/')
+    if not (sep and k.isdigit() and n.isdigit() and 1 <= int(k) <= int(n)):
+        raise argparse.ArgumentTypeError(f'give K/N with whole numbers 1 <= K <= N, got '
+                                         f'{text!r}')
+    return int(k), int(n)
+
+
 def positive_float(text: str) -> float:
     """An argparse type: a finite number > 0 (a timeout in seconds)."""
     try:
