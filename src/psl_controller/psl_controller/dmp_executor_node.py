@@ -98,6 +98,9 @@ ACK_TIMEOUT = 5.0       # s for a subscriber or service to appear, a message to 
 LEAD = 0.3              # s from the newest state of an external robot to a trajectory's start
                         # (it must reach the controller meanwhile: > 0.1 s seen under load)
 STALE = 0.5             # s: an external robot whose newest state is older is not streaming
+# what the controller reports of a trajectory (pd_controller_node): a late one is sent again,
+# the others fail the rollout with the controller's reason
+FAULTS = ('state loss', 'late trajectory', 'tracking abort')
 SETTLE_STATES = 25      # the states averaged for the homing check on an external robot
 
 
@@ -167,8 +170,7 @@ class DMPExecutor(Node):
         self._states: list[tuple] = []          # (stamp [ns], q, qd, names), the newest last
         self._state_seen = 0.0                  # monotonic time of the newest
         self._selections: dict[tuple, JointSelection] = {}
-        # trajectory start [ns] -> (what, why) the controller reported: 'state loss' (the
-        # rollout fails), 'late trajectory' (sent again with a later start)
+        # trajectory start [ns] -> (what of FAULTS, why) the controller reported
         self._faults: dict[int, tuple[str, str]] = {}
         if self.external:
             # the controller's report of its robot topics (remapped as this node's)
@@ -185,7 +187,7 @@ class DMPExecutor(Node):
         # the gains it runs (its parameter service validates them)
         self.controller_parameters = AsyncParameterClient(self, 'pd_controller',
                                                           callback_group=group)
-        self._gains: tuple | None = None        # (kp, kd) the controller runs, as tuples
+        self._gains: tuple | None = None        # (kp, kd, tracking bound) the controller runs
         self._cv = threading.Condition()
         self._evaluations: dict[int, RolloutEvaluation] = {}   # by episode start [ns]
         self._progress: dict[int, float] = {}   # episode start [ns] -> fraction done
@@ -239,8 +241,7 @@ class DMPExecutor(Node):
         namespace's nodes count."""
         namespace = self.get_namespace().rstrip('/')
         for status in msg.status:
-            if status.name in (f'{namespace}/pd_controller: state loss',
-                               f'{namespace}/pd_controller: late trajectory'):
+            if status.name in (f'{namespace}/pd_controller: {what}' for what in FAULTS):
                 values = {kv.key: kv.value for kv in status.values}
                 kind = status.name.rsplit(': ', 1)[-1]
                 with self._cv:
@@ -477,13 +478,15 @@ class DMPExecutor(Node):
         self._check_homed(run, q, qd, duration + spec.settle_time)
 
     def _set_gains(self, run: _Rollout) -> None:
-        """The controller's gains := the task's (``controller.kp/kd``) when they differ from
+        """The controller's gains := the task's (``controller.kp/kd``, and its
+        ``safety.max_tracking_error``) when they differ from
         the gains it runs (at first: those of the task it was started with): two tasks of
         different gains share one running controller. Gains set by hand (``pd_controller``
         parameters) stay as long as the rollouts' tasks have the same gains. A task of
         another robot is refused by the simulator first (a probe), with its reason."""
         task = run.task
-        wanted = (tuple(task.controller.kp.tolist()), tuple(task.controller.kd.tolist()))
+        wanted = (tuple(task.controller.kp.tolist()), tuple(task.controller.kd.tolist()),
+                  task.safety.max_tracking_error)
         if self._gains is None:
             self._gains = self._controller_task_gains()
         if wanted == self._gains:
@@ -491,7 +494,8 @@ class DMPExecutor(Node):
         if not self.external:
             self._probe(run.goal)      # the simulator runs this task's robot, or says why not
         future = self.controller_parameters.set_parameters([
-            Parameter('kp', value=list(wanted[0])), Parameter('kd', value=list(wanted[1]))])
+            Parameter('kp', value=list(wanted[0])), Parameter('kd', value=list(wanted[1])),
+            Parameter('max_tracking_error', value=float(wanted[2]))])
         response = wait_for(future, 10.0, 'pd_controller/set_parameters')
         refused = [r.reason for r in response.results if not r.successful]
         if refused:
@@ -500,13 +504,15 @@ class DMPExecutor(Node):
         self._gains = wanted
 
     def _controller_task_gains(self) -> tuple:
-        """(kp, kd) of the task the controller was started with (its ``task`` parameter)."""
+        """(kp, kd, max_tracking_error) of the task the controller was started with (its
+        ``task`` parameter)."""
         if not self.controller_parameters.wait_for_services(timeout_sec=5.0):
             raise RuntimeError("the controller's parameter service is not available")
         response = wait_for(self.controller_parameters.get_parameters(['task']), 10.0,
                             'pd_controller/get_parameters')
         start = load_task(response.values[0].string_value)
-        return (tuple(start.controller.kp.tolist()), tuple(start.controller.kd.tolist()))
+        return (tuple(start.controller.kp.tolist()), tuple(start.controller.kd.tolist()),
+                start.safety.max_tracking_error)
 
     def _home(self, run: _Rollout) -> None:
         """Drive the arm from where it is to the task's start posture (a ``drive`` reset):
@@ -577,9 +583,13 @@ class DMPExecutor(Node):
             while t0 not in self._evaluations:
                 if goal_handle.is_cancel_requested:
                     raise RuntimeError('rollout canceled')
-                if t0 in self._faults:
+                # a state loss fails at once; an aborted episode runs to its end first (the
+                # simulator takes no reset before), its evaluation then dropped
+                if t0 in self._faults and self._faults[t0][0] != 'tracking abort':
                     raise RuntimeError(self._faults[t0][1])
                 if time.monotonic() > deadline:
+                    if t0 in self._faults:
+                        raise RuntimeError(self._faults[t0][1])
                     done = self._progress.get(t0)
                     raise RuntimeError(
                         f'no rollout_evaluation within {timeout:.1f} s; the simulator reported '
@@ -592,10 +602,13 @@ class DMPExecutor(Node):
                     goal_handle.publish_feedback(feedback)
                     last = feedback.progress
             evaluation = self._evaluations.pop(t0)
+            fault = self._faults.get(t0)
             self._evaluations.clear()
             self._faults.clear()
             self._progress.clear()
             self._reports.clear()
+        if fault is not None:
+            raise RuntimeError(fault[1])
         return evaluation
 
     # -- live goal changes ---------------------------------------------------------------

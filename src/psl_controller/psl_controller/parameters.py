@@ -31,6 +31,10 @@ class ControllerParameters:
     realtime_priority: int = field(default=0, metadata={'doc': (
         'SCHED_FIFO priority of the thread that answers the states (1..99) if the machine '
         'allows it; 0 = normal scheduling')})
+    max_tracking_error: float = field(default=0.0, metadata={'dynamic': True, 'doc': (
+        'rad: a tracking error beyond it aborts the trajectory (the controller holds); 0 = '
+        "the task's safety.max_tracking_error (default: no bound); the executor sets each "
+        "rollout's task's")})
     command_joints: tuple[str, ...] = field(default=('',), metadata={'doc': (
         "the joint order of effort_command (a forward_command_controller's joints); [''] = "
         "the task's command order")})
@@ -43,6 +47,9 @@ class ControllerParameters:
         'what the watchdog commands: zero (zero torque) | hold (the last torque sent)')})
 
     def __post_init__(self):
+        if not self.max_tracking_error >= 0.0:          # NaN too; inf: no bound
+            raise ValueError(f'max_tracking_error must be >= 0 rad, got '
+                             f'{self.max_tracking_error}')
         if not (self.state_timeout >= 0.0 and math.isfinite(self.state_timeout)):
             raise ValueError(f'state_timeout must be a finite number of seconds >= 0, got '
                              f'{self.state_timeout}')

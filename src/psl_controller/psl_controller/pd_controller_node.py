@@ -17,6 +17,10 @@ holds the last point. Each command's reference is published on ``reference``
 (sensor_msgs/JointState: position = q_ref, velocity = qd_ref, effort = u_ffwd) with the
 state's stamp, so the tracking error can be computed and recorded.
 
+A tracking error beyond ``max_tracking_error`` (the rollout's task's ``safety.max_tracking_error``,
+set by the executor as the gains) while a trajectory runs aborts it: the controller holds where the arm is and reports it on /diagnostics (``tracking abort``);
+the executor fails the rollout with the reason.
+
 A trajectory stamped with a start the states have passed already (a robot's clock runs on while
 it travels) is refused and reported on /diagnostics (``late trajectory``, with its start): the
 executor sends it again with a later start.
@@ -99,6 +103,8 @@ class PDController(Node):
         self.joint_names = joint_names_of(task)
         self.selection = JointSelection(self.joint_names)
         self.command_order = self._command_order(self.parameters.command_joints)
+        self.task_bound = task.safety.max_tracking_error       # rad; inf: no bound
+        self.max_tracking_error = self.parameters.max_tracking_error or self.task_bound
         self.law = self._law({name: getattr(self.parameters, name)
                               for name in ('kp', 'kd', 'torque_limit')})
         self.add_on_set_parameters_callback(self.on_set_parameters)
@@ -182,6 +188,9 @@ class PDController(Node):
         except ValueError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         self.law = law                  # one object: a step sees the old law or the new one
+        for p in params:
+            if p.name == 'max_tracking_error':
+                self.max_tracking_error = float(p.value) or self.task_bound
         return SetParametersResult(successful=True)
 
     def on_trajectory(self, msg: JointTrajectory) -> None:
@@ -243,6 +252,8 @@ class PDController(Node):
                 self.start_ns = t
             self.served_ns = t - self.start_ns
             q_ref, qd_ref, u_ffwd = trajectory.sample(self.served_ns)
+            if self.served_ns >= 0 and np.abs(q - q_ref).max() > self.max_tracking_error:
+                q_ref, qd_ref, u_ffwd = self._abort(q, q_ref)
         else:
             if self.hold is None:
                 self.hold = q.copy()
@@ -279,6 +290,17 @@ class PDController(Node):
         torque = (np.zeros(self.n_joints) if self.get_parameter('on_state_loss').value == 'zero'
                   else self._last_torque)
         self.pub_command.publish(Float64MultiArray(data=torque[self.command_order].tolist()))
+
+    def _abort(self, q: np.ndarray, q_ref: np.ndarray) -> tuple:
+        """The tracking error passed the task's safety.max_tracking_error: drop the trajectory,
+        hold where the arm is, report it for the episode; the reference to serve now."""
+        j = int(np.argmax(np.abs(q - q_ref)))
+        self._report('tracking abort', self.start_ns, (
+            f'episode aborted: joint {self.joint_names[j]!r} is {abs(q[j] - q_ref[j]):.4g} rad '
+            f'from its reference at {self.served_ns * 1e-9:.3f} s, beyond the bound '
+            f'{self.max_tracking_error:g} (safety.max_tracking_error); the controller holds'))
+        self.trajectory, self.hold = None, q.copy()
+        return self.hold, np.zeros_like(q), np.zeros_like(q)
 
     def _report(self, what: str, start_ns: int, reason: str) -> None:
         """Log `reason` and report it on /diagnostics (level ERROR, ``<node>: <what>``) for

@@ -164,6 +164,9 @@ class SafetySpec:
     self_collision: StrictBool = False  # no contact between the robot's own geoms in it
     replay_period: Positive = 0.01      # s between the replayed states of the collision check
     penalty: Finite = -100.0            # reward of a refused candidate, minus its violation
+    max_tracking_error: NonNegative = float('inf')  # rad (m), |q - q_ref| of any driven joint
+                                        # while the controller runs a trajectory: beyond it
+                                        # the controller aborts the episode (graph mode)
 
 
 @with_config(SECTION)
