@@ -440,21 +440,28 @@ def _print_summary(args, metrics, out: Path) -> None:
 def _learn_in_process(args, task, out: Path, stop: threading.Event, progress) -> int:
     """The session in this process; graph mode's rollouts through the running graph's
     rollout workers (--workers N: worker0..N-1, else its own loop)."""
-    if args.mode == 'batch':
+    if args.mode == 'batch' and args.task_selection != 'given':
         return _learn_here(args, task, out, stop, progress, workers=None)
     from psl_ros.client import RolloutClient, RosClient
+    from psl_ros.instance_source import TopicInstances
 
     with RosClient(args.namespace) as client:
         names = [f'worker{k}' for k in range(args.workers)] or ['']
-        workers = [RolloutClient(client.node, name) for name in names]
-        return _learn_here(args, task, out, stop, progress, workers=workers)
+        workers = None if args.mode == 'batch' else [RolloutClient(client.node, name)
+                                                     for name in names]
+        instances = None if args.task_selection != 'given' else TopicInstances(
+            client.node, args.tau_topic, task.validate_tau, args.tau_timeout, stop.is_set)
+        return _learn_here(args, task, out, stop, progress, workers=workers,
+                           instances=instances)
 
 
-def _learn_here(args, task, out: Path, stop: threading.Event, progress, workers) -> int:
+def _learn_here(args, task, out: Path, stop: threading.Event, progress, workers,
+                instances=None) -> int:
     from psl_optimizer.learning import Learner, LearnSettings
     from psl_optimizer.policy_search import SearchSettings
     from psl_optimizer.rollout_modes import make_rollouts
     from psl_optimizer.rollouts import Stopped
+    from psl_ros.instance_source import InstanceStopped
 
     try:
         # --budget 0 is the default budget, as max_rollouts_per_task = 0 in a learn_skill goal
@@ -471,7 +478,8 @@ def _learn_here(args, task, out: Path, stop: threading.Event, progress, workers)
                           make_rollouts(args.mode, task, workers=workers,
                                         should_stop=stop.is_set,
                                         model_error=args.model_error,
-                                        measurement_noise=args.measurement_noise))
+                                        measurement_noise=args.measurement_noise),
+                          instances=instances)
 
         def finished(record) -> None:
             progress.finished(record.index, record.best_reward, record.fulfilled,
@@ -481,7 +489,7 @@ def _learn_here(args, task, out: Path, stop: threading.Event, progress, workers)
     except ValueError as exc:
         progress.close()
         return fail('psl learn', exc, 2)
-    except Stopped:             # graph mode: Ctrl-C between two rollouts of a task
+    except (Stopped, InstanceStopped):   # Ctrl-C between two rollouts, or while waiting
         progress.close()
         return fail('psl learn', f'stopped after {len(learner.done)} of {args.tasks} tasks; '
                     f'the same command resumes from {out}', 130)
@@ -566,8 +574,15 @@ def _learn_options(p: argparse.ArgumentParser) -> None:
                    help='--learner here --mode graph: the graph runs N rollout workers '
                    '(psl up --workers N); 0 (default): its own loop')
     p.add_argument('--task-selection', choices=TASK_SELECTIONS, default=TASK_SELECTIONS[0],
-                   help='next instance: random, or the most uncertain of 20 candidates '
-                   "(the skill's predictive variance)")
+                   help='next instance: random, the most uncertain of 20 candidates '
+                   "(the skill's predictive variance), or given: each from --tau-topic (the "
+                   'environment decides: perception, an operator)')
+    p.add_argument('--tau-topic', default='task_instance_request', metavar='TOPIC',
+                   help='--task-selection given: the instances, std_msgs/Float64MultiArray '
+                   '(data = tau), one per message, in order; a bad one is skipped (the learner '
+                   "node: its tau_topic parameter)")
+    p.add_argument('--tau-timeout', type=options.positive_float, default=600.0, metavar='S',
+                   help='--task-selection given: seconds to wait for the next instance')
     p.add_argument('--skill-map', default='elm', metavar='MAP',
                    help='the skill slot (batch mode): elm, the skill memory (default), or a '
                    'baseline in its place: library (k nearest solved instances, '

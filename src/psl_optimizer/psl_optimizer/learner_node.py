@@ -35,6 +35,7 @@ from psl_optimizer.rollouts import MODES, Rollouts, Stopped
 from psl_ros import names
 from psl_ros.action_server import ActionServer
 from psl_ros.client import MemoryClient, RolloutClient
+from psl_ros.instance_source import InstanceStopped, TopicInstances
 from psl_ros.node_main import run_node
 from psl_ros.parameters import declare
 from psl_task.task import TaskDefinition, TaskError, load_task
@@ -147,23 +148,29 @@ class LearnerNode(Node):
                                    f'{settings.seed}, {settings.num_tasks} tasks, {mode} '
                                    f'mode -> {out}')
             skill = ServiceSkill(self, task, self.parameters.service_timeout)
+            instances = None
             try:
                 if not (out / 'checkpoint.json').is_file():
                     # the memory node writes the session's memory file: it checks the folder
                     # (inside its memory_dir) before any work, and makes it
                     skill.save(out / 'memory.npz')
+                instances = None if settings.task_selection != 'given' else TopicInstances(
+                    self, self.parameters.tau_topic, task.validate_tau,
+                    self.parameters.tau_timeout, lambda: goal_handle.is_cancel_requested)
                 learner = Learner(task, settings, out,
                                   rollouts=self._rollouts(task, mode, goal_handle),
-                                  skill=skill)
+                                  skill=skill, instances=instances)
             except (TaskError, ValueError, RuntimeError) as exc:
                 skill.release()
+                if instances is not None:
+                    self.destroy_subscription(instances.subscription)
                 goal_handle.abort()
                 result.message = str(exc)
                 return result
             learner.rollouts = WatchedRollouts(learner.rollouts, goal_handle, learner)
             try:
                 metrics = learner.run()
-            except Stopped:
+            except (Stopped, InstanceStopped):
                 goal_handle.canceled()
                 result.message = self._stopped('cancelled', learner)
                 return result
@@ -174,6 +181,8 @@ class LearnerNode(Node):
                 return result
             finally:
                 skill.release()
+                if instances is not None:
+                    self.destroy_subscription(instances.subscription)
             summary = metrics.summary
             goal_handle.succeed()
             result.success = True

@@ -34,6 +34,12 @@ class LearnerParameters:
         'seconds to wait for a skill memory answer')})
     rollout_timeout: float = field(default=ROLLOUT_TIMEOUT, metadata={'doc': (
         'seconds to wait for one graph-mode rollout')})
+    tau_topic: str = field(default='task_instance_request', metadata={'doc': (
+        "task selection 'given': the topic the instances come on (std_msgs/Float64MultiArray, "
+        'data = tau; psl_ros/instance_source.py)')})
+    tau_timeout: float = field(default=600.0, metadata={'doc': (
+        "task selection 'given': seconds to wait for the next instance before the session "
+        'ends with the reason')})
     workers: tuple[str, ...] = field(default=('',), metadata={'doc': (
         "graph mode: namespaces of the rollout workers, relative to this node's ('' = its "
         'own); a population is spread over them, one rollout per worker at a time; psl up '
@@ -49,7 +55,9 @@ class LearnerParameters:
         for name in ('max_tasks', 'max_rollouts_per_task', 'popsize'):
             if getattr(self, name) < 1:
                 raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
-        for name in ('sigma0', 'service_timeout', 'rollout_timeout'):
+        if not self.tau_topic:
+            raise ValueError('tau_topic must name a topic')
+        for name in ('sigma0', 'service_timeout', 'rollout_timeout', 'tau_timeout'):
             if not getattr(self, name) > 0.0:
                 raise ValueError(f'{name} must be > 0, got {getattr(self, name)}')
         if not self.cost_weight >= 0.0:

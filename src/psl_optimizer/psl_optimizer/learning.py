@@ -383,6 +383,8 @@ class Learner:
     Args:
         rollouts: how the rollouts run (`Rollouts`: batch or graph mode,
             `psl_optimizer.rollout_modes.make_rollouts`).
+        instances: with task selection 'given', the source of the training instances: task
+            index -> tau (it may wait for the environment; `psl_ros.instance_source`).
         skill: object with query/variance/add/save/start/restore (InProcessSkill, or the
             skill_memory node behind its services); default: InProcessSkill. Its
             ``continuations`` (default ('samples',)) say how it can continue a skill.
@@ -394,7 +396,12 @@ class Learner:
     """
 
     def __init__(self, task: TaskDefinition, settings: LearnSettings, out: str | Path,
-                 rollouts: Rollouts, skill=None):
+                 rollouts: Rollouts, skill=None,
+                 instances: Callable[[int], np.ndarray] | None = None):
+        if (settings.task_selection == 'given') != (instances is not None):
+            raise ValueError("task selection 'given' takes the instances from a source (e.g. "
+                             'a topic: psl learn --tau-topic), and only it does')
+        self.instances = instances      # index -> tau, for task_selection 'given'
         error = ModelError.parse(settings.model_error)
         simulated = getattr(rollouts, 'model_error', ModelError())
         if simulated != error:
@@ -487,8 +494,12 @@ class Learner:
             if should_stop is not None and should_stop():
                 break
             drawn = next(stream)
-            tau = drawn if s.task_selection == 'random' else most_uncertain(
-                self.task, self.skill.variance, s.selection_candidates, s.seed, index)
+            if s.task_selection == 'given':
+                tau = np.asarray(self.instances(index), dtype=float)
+                self.task.validate_tau(tau)
+            else:
+                tau = drawn if s.task_selection == 'random' else most_uncertain(
+                    self.task, self.skill.variance, s.selection_candidates, s.seed, index)
             start, refused = time.perf_counter(), self.rollouts.refused
             result = self._search(tau, index, centre, scale)
             confirmed, extra = self._confirm(tau, result)

@@ -3,7 +3,11 @@
 Training instances come from a seed (`task_sequence`, uniform over the task's ranges); the
 held-out test instances from a separate stream of the same seed (`held_out_tasks`), never
 trained on. With active task selection (``variance``) the next training instance is instead
-the candidate where the skill is least certain (`most_uncertain`). Imports no ROS.
+the candidate where the skill is least certain (`most_uncertain`). With ``given`` the instances
+come from the environment ("the task parameterization is typically given by environmental
+conditions and cannot be influenced by the learning method"): a source the session is handed
+(`psl_ros.instance_source.TopicInstances`: perception or an operator on a topic) says each
+one; the session learns on whatever it is given. Imports no ROS.
 """
 from __future__ import annotations
 
@@ -34,7 +38,7 @@ def held_out_tasks(task: TaskDefinition, count: int, seed: int) -> np.ndarray:
     return task_sequence(task, count, seed + TEST_SEED_OFFSET)
 
 
-TASK_SELECTIONS = ('random', 'variance')
+TASK_SELECTIONS = ('random', 'variance', 'given')
 CANDIDATE_SEED_OFFSET = 2_000_003   # candidates of variance-driven selection: their own stream
 
 
