@@ -4,9 +4,10 @@ offer what a ros2_control robot offers and nothing else.
 It publishes sensor_msgs/JointState on /joint_states (its own joint order, one extra joint,
 wall-clock stamps, 1 mrad of noise, effort = the torque applied) and takes
 std_msgs/Float64MultiArray torques on /effort_controller/commands (its own order). Its masses
-are 30 % above the model's, a command acts one period after it came, and it applies zero
-torque when commands stop for 5 periods. Its brakes hold the arm until the first command. It offers no service (no parameter services either).
-SIGUSR1 makes its joint states stop for ``--silence`` seconds (a cable pulled).
+are 30 % above the model's, its joints have damping (+0.3 N m s/rad) and friction (0.05 N m)
+the model lacks, a command acts one period after it came, and it applies zero torque when
+commands stop for 5 periods. Its brakes hold the arm until the first command. It offers no
+service (no parameter services either). SIGUSR1 makes its joint states stop for ``--silence`` seconds (a cable pulled).
 
     python minimal_robot.py --model M.xml --joints j3 j2 j1 --start 0.1 0.2 0.3
 """
@@ -33,9 +34,11 @@ a = args.parse_args()
 model = mujoco.MjModel.from_xml_path(a.model)
 model.body_mass[1:] *= 1.3
 model.body_inertia[1:] *= 1.3
-data = mujoco.MjData(model)
 ids = [model.joint(name).id for name in a.joints]
 qpos, dofs = model.jnt_qposadr[ids], model.jnt_dofadr[ids]
+model.dof_damping[dofs] += 0.3          # N m s/rad: joints the model does not know
+model.dof_frictionloss[dofs] += 0.05    # N m
+data = mujoco.MjData(model)
 data.qpos[qpos] = a.start
 mujoco.mj_forward(model, data)
 period, n = model.opt.timestep, len(ids)
