@@ -342,9 +342,7 @@ class DMPExecutor(Node):
         if reset == 'drive':
             self._home(run)
         if changes:
-            self._announce(GoalUpdate(time_from_start=goal.new_goal_time,
-                                      goal=list(goal.new_goal),
-                                      last_reference=run.reference.q[-1].tolist()))
+            self._announce_known_change(run)
         try:
             building = time.monotonic()
             trajectory = trajectory_msg(run.joint_names, run.reference)
@@ -374,9 +372,7 @@ class DMPExecutor(Node):
         self._set_gains(run)
         self._home_robot(run)
         if changes:
-            self._announce(GoalUpdate(time_from_start=goal.new_goal_time,
-                                      goal=list(goal.new_goal),
-                                      last_reference=run.reference.q[-1].tolist()))
+            self._announce_known_change(run)
         try:
             building = time.monotonic()
             trajectory = trajectory_msg(run.joint_names, run.reference)
@@ -476,6 +472,13 @@ class DMPExecutor(Node):
                 break
             time.sleep(task.control_period)
         self._check_homed(run, q, qd, duration + spec.settle_time)
+
+    def _announce_known_change(self, run: _Rollout) -> None:
+        """Tell the evaluator of the goal change the action goal asked for, before the episode
+        (stamped zero: the next episode)."""
+        goal = run.goal
+        self._announce(GoalUpdate(time_from_start=goal.new_goal_time, goal=list(goal.new_goal),
+                                  last_reference=run.reference.q[-1].tolist()))
 
     def _set_gains(self, run: _Rollout) -> None:
         """The controller's gains := the task's (``controller.kp/kd``, and its

@@ -55,6 +55,7 @@ from psl_optimizer.reward import Reward
 from psl_optimizer.rollouts import RolloutResult, Rollouts, refused_result
 from psl_task.arm_model import ArmModel
 from psl_task.model_error import ModelError
+from psl_task.key_values import parse_key_values
 from psl_task.model_spec import task_spec
 from psl_task.reward_geometry import RewardGeometry
 from psl_task.safety_check import SafetyCheck
@@ -96,20 +97,7 @@ class MeasurementNoise:
     def parse(cls, text: str) -> 'MeasurementNoise':
         """From ``"position=0.001,velocity=0.01,seed=0"`` (any subset; empty: none).
         ValueError naming what is wrong."""
-        values: dict = {}
-        fields = {f.name for f in dataclasses.fields(cls)}
-        for part in filter(None, (p.strip() for p in text.split(','))):
-            key, sep, value = part.partition('=')
-            key = key.strip()
-            if not sep or key not in fields:
-                raise ValueError(f'measurement noise {part!r}: give KEY=VALUE with KEY one of '
-                                 f'{", ".join(sorted(fields))}')
-            try:
-                values[key] = int(value) if key == 'seed' else float(value)
-            except ValueError:
-                raise ValueError(f'measurement noise {key}: {value.strip()!r} is not a '
-                                 f'{"whole number" if key == "seed" else "number"}') from None
-        return cls(**values)
+        return parse_key_values(cls, text, 'measurement noise')
 
 
 def rollout_key(reference: Reference, tau: np.ndarray) -> int:

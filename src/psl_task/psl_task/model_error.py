@@ -16,6 +16,7 @@ import math
 import mujoco
 import numpy as np
 
+from psl_task.key_values import parse_key_values
 from psl_task.model_spec import robot_bodies
 
 
@@ -43,20 +44,7 @@ class ModelError:
     def parse(cls, text: str) -> ModelError:
         """From ``"mass_scale=1.3,frictionloss=0.05,damping=0.3"`` (any subset; empty: none).
         ValueError naming what is wrong."""
-        values = {}
-        fields = {f.name for f in dataclasses.fields(cls)}
-        for part in filter(None, (p.strip() for p in text.split(','))):
-            key, sep, value = part.partition('=')
-            key = key.strip()
-            if not sep or key not in fields:
-                raise ValueError(f'model error {part!r}: give KEY=VALUE with KEY one of '
-                                 f'{", ".join(sorted(fields))}')
-            try:
-                values[key] = float(value)
-            except ValueError:
-                raise ValueError(f'model error {key}: {value.strip()!r} is not a number') \
-                    from None
-        return cls(**values)
+        return parse_key_values(cls, text, 'model error')
 
     def apply(self, model: mujoco.MjModel, joint_ids: np.ndarray) -> None:
         """Make `model` (compiled, changed in place) the robot this error describes; the driven
