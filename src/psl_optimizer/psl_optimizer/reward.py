@@ -216,7 +216,8 @@ class Reward:
             'penetration': penetration(distance) if distance is not None else np.zeros(len(q)),
             'clearance': (clearance(distance, self.spec.clearance_margin)
                           if distance is not None else np.zeros(len(q))),
-            'smoothness': smoothness(q, self.task.control_period),
+            'smoothness': smoothness(q if self.spec.smoothness_of == 'measured' else q_ref,
+                                     self.task.control_period),
             'effort': effort(torque),
             'tracking_error': tracking_error(q, q_ref),
             'orientation_error': (orientation_error(measured.end_effector_quat[:, -1],

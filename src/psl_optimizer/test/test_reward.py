@@ -363,3 +363,31 @@ def test_a_task_weighting_an_unknown_component_is_refused(task, arm):
         task.reward, weights={**task.reward.weights, 'goal_eror': 1.0}))
     with pytest.raises(ValueError, match='goal_eror'):
         Reward(typo, RewardGeometry(arm))
+
+
+def test_smoothness_of_the_reference_ignores_measurement_noise(task, tmp_path):
+    """reward.smoothness_of: reference scores the commanded motion: noise on the measured
+    angles leaves it as it is (the measured one grows by about 6 sigma^2 / dt^4); without
+    noise the measured default and the reference agree when the arm tracks exactly."""
+    import yaml
+    data = yaml.safe_load(task.path.read_text())
+    data.update(name='reach_reference_smoothness', model=str(task.model_path))
+    data['reward']['smoothness_of'] = 'reference'
+    path = tmp_path / 'task.yaml'
+    path.write_text(yaml.safe_dump(data))
+    by_reference = load_task(str(path))
+    policy = TaskPolicy(task)
+    q_ref = policy.reference(policy.default_theta).q
+    torque = np.zeros_like(q_ref)
+    sigma, dt = 1e-3, task.control_period
+    noisy = q_ref + np.random.default_rng(0).normal(0.0, sigma, q_ref.shape)
+    measured = Reward(task, RewardGeometry(ArmModel(task)))
+    referenced = Reward(by_reference, RewardGeometry(ArmModel(by_reference)))
+    clean = evaluate_rollout(measured, task.tau_default, q_ref, torque, q_ref)
+    assert evaluate_rollout(referenced, task.tau_default, q_ref, torque, q_ref) \
+        .components['smoothness'] == clean.components['smoothness']
+    assert evaluate_rollout(referenced, task.tau_default, noisy, torque, q_ref) \
+        .components['smoothness'] == clean.components['smoothness']
+    grown = evaluate_rollout(measured, task.tau_default, noisy, torque, q_ref) \
+        .components['smoothness'] - clean.components['smoothness']
+    assert grown == pytest.approx(6 * sigma**2 / dt**4, rel=0.1)

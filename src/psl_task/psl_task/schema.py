@@ -145,6 +145,10 @@ class RewardSpec:
     clearance_margin: NonNegative = 0.0   # m; closer than this to an obstacle costs
     obstacle_geoms: tuple[str, ...] = ()  # geoms the arm must keep clear of
     arm_geoms: tuple[str, ...] = ()       # the arm's geoms measured against them
+    # what the smoothness component differentiates twice: the measured joint angles, or the
+    # commanded reference (a noisy robot: 1 mrad of noise at 2 ms adds about 6 sigma^2/dt^4 =
+    # 4e5 rad^2/s^4 to the measured one, more than any motion, docs/benchmarks.md)
+    smoothness_of: Literal['measured', 'reference'] = 'measured'
 
 
 @with_config(SECTION)
