@@ -110,6 +110,18 @@ def test_an_update_is_refused_with_the_dataclasses_reason(running):
         assert result.successful
 
 
+@pytest.mark.parametrize('value', [float('nan'), -1.0])
+def test_a_bad_tracking_bound_is_refused_and_the_controller_keeps_serving(running, value):
+    _, client = running
+    with parameter_client(client, 'pd_controller') as parameters:
+        (result,) = _asked(lambda: parameters.set_parameters(
+            [Parameter('max_tracking_error', value=value)]), 'set_parameters').results
+        assert not result.successful and 'max_tracking_error must be >= 0' in result.reason
+        (kept,) = _asked(lambda: parameters.get_parameters(['max_tracking_error']),
+                         'get_parameters').values
+        assert kept.double_value == 0.0
+
+
 @pytest.mark.parametrize('node', sorted(node_parameters()))
 def test_psl_params_writes_the_defaults(node):
     written = yaml.safe_load(parameter_file(node))['/**']['ros__parameters'] or {}
