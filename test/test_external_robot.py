@@ -114,10 +114,11 @@ class Recorder:
             self.commands.append((time.time(), np.array(msg.data)))    # the robot's clock
 
 
-def test_the_robot_offers_no_service_and_its_own_joint_order(client, robot):
+def test_the_robot_offers_no_service_and_its_own_joint_order(client, robot, wait_until):
     recorder = Recorder(client.node)
-    assert _wait(lambda: len(recorder.states) > 10)
-    assert _wait(lambda: ('minimal_robot', '/') in client.node.get_node_names_and_namespaces())
+    assert wait_until(lambda: len(recorder.states) > 10, 30.0)
+    assert wait_until(
+        lambda: ('minimal_robot', '/') in client.node.get_node_names_and_namespaces(), 30.0)
     assert client.node.get_service_names_and_types_by_node('minimal_robot', '/') == []
     assert recorder.states[-1][2] == robot_order(load_task(TASK)) + ['gripper_finger']
 
@@ -144,8 +145,8 @@ def test_a_graph_mode_session_on_the_robot(client, tmp_path):
     assert jumps.max() < 0.01, f'a jump of {jumps.max():.3f} rad between two states'
 
 
-def test_states_that_stop_mid_episode_fail_the_rollout_and_the_controller_stops(client,
-                                                                              robot):
+def test_states_that_stop_mid_episode_fail_the_rollout_and_the_controller_stops(client, robot,
+                                                                              wait_until):
     """The robot's joint states stop mid-episode: the controller commands zero torque
     within its state_timeout and a period or two, the rollout fails with the reason, and the
     next rollout (states back) succeeds."""
@@ -167,7 +168,7 @@ def test_states_that_stop_mid_episode_fail_the_rollout_and_the_controller_stops(
     rolling.start()
     try:
         # the primitive's episode is announced (LEAD s before its start): silence from now
-        assert _wait(lambda: outcome or any(not e.homing for e in episodes), 60)
+        assert wait_until(lambda: outcome or any(not e.homing for e in episodes), 60)
         assert not outcome, outcome[0].message
         os.kill(robot.pid, signal.SIGUSR1)
         silenced = time.monotonic()
@@ -189,7 +190,7 @@ def test_states_that_stop_mid_episode_fail_the_rollout_and_the_controller_stops(
     assert stopped_after < STATE_TIMEOUT + 0.2, f'zero torque only {stopped_after:.3f} s after'
     assert all(t < zero[0] for t in late), 'it commanded torque after it had stopped'
     # the states come back: the session can go on
-    assert _wait(lambda: recorder.states[-1][1] > silenced + SILENCE, SILENCE + 10)
+    assert wait_until(lambda: recorder.states[-1][1] > silenced + SILENCE, SILENCE + 10)
     again = client.rollout(TASK, tau, theta, timeout=120)
     assert again.success, again.message
 
@@ -198,11 +199,3 @@ def _default_theta(task):
     from psl_controller.policy import policy_for
     return policy_for(task).default_theta
 
-
-def _wait(condition, timeout: float = 30.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.01)
-    return True

@@ -44,3 +44,12 @@ def test_a_session_learns_on_the_instances_published_to_it(tmp_path, wait_until)
     assert learn.returncode == 0, stderr
     tasks = json.loads((out / 'metrics.json').read_text())['tasks']
     np.testing.assert_array_equal([t['tau'] for t in tasks], given)
+
+
+def test_a_topic_that_is_no_topic_name_is_refused_with_the_reason(tmp_path):
+    bad = 'a b' + 'x' * 100_000
+    done = subprocess.run(PSL + ['learn', '--tasks', '1', '--task-selection', 'given',
+                                 '--tau-topic', bad, '-o', str(tmp_path / 'out')],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and 'Invalid topic name' in done.stderr
+    assert 'Traceback' not in done.stderr and len(done.stderr) < 1000

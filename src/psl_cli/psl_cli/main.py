@@ -449,8 +449,12 @@ def _learn_in_process(args, task, out: Path, stop: threading.Event, progress) ->
         names = [f'worker{k}' for k in range(args.workers)] or ['']
         workers = None if args.mode == 'batch' else [RolloutClient(client.node, name)
                                                      for name in names]
-        instances = None if args.task_selection != 'given' else TopicInstances(
-            client.node, args.tau_topic, task.validate_tau, args.tau_timeout, stop.is_set)
+        try:
+            instances = None if args.task_selection != 'given' else TopicInstances(
+                client.node, args.tau_topic, task.validate_tau, args.tau_timeout, stop.is_set)
+        except ValueError as exc:
+            progress.close()
+            return fail('psl learn', exc, 2)
         return _learn_here(args, task, out, stop, progress, workers=workers,
                            instances=instances)
 

@@ -14,7 +14,9 @@ import time
 from typing import Callable
 
 import numpy as np
+from rclpy.exceptions import NameValidationException
 from rclpy.node import Node
+from rclpy.validate_topic_name import validate_topic_name
 from std_msgs.msg import Float64MultiArray
 
 from psl_ros.qos import RELIABLE
@@ -36,6 +38,11 @@ class TopicInstances:
         self.node, self.validate, self.timeout = node, validate, timeout
         self.should_stop = should_stop
         self._queue: queue.Queue = queue.Queue()
+        try:
+            validate_topic_name(topic if topic.startswith(('/', '~')) else '/' + topic)
+        except NameValidationException as exc:
+            raise ValueError(f'task instance topic {topic[:80]!r}: '
+                             f'{str(exc).splitlines()[0]}') from None
         self.subscription = node.create_subscription(
             Float64MultiArray, topic, lambda m: self._queue.put(np.array(m.data, dtype=float)),
             RELIABLE)
