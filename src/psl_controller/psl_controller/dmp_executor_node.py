@@ -169,7 +169,7 @@ class DMPExecutor(Node):
         self.external = self.get_parameter('robot').value == 'external'
         self._states: list[tuple] = []          # (stamp [ns], q, qd, names), the newest last
         self._state_seen = 0.0                  # monotonic time of the newest
-        self._selections: dict[tuple, JointSelection] = {}
+        self._selections: dict = {}             # task path -> its JointSelection
         # trajectory start [ns] -> (what of FAULTS, why) the controller reported
         self._faults: dict[int, tuple[str, str]] = {}
         if self.external:
@@ -225,8 +225,9 @@ class DMPExecutor(Node):
                                    f'{self.resolve_topic_name(names.JOINT_STATES)} (none for '
                                    f'{STALE:g} s, waited {ACK_TIMEOUT:g} s)')
             time.sleep(0.01)
-        joints = tuple(joint_names_of(task))
-        select = self._selections.setdefault(joints, JointSelection(joints))
+        if task.path not in self._selections:   # compiles the model: once per task
+            self._selections[task.path] = JointSelection(joint_names_of(task))
+        select = self._selections[task.path]
         states = self._states[-count:]
         try:
             q = np.mean([select.pick(names_, q) for _, q, _, names_ in states], axis=0)
