@@ -35,7 +35,8 @@ goal from a switch time on):
   reference the safety check refuses changes nothing, and the result message says why.
 
 Every reference that reaches the controller passes the task's safety check: the rollout's,
-a live goal change's spliced one, and a drive reset's homing quintic.
+a live goal change's spliced one, and a drive reset's homing quintic (whose feed-forward is
+the model's inverse dynamics with the instance applied: it holds the arm against gravity).
 
 A robot psl does not simulate (``robot: external``): it only publishes ``joint_states`` (its
 stamps, its joint order) and takes ``effort_command``; nobody serves ``sim/reset``. psl runs
@@ -45,7 +46,8 @@ posture to the start posture (always: the robot is wherever it was left), stampe
 world's tau: psl's simulator playing a robot places it), run until a state at its end came,
 then checked against ``homing.tolerance`` on the mean of the last `SETTLE_STATES` states
 (noise), again each new state for up to another ``homing.settle_time`` (a robot settles in
-its own time); then the primitive, stamped the same way, its episode announced on ``task_instance``
+its own time); an arm at rest off the start (the robot is heavier than its model) is held
+again with a corrected torque, up to `HOLD_CORRECTIONS` times; then the primitive, stamped the same way, its episode announced on ``task_instance``
 by the executor; the evaluator matches states and references by the robot's stamps
 (`psl_optimizer.episode_grid`). A state loss the controller's watchdog reports for the
 episode's trajectory fails the rollout at once, with the controller's reason.
@@ -68,7 +70,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from psl_controller.homing import homing_reference
+from psl_controller.homing import corrected_hold, hold_stiffness, homing_reference
 from psl_controller.parameters import ExecutorParameters
 from psl_controller.policy import Reference, TaskPolicy, policy_for
 from psl_msgs.action import ExecuteRollout
@@ -102,6 +104,7 @@ STALE = 0.5             # s: an external robot whose newest state is older is no
 # the others fail the rollout with the controller's reason
 FAULTS = ('state loss', 'late trajectory', 'tracking abort')
 SETTLE_STATES = 25      # the states averaged for the homing check on an external robot
+HOLD_CORRECTIONS = 3    # holds with a corrected torque when homing comes to rest off the start
 
 
 def trajectory_msg(joint_names: list[str], ref: Reference) -> JointTrajectory:
@@ -438,14 +441,33 @@ class DMPExecutor(Node):
                            'of the robot\'s newest state, three times')
 
     def _home_robot(self, run: _Rollout) -> None:
-        """`_home` on an external robot, from its measured joint states (module docstring)."""
-        goal, task, spec = run.goal, run.task, run.task.homing
+        """`_home` on an external robot, from its measured joint states (module docstring).
+        An arm that comes to rest off the start (the robot's gravity is not the model's) is
+        held there again with the held torque corrected, up to HOLD_CORRECTIONS times
+        (`psl_controller.homing.corrected_hold`)."""
+        task, spec = run.task, run.task.homing
         _, q0, qd0 = self._measured(task)
-        start = task.start_posture
-        reference = homing_reference(q0, qd0, start, spec, task.control_period)
-        verdict = self._safety(task).check(np.asarray(goal.tau), reference.q, reference.qd)
-        if not verdict.safe:
-            raise ValueError(f'homing refused by the safety check: {verdict.reason}')
+        reference = self._homing(run, q0, qd0)
+        self._run_on_robot(run, reference)
+        q, qd = self._settled(run)
+        held, waited = reference.u_ffwd[-1], float(reference.t[-1]) + spec.settle_time
+        for _ in range(HOLD_CORRECTIONS):
+            if self._homed(run, q, qd) or np.abs(qd).max() > spec.tolerance:
+                break                                     # there, or not at rest
+            kp = self._gains[0] if self._gains else task.controller.kp
+            hold = corrected_hold(task.start_posture, held, hold_stiffness(
+                kp, self._inverse_dynamics(run), task.start_posture), q, spec.settle_time,
+                task.control_period)
+            held = hold.u_ffwd[-1]
+            self._run_on_robot(run, hold)
+            q, qd = self._settled(run)
+            waited += 2 * spec.settle_time
+        self._check_homed(run, q, qd, waited)
+
+    def _run_on_robot(self, run: _Rollout, reference: Reference) -> None:
+        """Run a homing `reference` on the robot (announced, not evaluated) and wait for the
+        robot's first state past its end; RuntimeError on a fault or none in time."""
+        goal, task = run.goal, run.task
         duration = float(reference.t[-1])
         t0 = self._start_on_robot(trajectory_msg(run.joint_names, reference), TaskInstance(
             task=goal.task, tau=list(goal.tau), num_steps=len(reference.t) - 1,
@@ -458,21 +480,21 @@ class DMPExecutor(Node):
                 if t0 in self._faults:
                     raise RuntimeError(f'homing: {self._faults[t0][1]}')
                 if self._states and self._states[-1][0] >= end:
-                    break
+                    return
                 if time.monotonic() > deadline:
                     raise RuntimeError(f'homing: no joint state of its end within '
                                        f'{duration:.1f} s + the timeout margin')
                 self._cv.wait(timeout=0.01)
-        # a robot settles in its own time: the check is made again, each new state, for up
-        # to another settle_time (the mean of the newest SETTLE_STATES: the noise averaged)
-        until = time.monotonic() + spec.settle_time
+
+    def _settled(self, run: _Rollout) -> tuple[np.ndarray, np.ndarray]:
+        """The posture and velocity (means of the newest SETTLE_STATES: the noise averaged)
+        once homed, or after another homing.settle_time: a robot settles in its own time."""
+        until = time.monotonic() + run.task.homing.settle_time
         while True:
-            _, q, qd = self._measured(task, SETTLE_STATES)
-            if time.monotonic() > until or np.maximum(np.abs(q - task.start_posture),
-                                                      np.abs(qd)).max() <= spec.tolerance:
-                break
-            time.sleep(task.control_period)
-        self._check_homed(run, q, qd, duration + spec.settle_time)
+            _, q, qd = self._measured(run.task, SETTLE_STATES)
+            if time.monotonic() > until or self._homed(run, q, qd):
+                return q, qd
+            time.sleep(run.task.control_period)
 
     def _announce_known_change(self, run: _Rollout) -> None:
         """Tell the evaluator of the goal change the action goal asked for, before the episode
@@ -530,10 +552,7 @@ class DMPExecutor(Node):
         start = task.start_posture
         if np.abs(q0 - start).max() <= spec.tolerance and np.abs(qd0).max() <= spec.tolerance:
             return                                  # there already
-        reference = homing_reference(q0, qd0, start, spec, task.control_period)
-        verdict = self._safety(task).check(np.asarray(goal.tau), reference.q, reference.qd)
-        if not verdict.safe:
-            raise ValueError(f'homing refused by the safety check: {verdict.reason}')
+        reference = self._homing(run, q0, qd0)
         self.pub_trajectory.publish(trajectory_msg(run.joint_names, reference))
         self._acked(self.pub_trajectory, 'the controller did not receive the homing trajectory')
         response = self._call(self.reset_client, ResetTask.Request(
@@ -553,6 +572,32 @@ class DMPExecutor(Node):
                                f'{reference.t[-1]:.1f} s + the timeout margin: {probe.message}')
         self._check_homed(run, np.asarray(probe.position), np.asarray(probe.velocity),
                           float(reference.t[-1]))
+
+    def _homing(self, run: _Rollout, q0: np.ndarray, qd0: np.ndarray) -> Reference:
+        """The homing quintic from q0, qd0 to the start posture with the model's inverse
+        dynamics as its feed-forward (`psl_controller.homing`); ValueError unless it passes
+        the safety check."""
+        task = run.task
+        reference = homing_reference(q0, qd0, task.start_posture, task.homing,
+                                     task.control_period, self._inverse_dynamics(run))
+        verdict = self._safety(task).check(np.asarray(run.goal.tau), reference.q,
+                                           reference.qd)
+        if not verdict.safe:
+            raise ValueError(f'homing refused by the safety check: {verdict.reason}')
+        return reference
+
+    @staticmethod
+    def _homed(run: _Rollout, q: np.ndarray, qd: np.ndarray) -> bool:
+        """Within homing.tolerance of the start posture, at rest."""
+        return bool(np.maximum(np.abs(q - run.task.start_posture), np.abs(qd)).max()
+                    <= run.task.homing.tolerance)
+
+    def _inverse_dynamics(self, run: _Rollout):
+        """The model's inverse dynamics with the rollout's instance applied, (q, qd, qdd) ->
+        torque: the homing's feed-forward."""
+        tau = run.task.validate_tau(np.asarray(run.goal.tau))
+        arm = self._safety(run.task).arm
+        return lambda q, qd, qdd: arm.inverse_dynamics(tau, q, qd, qdd)
 
     def _check_homed(self, run: _Rollout, q: np.ndarray, qd: np.ndarray,
                      duration: float) -> None:

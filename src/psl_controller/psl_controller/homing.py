@@ -10,9 +10,20 @@ the end (position q1, zero velocity and acceleration)::
 s = t / T, d = q1 - q0, then holds q1 for the settle time. From rest its peak velocity is
 15 d / (8 T) and its peak acceleration 10 d / (sqrt(3) T^2): the duration is the shortest that
 keeps every joint within ``max_velocity`` and ``max_acceleration`` (and at least
-``min_duration``), checked on the sampled path with the moving start too. Imports no ROS.
+``min_duration``), checked on the sampled path with the moving start too.
+
+Its feed-forward is the model's inverse dynamics along the quintic when one is given
+(``feed_forward(q, qd, qdd)``, e.g. `psl_task.arm_model.ArmModel.inverse_dynamics` with the
+instance applied): the torque that carries the arm and holds it against gravity at the start
+posture, so that PD corrects only the model's error (a payload arm under PD alone sags by
+``g(q) / kp``). On a robot the model does not match, the arm still comes to rest off the start,
+by about ``(g_robot - g_model) / kp``: a hold with the held torque raised by
+``(kp + dg/dq) (q1 - q)`` measured cancels that to first order (a Newton step on the held
+torque, `corrected_hold`). Imports no ROS.
 """
 from __future__ import annotations
+
+from typing import Callable
 
 import numpy as np
 
@@ -56,12 +67,47 @@ def homing_duration(q0: np.ndarray, qd0: np.ndarray, q1: np.ndarray,
     return float(T)
 
 
+FeedForward = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
+
 def homing_reference(q0: np.ndarray, qd0: np.ndarray, q1: np.ndarray, spec: HomingSpec,
-                     dt: float) -> Reference:
+                     dt: float, feed_forward: FeedForward | None = None) -> Reference:
     """The homing motion sampled every control period dt: the quintic, then ``settle_time``
-    held at q1 (feed-forward zero)."""
+    held at q1; feed-forward ``feed_forward(q, qd, qdd)`` on those samples (T, n), else zero."""
     q0, qd0, q1 = (np.asarray(a, dtype=float) for a in (q0, qd0, q1))
     T = homing_duration(q0, qd0, q1, spec, dt)
     t = np.arange(int(round((T + spec.settle_time) / dt)) + 1) * dt
-    q, qd, _ = quintic(q0, qd0, q1, T, t)
-    return Reference(t=t, q=q, qd=qd, u_ffwd=np.zeros_like(q))
+    q, qd, qdd = quintic(q0, qd0, q1, T, t)
+    u = np.zeros_like(q) if feed_forward is None else np.asarray(feed_forward(q, qd, qdd),
+                                                                  dtype=float)
+    return Reference(t=t, q=q, qd=qd, u_ffwd=u)
+
+
+def hold_stiffness(kp: np.ndarray, feed_forward: FeedForward, q1: np.ndarray,
+                   step: float = 1e-4) -> np.ndarray:
+    """The stiffness (n, n) of the arm held at q1 under PD with its gravity: kp + dg/dq, the
+    gravity torque's Jacobian by central differences of the model's inverse dynamics at
+    rest, ``feed_forward`` (with None: kp alone)."""
+    K = np.diag(np.asarray(kp, dtype=float))
+    if feed_forward is None:
+        return K
+    q1 = np.asarray(q1, dtype=float)
+    n = len(q1)
+    probes = np.concatenate([q1 + step * np.eye(n), q1 - step * np.eye(n)])
+    g = np.asarray(feed_forward(probes, np.zeros_like(probes), np.zeros_like(probes)))
+    return K + (g[:n] - g[n:]).T / (2 * step)
+
+
+def corrected_hold(q1: np.ndarray, u_held: np.ndarray, stiffness: np.ndarray, q: np.ndarray,
+                   duration: float, dt: float) -> Reference:
+    """Hold q1 at rest for duration with the held torque u_held + K (q1 - q), q the posture
+    the arm came to rest at under u_held and K its `hold_stiffness`: at rest the PD law
+    balances the robot's gravity, kp (q1 - q) + u_held = g_robot(q), and g_robot(q1) is
+    g_robot(q) + dg/dq (q1 - q) to first order, so the raised torque holds the arm at q1 (one
+    Newton step; the model's dg/dq stands for the robot's, friction aside)."""
+    q1 = np.asarray(q1, dtype=float)
+    u = np.asarray(u_held, dtype=float) + np.asarray(stiffness, dtype=float) @ (
+        q1 - np.asarray(q, dtype=float))
+    t = np.arange(int(round(duration / dt)) + 1) * dt
+    return Reference(t=t, q=np.tile(q1, (len(t), 1)), qd=np.zeros((len(t), len(q1))),
+                     u_ffwd=np.tile(u, (len(t), 1)))

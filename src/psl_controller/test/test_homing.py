@@ -1,0 +1,162 @@
+"""Tests of the homing motion (`psl_controller.homing`): the quintic's boundary conditions and
+limits, and its feed-forward, the model's inverse dynamics, against the model's own gravity
+torque at rest and in closed loop on the model (PD alone sags by g(q) / kp; with it, it does not)."""
+
+import dataclasses
+
+import mujoco
+import numpy as np
+import pytest
+
+from psl_controller.homing import (corrected_hold, hold_stiffness, homing_duration,
+                                   homing_reference, quintic)
+from psl_controller.pd_law import law_for
+from psl_task.arm_model import ArmModel
+from psl_task.model_error import ModelError
+from psl_task.task import load_task
+
+Q0 = np.array([0.4, -0.3])
+QD0 = np.array([0.2, -0.1])
+
+
+@pytest.fixture(scope='module')
+def task():
+    return load_task('payload_transport')
+
+
+def test_the_quintic_starts_moving_and_ends_at_rest(task):
+    q1 = task.start_posture
+    T = 1.3
+    q, qd, qdd = quintic(Q0, QD0, q1, T, np.array([0.0, T, T + 0.5]))
+    np.testing.assert_allclose(q[0], Q0, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(qd[0], QD0, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(qdd[0], 0.0, rtol=0, atol=1e-12)
+    for k in (1, 2):
+        np.testing.assert_allclose(q[k], q1, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(qd[k], 0.0, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(qdd[k], 0.0, rtol=0, atol=1e-12)
+
+
+def test_the_duration_keeps_the_limits(task):
+    spec, dt = task.homing, task.control_period
+    T = homing_duration(Q0, QD0, task.start_posture, spec, dt)
+    t = np.arange(int(round(T / dt)) + 1) * dt
+    _, qd, qdd = quintic(Q0, QD0, task.start_posture, T, t)
+    assert np.abs(qdd).max() <= spec.max_acceleration * (1 + 1e-9)
+    assert np.abs(qd).max() <= spec.max_velocity * (1 + 1e-9) + np.abs(QD0).max()
+    assert T >= spec.min_duration
+
+
+def test_without_a_model_the_feed_forward_is_zero(task):
+    reference = homing_reference(Q0, QD0, task.start_posture, task.homing, task.control_period)
+    assert not reference.u_ffwd.any()
+
+
+def _with_inverse_dynamics(task, tau):
+    arm = ArmModel(task)
+    return homing_reference(Q0, QD0, task.start_posture, task.homing, task.control_period,
+                            lambda q, qd, qdd: arm.inverse_dynamics(tau, q, qd, qdd))
+
+
+def test_the_held_feed_forward_is_the_gravity_torque_at_the_start(task):
+    tau = task.tau_high               # the heaviest payload
+    reference = _with_inverse_dynamics(task, tau)
+    arm = ArmModel(task)
+    arm.reset(tau)                    # at the start posture, at rest: mj_forward's bias force
+    gravity = (arm.data.qfrc_bias - arm.data.qfrc_passive)[arm.dof_adr]
+    assert np.abs(gravity).min() > 0.1, 'the test needs an arm that gravity pulls'
+    np.testing.assert_allclose(reference.u_ffwd[-1], gravity, rtol=1e-9, atol=1e-12)
+    # the held samples: the same torque
+    held = reference.qd.any(axis=1) == 0
+    np.testing.assert_allclose(reference.u_ffwd[held], np.broadcast_to(gravity, (
+        held.sum(), len(gravity))), rtol=1e-9, atol=1e-12)
+
+
+def _arm(task, tau, model_error=None):
+    """The task's arm with tau applied at Q0, QD0 (and a model error, the "real" robot)."""
+    arm = ArmModel(task)
+    arm.reset(tau)
+    if model_error is not None:
+        ModelError.parse(model_error).apply(arm.model, arm.joint_ids)
+    arm.data.qpos[arm.qpos_adr] = Q0
+    arm.data.qvel[arm.dof_adr] = QD0
+    mujoco.mj_forward(arm.model, arm.data)
+    return arm
+
+
+def _run(task, arm, reference):
+    """Run a reference on the arm under the task's PD law."""
+    law = law_for(task)
+    for k in range(len(reference.t)):
+        arm.step(law.torque(arm.q, arm.qd, reference.q[k], reference.qd[k],
+                            reference.u_ffwd[k]))
+
+
+def _final_error(task, tau, reference):
+    """Run the homing on the model under the task's PD law; |q - start| at the end."""
+    arm = _arm(task, tau)
+    _run(task, arm, reference)
+    return np.abs(arm.q - task.start_posture).max()
+
+
+def test_the_feed_forward_removes_the_sag_of_pd_alone(task):
+    tau = task.tau_high
+    without = _final_error(task, tau, homing_reference(Q0, QD0, task.start_posture,
+                                                       task.homing, task.control_period))
+    with_model = _final_error(task, tau, _with_inverse_dynamics(task, tau))
+    assert without > task.homing.tolerance       # PD alone: outside the homing tolerance
+    assert with_model < without / 10
+    assert with_model < task.homing.tolerance / 10
+
+
+def test_corrected_holds_cancel_the_sag_of_a_wrong_model(task):
+    """On a "real" arm 30 % heavier than the model, at rest after the homing with the model's
+    inverse dynamics, the arm sags by about (g_robot - g_model) / kp; each corrected hold
+    (a Newton step with the model's stiffness) removes most of what is left."""
+    tau, spec = task.tau_high, dataclasses.replace(task.homing, settle_time=2.0)
+    model = ArmModel(task)
+    feed_forward = lambda q, qd, qdd: model.inverse_dynamics(tau, q, qd, qdd)  # noqa: E731
+    stiffness = hold_stiffness(task.controller.kp, feed_forward, task.start_posture)
+    assert np.all(np.linalg.eigvalsh(stiffness) > 0.5 * task.controller.kp.min())
+    arm = _arm(task, tau, 'mass_scale=1.3')
+    reference = homing_reference(Q0, QD0, task.start_posture, spec, task.control_period,
+                                 feed_forward)
+    _run(task, arm, reference)
+    errors, held = [np.abs(arm.q - task.start_posture).max()], reference.u_ffwd[-1]
+    for _ in range(3):
+        hold = corrected_hold(task.start_posture, held, stiffness, arm.q, spec.settle_time,
+                              task.control_period)
+        np.testing.assert_array_equal(hold.q, np.broadcast_to(task.start_posture,
+                                                               hold.q.shape))
+        assert not hold.qd.any()
+        held = hold.u_ffwd[-1]
+        _run(task, arm, hold)
+        errors.append(np.abs(arm.q - task.start_posture).max())
+    assert errors[0] > 3 * task.homing.tolerance     # the model's error: far outside
+    assert errors[1] < errors[0] / 2
+    assert errors[-1] < task.homing.tolerance
+
+
+def test_the_hold_stiffness_is_kp_plus_the_gravity_jacobian(task):
+    """Against the Jacobian of mj_forward's bias force by forward differences on a fresh
+    model (an independent path: no inverse dynamics)."""
+    tau = task.tau_high
+    model = ArmModel(task)
+    K = hold_stiffness(task.controller.kp,
+                       lambda q, qd, qdd: model.inverse_dynamics(tau, q, qd, qdd),
+                       task.start_posture)
+    arm, h = ArmModel(task), 1e-6
+    arm.reset(tau)
+
+    def gravity(q):
+        arm.data.qpos[arm.qpos_adr] = q
+        arm.data.qvel[:] = 0
+        mujoco.mj_forward(arm.model, arm.data)
+        return arm.data.qfrc_bias[arm.dof_adr].copy()
+
+    g0 = gravity(task.start_posture)
+    n = task.n_joints
+    jacobian = np.column_stack([(gravity(task.start_posture + h * np.eye(n)[j]) - g0) / h
+                                for j in range(n)])
+    np.testing.assert_allclose(K - np.diag(task.controller.kp), jacobian, rtol=1e-3,
+                               atol=1e-3 * np.abs(jacobian).max())
