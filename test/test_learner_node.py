@@ -7,6 +7,7 @@ the tests with a whole graph in the root namespace; the other tests run their no
 namespaces of their own so no two learners answer the same goal; no test depends on another's
 state or order.)
 """
+import dataclasses
 import json
 import os
 import signal
@@ -23,7 +24,7 @@ from psl_controller.policy import policy_for
 from psl_memory.skill_memory import SkillMemory
 from psl_msgs.msg import RolloutEvaluation
 from psl_optimizer.batch_rollout import BatchRollouts
-from psl_optimizer.learning import Learner, LearnSettings
+from psl_optimizer.learning import CORRECTION_SUFFIX, Learner, LearnSettings
 from psl_optimizer.policy_search import SearchSettings
 from psl_task.task import load_task
 
@@ -103,8 +104,8 @@ def fresh_memory(client, tmp_path) -> None:
     assert client.memory('load', path=str(path), replace=True).success
 
 
-def num_samples(client) -> int:
-    return json.loads(client.memory('info').message)[TASK]['num_samples']
+def num_samples(client, skill: str = TASK) -> int:
+    return json.loads(client.memory('info').message)[skill]['num_samples']
 
 
 def goal(s: LearnSettings, out, mode: str = 'batch') -> dict:
@@ -192,13 +193,26 @@ def test_a_new_session_starts_from_an_empty_skill_unless_told_to_continue(client
     assert result.success, result.message
     metrics = json.loads(open(result.metrics_path).read())
     assert_same_session(metrics, in_process(again, tmp_path / 'reference'))
-    # continuing from the first session's memory: the skill starts with its samples
-    kept = SkillMemory.read(tmp_path / 'first' / 'memory.npz').get(TASK).num_samples
-    goes_on = client.learn(timeout=300, continue_from=str(tmp_path / 'first' / 'memory.npz'),
+    # continuing from the first session's memory, the residual way (the node's only way, the
+    # in-process default): the loaded skill keeps its samples, a correction takes the new
+    # solutions, and the session equals the same continuation in-process
+    first_memory = tmp_path / 'first' / 'memory.npz'
+    kept = SkillMemory.read(first_memory).get(TASK).num_samples
+    goes_on = client.learn(timeout=300, continue_from=str(first_memory),
                            **goal(again, tmp_path / 'goes_on'))
     assert goes_on.success, goes_on.message
     done = json.loads(open(goes_on.metrics_path).read())
-    assert num_samples(client) == kept + sum(r['fulfilled'] for r in done['tasks'])
+    assert num_samples(client) == kept
+    assert num_samples(client, TASK + CORRECTION_SUFFIX) == sum(r['fulfilled']
+                                                                for r in done['tasks'])
+    assert_same_session(done, in_process(dataclasses.replace(
+        again, continue_from=str(first_memory)), tmp_path / 'goes_on_reference'))
+    # a new session after it starts from an empty skill again (the correction emptied too)
+    result = client.learn(timeout=300, **goal(again, tmp_path / 'fresh_again'))
+    assert result.success, result.message
+    assert_same_session(json.loads(open(result.metrics_path).read()), in_process(
+        again, tmp_path / 'reference_again'))
+    assert num_samples(client, TASK + CORRECTION_SUFFIX) == 0
 
 
 def test_goals_beyond_the_limits_are_refused_and_a_long_one_ends_on_cancel(client, tmp_path,

@@ -403,7 +403,7 @@ def _check_here_only(args) -> None:
     given = [name for name, default in HERE_ONLY.items() if getattr(args, name) != default]
     if given and _learner(args) == 'node':
         raise ValueError(f'--{given[0].replace("_", "-")}: a session in this process only '
-                         '(--learner here); the learner node continues by samples, on the '
+                         '(--learner here); the learner node continues the residual way, on the '
                          "graph's robot")
     if (args.model_error or args.measurement_noise) and args.mode != 'batch':
         raise ValueError('--model-error and --measurement-noise are batch mode\'s: in graph '
@@ -596,9 +596,9 @@ def _learn_options(p: argparse.ArgumentParser) -> None:
                    "(graph mode: a file of the memory node's memory folder); a resumed session "
                    'starts from its checkpoint')
     p.add_argument('--continuation', choices=('residual', 'samples'),
-                   help="how --continue-from's skill is continued: residual (default in this "
-                   "process: the robot's correction learned on top of it) or samples (the new "
-                   "solutions added to its samples; the learner node's only way)")
+                   help="how --continue-from's skill is continued: residual (the default, and the "
+                   "learner node's only way: the robot's correction learned on top of it) or "
+                   "samples (the new solutions added to its samples)")
     p.add_argument('--model-error', default='', metavar='KEY=VALUE,...',
                    help="batch mode: the robot differs from the task's model (sim to real): "
                    'mass_scale=S,frictionloss=N_M,damping=N_M_S_PER_RAD (any subset)')

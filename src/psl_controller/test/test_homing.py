@@ -1,6 +1,7 @@
 """Tests of the homing motion (`psl_controller.homing`): the quintic's boundary conditions and
 limits, and its feed-forward, the model's inverse dynamics, against the model's own gravity
-torque at rest and in closed loop on the model (PD alone sags by g(q) / kp; with it, it does not)."""
+torque at rest and in closed loop on the model (PD alone sags by g(q) / kp; with it, it does
+not); the corrected hold on a model that is wrong."""
 
 import dataclasses
 

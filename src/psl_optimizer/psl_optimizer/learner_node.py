@@ -17,6 +17,7 @@ the reason; a skill the memory does not hold is created from the task.
 """
 from __future__ import annotations
 
+import json
 import threading
 from pathlib import Path
 
@@ -28,7 +29,8 @@ from rclpy.node import Node
 from psl_controller.policy import policy_for
 from psl_msgs.action import LearnSkill
 from psl_optimizer.learner_parameters import LearnerParameters
-from psl_optimizer.learning import Learner, LearnSettings
+from psl_optimizer.learning import (CORRECTION_SUFFIX, Learner, LearnSettings,
+                                     ResidualComposition)
 from psl_optimizer.policy_search import STRATEGIES, SearchSettings
 from psl_optimizer.rollout_modes import make_rollouts
 from psl_optimizer.rollouts import MODES, Rollouts, Stopped
@@ -41,11 +43,21 @@ from psl_ros.parameters import declare
 from psl_task.task import TaskDefinition, TaskError, load_task
 
 
-class ServiceSkill:
-    """The skill `name` inside the skill_memory node, with the interface Learner expects."""
+class ServiceSkill(ResidualComposition):
+    """The skill `name` inside the skill_memory node, with the interface Learner expects; a
+    skill continued from a memory file is continued the residual way (`ResidualComposition`:
+    its correction is a second skill in the node, claimed with it)."""
 
-    def __init__(self, node: 'LearnerNode', task: TaskDefinition, timeout: float):
-        self.node, self.task, self.name, self.timeout = node, task, task.name, timeout
+    continuations = ('residual',)
+
+    def __init__(self, node: 'LearnerNode', task: TaskDefinition, timeout: float,
+                 continuing: bool):
+        self.node, self.task, self.timeout = node, task, timeout
+        # the session continues a skill (its goal's continue_from): the residual way; the
+        # node may hold a correction of an earlier session in any case (a memory saved by
+        # the node holds every skill it has), so that is no sign
+        self.continuing = continuing
+        self.name, self.correction = task.name, task.name + CORRECTION_SUFFIX
         self.owner = node.get_fully_qualified_name()     # this session's claim on the skill
         self.claimed = False
 
@@ -58,50 +70,65 @@ class ServiceSkill:
             raise RuntimeError(f'skill_memory/{service}: {response.message}')
         return response
 
-    def query(self, tau: np.ndarray) -> np.ndarray:
-        return np.asarray(self._call('query', skill=self.name, tau=[float(x) for x in tau]).theta)
+    def _query(self, skill: str, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        response = self._call('query', skill=skill, tau=[float(x) for x in tau])
+        return (np.asarray(response.theta),
+                np.asarray(response.variance) if response.variance else None)
 
-    def variance(self, tau: np.ndarray) -> np.ndarray | None:
-        """Predictive variance per theta dimension, None when the node's readout has none."""
-        response = self._call('query', skill=self.name, tau=[float(x) for x in tau])
-        return np.asarray(response.variance) if response.variance else None
-
-    def add(self, tau: np.ndarray, theta: np.ndarray) -> None:
-        self._call('add_sample', skill=self.name, tau=[float(x) for x in tau],
+    def _add(self, skill: str, tau: np.ndarray, theta: np.ndarray) -> None:
+        self._call('add_sample', skill=skill, tau=[float(x) for x in tau],
                    theta=[float(x) for x in theta], owner=self.owner)
 
     def save(self, path: Path) -> None:
         self._call('save', path=str(Path(path).resolve()))
 
+    def _create(self, skill: str, replace: bool) -> None:
+        task = self.task
+        self._call('create_skill', skill=skill, tau_low=task.tau_low.tolist(),
+                   tau_high=task.tau_high.tolist(),
+                   theta_reference=self._reference.tolist(), replace=replace,
+                   owner=self.owner)
+
+    @property
+    def _reference(self) -> np.ndarray:
+        return policy_for(self.task).default_theta
+
+    def _skills(self) -> dict:
+        return json.loads(self._call('info').message)
+
     def start(self, continue_from: str) -> None:
         """A new session: the memory node's skill of the task replaced by an empty one, or
-        (continue_from, a memory file of the node's memory_dir) loaded from that file. The
-        session claims the skill first: nobody else writes to it until `release`."""
+        (continue_from, a memory file of the node's memory_dir) loaded from that file and
+        continued the residual way. The session claims the skill and its correction first:
+        nobody else writes to them until `release`. A new session empties a correction an
+        earlier one left in the node (a file saved later answers this session's skill)."""
         self.claim()
         if continue_from:
             self._call('load', path=continue_from, replace=True, owner=self.owner)
-        task = self.task
-        self._call('create_skill', skill=self.name, tau_low=task.tau_low.tolist(),
-                   tau_high=task.tau_high.tolist(),
-                   theta_reference=policy_for(task).default_theta.tolist(),
-                   replace=not continue_from, owner=self.owner)
+        self._create(self.name, replace=not continue_from)
+        if continue_from or self.correction in self._skills():
+            self._create(self.correction, replace=not continue_from)
+        self._c0 = self._reference if continue_from else None
 
     def restore(self, path: Path) -> None:
         """A resumed session: the checkpoint's memory loaded into the memory node (the skill
-        claimed first, as in `start`)."""
+        claimed first, as in `start`), with its correction if the session continues a skill."""
         self.claim()
         self._call('load', path=str(Path(path).resolve()), replace=True, owner=self.owner)
+        self._c0 = self._reference if self.continuing else None
 
     def claim(self) -> None:
-        self._call('claim', skill=self.name, owner=self.owner)
+        for skill in (self.name, self.correction):
+            self._call('claim', skill=skill, owner=self.owner)
         self.claimed = True
 
     def release(self) -> None:
-        """End the session's claim (best effort: a claim lapses anyway when this node
+        """End the session's claims (best effort: a claim lapses anyway when this node
         leaves the graph)."""
         if self.claimed:
             try:
-                self._call('claim', skill=self.name, owner=self.owner, release=True)
+                for skill in (self.name, self.correction):
+                    self._call('claim', skill=skill, owner=self.owner, release=True)
                 self.claimed = False
             except RuntimeError as exc:
                 self.node.get_logger().warning(f'releasing the claim on {self.name!r}: {exc}')
@@ -147,7 +174,8 @@ class LearnerNode(Node):
             self.get_logger().info(f'learning {task.name} with {settings.strategy}, seed '
                                    f'{settings.seed}, {settings.num_tasks} tasks, {mode} '
                                    f'mode -> {out}')
-            skill = ServiceSkill(self, task, self.parameters.service_timeout)
+            skill = ServiceSkill(self, task, self.parameters.service_timeout,
+                                 continuing=bool(settings.continue_from))
             instances = None
             try:
                 if not (out / 'checkpoint.json').is_file():

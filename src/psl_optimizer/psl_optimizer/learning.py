@@ -17,17 +17,17 @@ rollouts than CMA-ES: docs/benchmarks.md, ``psl bench dynamics``; it needs rollo
 their measured trajectories), and CMA-ES goes on from ILC's best if that falls short. The summary then adds the held-out tracking errors of the
 learned feed-forward beside PD only and the inverse-dynamics oracle (`tracking_comparison`).
 
-Sim to real (`LearnSettings.continue_from` with `LearnSettings.continuation`): a skill learned on
-the task's model is continued on a robot whose dynamics differ (batch mode: rollouts with a
+Sim to real (`LearnSettings.continue_from` with `LearnSettings.continuation`): a skill learned
+on the task's model is continued on a robot whose dynamics differ (batch mode: rollouts with a
 `psl_task.model_error.ModelError`, recorded as `LearnSettings.model_error`). The robot's
 solutions contradict the simulated ones (the same tau, another feed-forward), so adding them to
 the simulated skill's samples ('samples', the old way) makes a skill that averages both and is
 wrong for either. The default, 'residual', keeps the simulated skill as it is and learns the
 robot's correction on top of it: ``PS(tau) = PS_sim(tau) + C(tau)``, C learned from the robot's
-solutions minus PS_sim (`InProcessSkill`). Measured (``psl bench sim-to-real``: the skill
-learned on the nominal model with seed 3, 30 tasks; then 10 tasks of seed 11 on a robot with
-masses +30 %, joint friction 0.05 N m, damping +0.3 N m s/rad; zero-shot on 20 held-out
-instances on that robot):
+solutions minus PS_sim (`ResidualComposition`: in this process and in the memory node alike).
+Measured (``psl bench sim-to-real``: the skill learned on the nominal model with seed 3, 30
+tasks; then 10 tasks of seed 11 on a robot with masses +30 %, joint friction 0.05 N m, damping
++0.3 N m s/rad; zero-shot on 20 held-out instances on that robot):
 
 =====================  ========  ==========  ========  ===============
 payload_transport      rollouts  zero-shot   tracking  (learned ff, rad)
@@ -142,10 +142,9 @@ class LearnSettings:
     # the robot the rollouts run on differs from the task's model (batch mode, sim to real;
     # `ModelError.parse` text, '' = none): recorded here, the rollouts must have the same
     model_error: str = ''
-    # how continue_from's skill is continued (CONTINUATIONS): 'residual' (in-process skill:
-    # the robot's correction learned on top of it) or 'samples' (the new solutions added to
-    # its samples); '' = the skill slot's own way (in-process: residual; the memory node:
-    # samples)
+    # how continue_from's skill is continued (CONTINUATIONS): 'residual' (the robot's
+    # correction learned on top of it; the memory node's only way) or 'samples' (the new
+    # solutions added to its samples, in-process only); '' = residual
     continuation: str = ''
     # a noisy robot (batch mode): `psl_optimizer.batch_rollout.MeasurementNoise.parse` text,
     # '' = none; recorded here, the rollouts must have the same (the `Learner` checks it with
@@ -185,18 +184,54 @@ class LearnSettings:
                              f'the {self.skill_map!r} skill map does not have')
 
 
-class InProcessSkill:
-    """The skill memory as a library, in this process (batch mode's default).
+class ResidualComposition:
+    """The skill slot's answers from named skills: the task's skill alone, or a residual
+    continuation of it (`CONTINUATIONS`). Continuing a skill the 'residual' way, the loaded
+    skill of the task (the base, PS_sim) stays as it is, and a correction C, a skill of the same
+    ranges and reference (named task + `CORRECTION_SUFFIX`, in the same memory and file),
+    learns ``theta - PS_sim(tau)`` of every new solution: ``PS(tau) = PS_sim(tau) + C(tau) -
+    c0``, with c0 the correction's reference (its answer without samples: the theta reference
+    it was created with), so an empty correction answers PS_sim exactly. The predictive
+    variance is the correction's (where the robot has no solution yet). A memory that holds a
+    correction already (a continued session's) is continued with it.
 
-    Continuing a skill (`start` with a memory file) the 'residual' way (`CONTINUATIONS`): the
-    file's skill of the task (the base, PS_sim) stays as it is, and a correction C, a skill of
-    the same ranges and reference (named task + `CORRECTION_SUFFIX`, in the same memory and
-    file), learns ``theta - PS_sim(tau)`` of every new solution: ``PS(tau) = PS_sim(tau) +
-    C(tau) - c0``, with c0 the correction's reference (its answer without samples), so an empty
-    correction answers PS_sim exactly. The predictive variance is the correction's (where the
-    robot has no solution yet). A file that holds a correction already (a continued session's)
-    is continued with it.
+    Subclasses say where the skills live (`_query`, `_add`: this process's memory, or the
+    skill_memory node's) and set ``name``, ``correction`` and ``_c0`` (None: the skill alone).
     """
+
+    name: str
+    correction: str
+    _c0: np.ndarray | None = None
+
+    def _query(self, skill: str, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """(theta, variance or None) of the named skill at tau."""
+        raise NotImplementedError
+
+    def _add(self, skill: str, tau: np.ndarray, theta: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def query(self, tau: np.ndarray) -> np.ndarray:
+        theta = self._query(self.name, tau)[0]
+        if self._c0 is None:
+            return theta
+        return theta + (self._query(self.correction, tau)[0] - self._c0)
+
+    def variance(self, tau: np.ndarray) -> np.ndarray | None:
+        """Predictive variance of PS(tau) per theta dimension (None without a Bayesian
+        readout); of a residual continuation: the correction's."""
+        return self._query(self.name if self._c0 is None else self.correction, tau)[1]
+
+    def add(self, tau: np.ndarray, theta: np.ndarray) -> None:
+        if self._c0 is None:
+            self._add(self.name, tau, theta)
+        else:
+            base = self._query(self.name, tau)[0]
+            self._add(self.correction, tau, np.asarray(theta) - base + self._c0)
+
+
+class InProcessSkill(ResidualComposition):
+    """The skill memory as a library, in this process (batch mode's default), continued
+    either way of `CONTINUATIONS` (`ResidualComposition`)."""
 
     continuations = CONTINUATIONS
 
@@ -207,7 +242,7 @@ class InProcessSkill:
                              f'{", ".join(CONTINUATIONS)}')
         self.task, self.config, self.default_theta = task, config, default_theta
         self.continuation = continuation
-        self.correction = task.name + CORRECTION_SUFFIX
+        self.name, self.correction = task.name, task.name + CORRECTION_SUFFIX
         self.start('')
 
     def start(self, continue_from: str) -> None:
@@ -218,7 +253,8 @@ class InProcessSkill:
         self.memory.create(self.task.name, self.task.tau_low, self.task.tau_high,
                            self.default_theta, exist_ok=bool(continue_from))
         if continue_from and self.continuation == 'samples' and (
-                self.correction in self.memory.skills):
+                self.correction in self.memory.skills) and (
+                self.memory.get(self.correction).num_samples):
             raise ValueError(f'{continue_from} holds a residual skill (its correction '
                              f'{self.correction!r}): continue it the residual way')
         if continue_from and self.continuation == 'residual':
@@ -232,30 +268,17 @@ class InProcessSkill:
         self._base()
 
     def _base(self) -> None:
-        """The residual parts: the base and the correction's reference c0 (None: plain)."""
+        """The residual parts: the correction's reference c0 (None: plain)."""
         self._c0 = None
         if self.correction in self.memory.skills:
             correction = self.memory.get(self.correction)
             self._c0 = correction.theta_scaler.from_unit(np.zeros(correction.theta_dim))
 
-    def query(self, tau: np.ndarray) -> np.ndarray:
-        theta = self.memory.get(self.task.name).query(tau)[0]
-        if self._c0 is None:
-            return theta
-        return theta + (self.memory.get(self.correction).query(tau)[0] - self._c0)
+    def _query(self, skill: str, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        return self.memory.get(skill).query(tau)
 
-    def variance(self, tau: np.ndarray) -> np.ndarray | None:
-        """Predictive variance of PS(tau) per theta dimension (None without a Bayesian
-        readout); of a residual continuation: the correction's."""
-        name = self.task.name if self._c0 is None else self.correction
-        return self.memory.get(name).query(tau)[1]
-
-    def add(self, tau: np.ndarray, theta: np.ndarray) -> None:
-        if self._c0 is None:
-            self.memory.add(self.task.name, tau, theta)
-        else:
-            base = self.memory.get(self.task.name).query(tau)[0]
-            self.memory.add(self.correction, tau, np.asarray(theta) - base + self._c0)
+    def _add(self, skill: str, tau: np.ndarray, theta: np.ndarray) -> None:
+        self.memory.add(skill, tau, theta)
 
     def save(self, path: Path) -> None:
         self.memory.save(path)
