@@ -103,6 +103,7 @@ STALE = 0.5             # s: an external robot whose newest state is older is no
 # what the controller reports of a trajectory (pd_controller_node): a late one is sent again,
 # the others fail the rollout with the controller's reason
 FAULTS = ('state loss', 'late trajectory', 'tracking abort')
+TAKEN = 'trajectory taken'      # the controller's acknowledgement of a stamped trajectory
 SETTLE_STATES = 25      # the states averaged for the homing check on an external robot
 HOLD_CORRECTIONS = 3    # holds with a corrected torque when homing comes to rest off the start
 
@@ -175,6 +176,7 @@ class DMPExecutor(Node):
         self._selections: dict = {}             # task path -> its JointSelection
         # trajectory start [ns] -> (what of FAULTS, why) the controller reported
         self._faults: dict[int, tuple[str, str]] = {}
+        self._taken: set[int] = set()           # starts [ns] of trajectories the controller took
         if self.external:
             # the controller's report of its robot topics (remapped as this node's)
             self.loop_reports = MatchedEndpoints(self, callback_group=group)
@@ -244,14 +246,19 @@ class DMPExecutor(Node):
         controller a state loss. /diagnostics is shared by every rollout worker: only this
         namespace's nodes count."""
         namespace = self.get_namespace().rstrip('/')
+        controller = f'{namespace}/pd_controller: '
         for status in msg.status:
-            if status.name in (f'{namespace}/pd_controller: {what}' for what in FAULTS):
-                values = {kv.key: kv.value for kv in status.values}
-                kind = status.name.rsplit(': ', 1)[-1]
-                with self._cv:
-                    self._faults[int(values.get('trajectory_start_ns', 0))] = (kind,
-                                                                               status.message)
-                    self._cv.notify_all()
+            kind = status.name[len(controller):]
+            if not status.name.startswith(controller) or kind not in (*FAULTS, TAKEN):
+                continue
+            start = int({kv.key: kv.value for kv in status.values}.get(
+                'trajectory_start_ns', 0))
+            with self._cv:
+                if kind != TAKEN:
+                    self._faults[start] = (kind, status.message)
+                elif self.external:
+                    self._taken.add(start)
+                self._cv.notify_all()
         mine = namespace + '/sim:'
         for status in msg.status:
             if not status.name.startswith(mine):
@@ -412,24 +419,23 @@ class DMPExecutor(Node):
     def _start_on_robot(self, trajectory: JointTrajectory, episode: TaskInstance,
                         task: TaskDefinition) -> int:
         """Send the controller `trajectory` stamped to start LEAD s after the robot's newest
-        state, and announce `episode` (stamped the same) on task_instance; the start [ns]. Sent
-        again, later, if the robot's states passed the start before the controller had it."""
+        state, and announce `episode` (stamped the same) on task_instance; the start [ns] once
+        the controller has taken it (its acknowledgement on /diagnostics). Sent again, later,
+        when the controller refused it because the robot's states had passed its start."""
         for _ in range(3):
             newest, _, _ = self._measured(task)
             t0 = newest + int(LEAD * 1e9)
             trajectory.header.stamp = episode.stamp = time_msg(t0)
             self.pub_trajectory.publish(trajectory)
             self.pub_task.publish(episode)
-            # the controller refuses a trajectory whose start has passed, and says so: wait
-            # until the robot's states are a few periods past the start, then look
             deadline = time.monotonic() + LEAD + ACK_TIMEOUT
-            while self._measured(task)[0] < t0 + 5 * int(task.control_period * 1e9):
-                if time.monotonic() > deadline:
-                    raise RuntimeError('the robot\'s clock did not reach the trajectory\'s '
-                                       f'start within {LEAD + ACK_TIMEOUT:g} s')
-                time.sleep(task.control_period)
-            time.sleep(0.05)                 # the controller's report on its way
             with self._cv:
+                while t0 not in self._taken and t0 not in self._faults:
+                    if time.monotonic() > deadline:
+                        raise RuntimeError('the controller neither took nor refused the '
+                                           f'trajectory within {LEAD + ACK_TIMEOUT:g} s')
+                    self._cv.wait(timeout=0.05)
+                self._taken.discard(t0)
                 fault = self._faults.get(t0)
                 if fault is None:
                     return t0

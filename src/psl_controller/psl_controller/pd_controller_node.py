@@ -23,7 +23,8 @@ the executor fails the rollout with the reason.
 
 A trajectory stamped with a start the states have passed already (a robot's clock runs on while
 it travels) is refused and reported on /diagnostics (``late trajectory``, with its start): the
-executor sends it again with a later start.
+executor sends it again with a later start. A stamped trajectory taken is acknowledged there
+(level OK, ``trajectory taken``, with its start): the executor waits for one or the other.
 
 Watchdog (``state_timeout`` > 0, for a robot that never waits for the controller): when no
 joint state came for that long (the wall clock), the controller drops its trajectory, reports
@@ -223,6 +224,8 @@ class PDController(Node):
             self.served_ns = None
         self.trajectory = trajectory
         self.start_ns = start if start > 0 else None   # None: the next state starts it
+        if start > 0:
+            self._report('trajectory taken', start, 'taken', DiagnosticStatus.OK)
 
     def on_state(self, msg: JointState) -> None:
         with self._state_lock:
@@ -302,12 +305,15 @@ class PDController(Node):
         self.trajectory, self.hold = None, q.copy()
         return self.hold, np.zeros_like(q), np.zeros_like(q)
 
-    def _report(self, what: str, start_ns: int, reason: str) -> None:
-        """Log `reason` and report it on /diagnostics (level ERROR, ``<node>: <what>``) for
-        the trajectory that starts at `start_ns`: the executor fails that rollout with it."""
-        self.get_logger().error(reason)
+    def _report(self, what: str, start_ns: int, reason: str,
+                level: bytes = DiagnosticStatus.ERROR) -> None:
+        """Report `reason` on /diagnostics (``<node>: <what>``) for the trajectory that starts
+        at `start_ns` (an error, also logged: the executor fails that rollout with it; OK:
+        ``trajectory taken``, the acknowledgement the executor waits for on a robot)."""
+        if level == DiagnosticStatus.ERROR:
+            self.get_logger().error(reason)
         self.pub_diag.publish(DiagnosticArray(status=[DiagnosticStatus(
-            level=DiagnosticStatus.ERROR, name=f'{self.get_fully_qualified_name()}: {what}',
+            level=level, name=f'{self.get_fully_qualified_name()}: {what}',
             message=reason, values=[KeyValue(key='trajectory_start_ns', value=str(start_ns))])]))
 
     def destroy_node(self):
