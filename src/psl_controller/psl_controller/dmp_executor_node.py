@@ -66,6 +66,7 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
@@ -80,10 +81,11 @@ from psl_ros import names
 from psl_ros.action_server import ActionServer
 from psl_ros.futures import wait_for
 from psl_ros.guard import guard_subscription
+from psl_ros.hot_path import HotPath
 from psl_ros.matching import PUBLISHER, SUBSCRIPTION, MatchedEndpoints, MatchReport
 from psl_ros.node_main import run_node
 from psl_ros.parameters import check_update, declare
-from psl_ros.qos import LATCHED, NEWEST, RELIABLE, SERVICES
+from psl_ros.qos import LATCHED, RELIABLE, SERVICES
 from psl_ros.stamps import duration_msg, time_msg, to_ns
 from psl_task.arm_model import ArmModel, joint_names_of
 from psl_task.joint_selection import JointSelection
@@ -105,6 +107,7 @@ STALE = 0.5             # s: an external robot whose newest state is older is no
 FAULTS = ('state loss', 'late trajectory', 'tracking abort')
 TAKEN = 'trajectory taken'      # the controller's acknowledgement of a stamped trajectory
 SETTLE_STATES = 25      # the states averaged for the homing check on an external robot
+STATE_PAUSE = 0.01      # s between two takes of the robot's queued states
 HOLD_CORRECTIONS = 3    # holds with a corrected torque when homing comes to rest off the start
 
 
@@ -182,10 +185,13 @@ class DMPExecutor(Node):
             self.loop_reports = MatchedEndpoints(self, callback_group=group)
             self.pub_task = self.matches.create_publisher(TaskInstance, names.TASK_INSTANCE,
                                                           LATCHED)
-            self.create_subscription(JointState, names.JOINT_STATES,
-                                     guard_subscription(self.get_logger(), names.JOINT_STATES,
-                                                        self.on_state), NEWEST,
-                                     callback_group=group)
+            # the robot's states at its rate (500 Hz), needed only now and then: a lean loop
+            # takes what queued every STATE_PAUSE s (the executor's callbacks cost a core)
+            self.state_path = HotPath(self, 'robot_states', pause=STATE_PAUSE)
+            self.state_path.subscribe(JointState, names.JOINT_STATES, self.on_state,
+                                      QoSProfile(depth=SETTLE_STATES,
+                                                 reliability=ReliabilityPolicy.RELIABLE))
+            self.state_path.start()
         self._rollout_lock = threading.Lock()
         self._safety_checks: dict = {}          # task path -> SafetyCheck
         # gains per task: the controller gets a rollout's task's gains when they differ from
@@ -211,6 +217,11 @@ class DMPExecutor(Node):
         with self._cv:
             self._evaluations[to_ns(msg.stamp)] = msg
             self._cv.notify_all()
+
+    def destroy_node(self):
+        if self.external:
+            self.state_path.stop()
+        super().destroy_node()
 
     def on_state(self, msg: JointState) -> None:
         """An external robot's joint state: the task's joints by name, kept (the newest few)."""

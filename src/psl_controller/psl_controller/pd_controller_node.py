@@ -8,8 +8,10 @@ gets no command and a throttled error naming it. The law:
 ``u = Kp (q_ref - q) + Kd (qd_ref - qd) + u_ffwd``, clipped to the torque limits.
 The reference comes from ``joint_trajectory`` (trajectory_msgs/JointTrajectory; effort field =
 feed-forward, the ros2_control convention) sampled at the state's time stamp. A trajectory
-stamped zero starts at the first state received after it; otherwise at its stamp. A
-trajectory stamped with the start of the one that runs replaces it from the next state on (a
+stamped zero starts at the first state received after it; otherwise at its stamp, and until
+then the trajectory that ran before goes on (its last point: a homing's hold keeps its torque,
+and the new trajectory's first feed-forward does not push the arm early). A trajectory
+stamped with the start of the one that runs replaces it from the next state on (a
 goal change): it is refused, with an error, unless it passes exactly through the reference of
 the last state served, so the reference the controller tracks never jumps. With no
 trajectory the controller holds the position of the first state it saw; after the end it
@@ -18,7 +20,8 @@ holds the last point. Each command's reference is published on ``reference``
 state's stamp, so the tracking error can be computed and recorded.
 
 A tracking error beyond ``max_tracking_error`` (the rollout's task's ``safety.max_tracking_error``,
-set by the executor as the gains) while a trajectory runs aborts it: the controller holds where the arm is and reports it on /diagnostics (``tracking abort``);
+set by the executor as the gains) while a trajectory runs aborts it: the controller holds
+where the arm is and reports it on /diagnostics (``tracking abort``);
 the executor fails the rollout with the reason.
 
 A trajectory stamped with a start the states have passed already (a robot's clock runs on while
@@ -114,6 +117,7 @@ class PDController(Node):
         self.trajectory_msg: JointTrajectory | None = None
         self.start_ns: int | None = None
         self.served_ns: int | None = None     # time of the last state served, from start_ns
+        self.before: tuple | None = None      # (trajectory, start_ns) served until start_ns
         self.hold: np.ndarray | None = None
         self.last_state_ns = 0                # stamp of the newest state served
 
@@ -222,6 +226,9 @@ class PDController(Node):
                 return
         else:
             self.served_ns = None
+            # until a stamped trajectory's start, what ran goes on (a hold's torque stays)
+            self.before = (self.trajectory, self.start_ns) if (
+                start > 0 and self.trajectory is not None and self.start_ns is not None) else None
         self.trajectory = trajectory
         self.start_ns = start if start > 0 else None   # None: the next state starts it
         if start > 0:
@@ -254,7 +261,12 @@ class PDController(Node):
             if self.start_ns is None:
                 self.start_ns = t
             self.served_ns = t - self.start_ns
-            q_ref, qd_ref, u_ffwd = trajectory.sample(self.served_ns)
+            before = self.before
+            if self.served_ns < 0 and before is not None:
+                q_ref, qd_ref, u_ffwd = before[0].sample(t - before[1])
+            else:
+                self.before = None
+                q_ref, qd_ref, u_ffwd = trajectory.sample(self.served_ns)
             if self.served_ns >= 0 and np.abs(q - q_ref).max() > self.max_tracking_error:
                 q_ref, qd_ref, u_ffwd = self._abort(q, q_ref)
         else:
@@ -285,6 +297,7 @@ class PDController(Node):
             start = self.start_ns or 0
             # the next state starts from scratch: hold where the arm is then
             self.trajectory, self.start_ns, self.served_ns, self.hold = None, None, None, None
+            self.before = None
             mode = self.get_parameter('on_state_loss').value
             reason = (f'joint states stopped: none for {silent:.3f} s (state_timeout '
                       f'{timeout:g} s); the controller dropped its trajectory and commands '
