@@ -132,6 +132,10 @@ class PDController(Node):
         self.pub_reference = self.matches.create_publisher(JointState, names.REFERENCE, RELIABLE)
         # one message each, refilled every step (publish copies it)
         self._command, self._reference = Float64MultiArray(), JointState()
+        self.pub_diag = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
+        self._reports: list[tuple] = []       # (level, what, start_ns, reason) to send
+        self._reports_lock = threading.Lock()
+        self._send = self.create_guard_condition(self._send_reports)
         # one thread serves both, the trajectory first when both are ready: a trajectory
         # published before an episode starts is in place for the episode's first state
         # the hot path's thread inherits the scheduling of the thread that starts it
@@ -144,7 +148,6 @@ class PDController(Node):
         self.matches.subscribe(self.hot_path, JointState, names.JOINT_STATES, self.on_state,
                                NEWEST if self.parameters.state_timeout > 0.0 else RELIABLE)
         self.hot_path.start()
-        self.pub_diag = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self.state_timeout = self.parameters.state_timeout
         self.watchdog = (self.create_timer(self.period, self.on_watchdog)
                          if self.state_timeout > 0.0 else None)
@@ -322,12 +325,24 @@ class PDController(Node):
                 level: bytes = DiagnosticStatus.ERROR) -> None:
         """Report `reason` on /diagnostics (``<node>: <what>``) for the trajectory that starts
         at `start_ns` (an error, also logged: the executor fails that rollout with it; OK:
-        ``trajectory taken``, the acknowledgement the executor waits for on a robot)."""
-        if level == DiagnosticStatus.ERROR:
-            self.get_logger().error(reason)
-        self.pub_diag.publish(DiagnosticArray(status=[DiagnosticStatus(
-            level=level, name=f'{self.get_fully_qualified_name()}: {what}',
-            message=reason, values=[KeyValue(key='trajectory_start_ns', value=str(start_ns))])]))
+        ``trajectory taken``, the acknowledgement the executor waits for on a robot).
+        Sent from the node's executor (`_send_reports`), never from the hot path's thread:
+        a publish there that waits (the middleware, the log's /rosout) delays the commands."""
+        with self._reports_lock:
+            self._reports.append((level, what, start_ns, reason))
+        self._send.trigger()
+
+    def _send_reports(self) -> None:
+        with self._reports_lock:
+            reports, self._reports = self._reports, []
+        for level, what, start_ns, reason in reports:
+            if level == DiagnosticStatus.ERROR:
+                self.get_logger().error(reason)
+        if reports:
+            self.pub_diag.publish(DiagnosticArray(status=[DiagnosticStatus(
+                level=level, name=f'{self.get_fully_qualified_name()}: {what}', message=reason,
+                values=[KeyValue(key='trajectory_start_ns', value=str(start_ns))])
+                for level, what, start_ns, reason in reports]))
 
     def destroy_node(self):
         self.hot_path.stop()
