@@ -67,7 +67,67 @@ def _as_vector(value, n_dims: int, name: str) -> np.ndarray:
     return vector
 
 
-class DMP:
+class GatedAttractor:
+    """What every DMP of this package shares, whatever its output space (a vector here, an
+    orientation in `psl_controller.quaternion_dmp`): the spring-damper gains, the temporal
+    scaling, the canonical system (the phase and the gate) and the normalised Gaussian basis
+    the forcing is encoded on, and whether theta holds the goal.
+
+    Raises:
+        ValueError: invalid gains, time scale, basis size or canonical kind.
+    """
+
+    def __init__(self, n_basis: int, duration: float, k_s: float, k_d: float | None,
+                 canonical: str, learn_goal: bool, time_scale: float) -> None:
+        if k_d is None:
+            k_d = 2.0 * np.sqrt(k_s)
+        if not (np.isfinite(k_s) and k_s > 0.0):
+            raise ValueError(f'k_s must be finite and > 0, got {k_s!r}')
+        if not (np.isfinite(k_d) and k_d >= 0.0):
+            raise ValueError(f'k_d must be finite and >= 0, got {k_d!r}')
+        if not (np.isfinite(time_scale) and time_scale > 0.0):
+            raise ValueError(f'time_scale must be finite and > 0, got {time_scale!r}')
+        self._k_s = float(k_s)
+        self._k_d = float(k_d)
+        self._learn_goal = bool(learn_goal)
+        self._time_scale = float(time_scale)
+        self._canonical = CanonicalSystem(duration, kind=canonical)
+        self._basis = NormalizedGaussianBasis(n_basis)
+
+    @property
+    def n_basis(self) -> int:
+        return self._basis.n_basis
+
+    @property
+    def duration(self) -> float:
+        return self._canonical.duration
+
+    @property
+    def k_s(self) -> float:
+        return self._k_s
+
+    @property
+    def k_d(self) -> float:
+        return self._k_d
+
+    @property
+    def canonical(self) -> CanonicalSystem:
+        return self._canonical
+
+    @property
+    def basis(self) -> NormalizedGaussianBasis:
+        return self._basis
+
+    @property
+    def learn_goal(self) -> bool:
+        return self._learn_goal
+
+    @property
+    def time_scale(self) -> float:
+        return self._time_scale
+
+
+class DMP(GatedAttractor):
     """Point-attractor DMP with gated normalised-Gaussian forcing (eq. 2.23-2.24).
 
     Args:
@@ -101,24 +161,11 @@ class DMP:
                  time_scale: float = 1.0, alpha_goal: float = 10.0) -> None:
         if isinstance(n_dims, bool) or int(n_dims) != n_dims or n_dims < 1:
             raise ValueError(f'n_dims must be an integer >= 1, got {n_dims!r}')
-        if k_d is None:
-            k_d = 2.0 * np.sqrt(k_s)
-        if not (np.isfinite(k_s) and k_s > 0.0):
-            raise ValueError(f'k_s must be finite and > 0, got {k_s!r}')
-        if not (np.isfinite(k_d) and k_d >= 0.0):
-            raise ValueError(f'k_d must be finite and >= 0, got {k_d!r}')
-        if not (np.isfinite(time_scale) and time_scale > 0.0):
-            raise ValueError(f'time_scale must be finite and > 0, got {time_scale!r}')
+        super().__init__(n_basis, duration, k_s, k_d, canonical, learn_goal, time_scale)
         if not (np.isfinite(alpha_goal) and alpha_goal > 0.0):
             raise ValueError(f'alpha_goal must be finite and > 0, got {alpha_goal!r}')
         self._n_dims = int(n_dims)
-        self._k_s = float(k_s)
-        self._k_d = float(k_d)
-        self._learn_goal = bool(learn_goal)
-        self._time_scale = float(time_scale)
         self._alpha_goal = float(alpha_goal)
-        self._canonical = CanonicalSystem(duration, kind=canonical)
-        self._basis = NormalizedGaussianBasis(n_basis)
         # Transformation system in error coordinates e = [y - g, yd]: edot = A e + B f, the
         # gains of the time-scaled system (k_s / tau_s^2, k_d / tau_s, forcing / tau_s^2).
         s2 = self._time_scale ** 2
@@ -134,38 +181,6 @@ class DMP:
     @property
     def n_dims(self) -> int:
         return self._n_dims
-
-    @property
-    def n_basis(self) -> int:
-        return self._basis.n_basis
-
-    @property
-    def duration(self) -> float:
-        return self._canonical.duration
-
-    @property
-    def k_s(self) -> float:
-        return self._k_s
-
-    @property
-    def k_d(self) -> float:
-        return self._k_d
-
-    @property
-    def canonical(self) -> CanonicalSystem:
-        return self._canonical
-
-    @property
-    def basis(self) -> NormalizedGaussianBasis:
-        return self._basis
-
-    @property
-    def learn_goal(self) -> bool:
-        return self._learn_goal
-
-    @property
-    def time_scale(self) -> float:
-        return self._time_scale
 
     @property
     def alpha_goal(self) -> float:

@@ -67,8 +67,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from psl_controller import quaternion
-from psl_controller.basis_functions import NormalizedGaussianBasis
-from psl_controller.canonical_system import CanonicalSystem
+from psl_controller.dmp import GatedAttractor
 
 AXES = 3  # one forcing row per rotation axis
 
@@ -91,7 +90,7 @@ class QuaternionTrajectory:
     omega_dot: np.ndarray
 
 
-class QuaternionDMP:
+class QuaternionDMP(GatedAttractor):
     """Unit-quaternion point attractor with gated normalised-Gaussian forcing (Ude et al.
     2014, eq. 16-17; forcing per axis as eq. 2.24).
 
@@ -119,20 +118,7 @@ class QuaternionDMP:
     def __init__(self, n_basis: int, duration: float, q0, goal, k_s: float = 400.0,
                  k_d: float | None = None, canonical: str = 'linear',
                  learn_goal: bool = False, time_scale: float = 1.0) -> None:
-        if k_d is None:
-            k_d = 2.0 * np.sqrt(k_s)
-        if not (np.isfinite(k_s) and k_s > 0.0):
-            raise ValueError(f'k_s must be finite and > 0, got {k_s!r}')
-        if not (np.isfinite(k_d) and k_d >= 0.0):
-            raise ValueError(f'k_d must be finite and >= 0, got {k_d!r}')
-        if not (np.isfinite(time_scale) and time_scale > 0.0):
-            raise ValueError(f'time_scale must be finite and > 0, got {time_scale!r}')
-        self._k_s = float(k_s)
-        self._k_d = float(k_d)
-        self._learn_goal = bool(learn_goal)
-        self._time_scale = float(time_scale)
-        self._canonical = CanonicalSystem(duration, kind=canonical)
-        self._basis = NormalizedGaussianBasis(n_basis)
+        super().__init__(n_basis, duration, k_s, k_d, canonical, learn_goal, time_scale)
         self._q0 = quaternion.as_unit_quaternion(q0, 'q0')
         self._default_goal = quaternion.as_unit_quaternion(goal, 'goal')
         self._goal_offset = np.zeros(AXES)  # rotation vector, learned when learn_goal
@@ -140,38 +126,6 @@ class QuaternionDMP:
         self._steps: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # dt -> (A_d, B_d)
 
     # -- constants ----------------------------------------------------------------------------
-    @property
-    def n_basis(self) -> int:
-        return self._basis.n_basis
-
-    @property
-    def duration(self) -> float:
-        return self._canonical.duration
-
-    @property
-    def k_s(self) -> float:
-        return self._k_s
-
-    @property
-    def k_d(self) -> float:
-        return self._k_d
-
-    @property
-    def canonical(self) -> CanonicalSystem:
-        return self._canonical
-
-    @property
-    def basis(self) -> NormalizedGaussianBasis:
-        return self._basis
-
-    @property
-    def learn_goal(self) -> bool:
-        return self._learn_goal
-
-    @property
-    def time_scale(self) -> float:
-        return self._time_scale
-
     @property
     def num_weights(self) -> int:
         return AXES * self._basis.n_basis
