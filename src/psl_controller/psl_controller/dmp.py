@@ -126,6 +126,19 @@ class GatedAttractor:
     def time_scale(self) -> float:
         return self._time_scale
 
+    @property
+    def num_parameters(self) -> int:
+        raise NotImplementedError
+
+    def _population(self, thetas) -> np.ndarray:
+        """thetas as a finite (P, num_parameters) array; ValueError otherwise."""
+        thetas = np.asarray(thetas, dtype=float)
+        if thetas.ndim != 2 or thetas.shape[1] != self.num_parameters:
+            raise ValueError(f'thetas must be (P, {self.num_parameters}), got {thetas.shape}')
+        if not np.all(np.isfinite(thetas)):
+            raise ValueError('thetas must be finite (found NaN or inf)')
+        return thetas
+
 
 class DMP(GatedAttractor):
     """Point-attractor DMP with gated normalised-Gaussian forcing (eq. 2.23-2.24).
@@ -290,11 +303,7 @@ class DMP(GatedAttractor):
             ValueError: thetas not (B, num_parameters) or not finite, or the errors of
             `integrate`.
         """
-        thetas = np.asarray(thetas, dtype=float)
-        if thetas.ndim != 2 or thetas.shape[1] != self.num_parameters:
-            raise ValueError(f'thetas must be (B, {self.num_parameters}), got {thetas.shape}')
-        if not np.all(np.isfinite(thetas)):
-            raise ValueError('thetas must be finite (found NaN or inf)')
+        thetas = self._population(thetas)
         weights = thetas[:, :self.num_weights].reshape(len(thetas), self._n_dims, self.n_basis)
         goals = (thetas[:, self.num_weights:] if self._learn_goal
                  else np.broadcast_to(self._goal, (len(thetas), self._n_dims)))

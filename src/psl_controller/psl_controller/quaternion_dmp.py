@@ -222,11 +222,7 @@ class QuaternionDMP(GatedAttractor):
             ValueError: thetas not (P, num_parameters) or not finite, or the errors of
             `integrate`.
         """
-        thetas = np.asarray(thetas, dtype=float)
-        if thetas.ndim != 2 or thetas.shape[1] != self.num_parameters:
-            raise ValueError(f'thetas must be (P, {self.num_parameters}), got {thetas.shape}')
-        if not np.all(np.isfinite(thetas)):
-            raise ValueError('thetas must be finite (found NaN or inf)')
+        thetas = self._population(thetas)
         weights = thetas[:, :self.num_weights].reshape(len(thetas), AXES, self.n_basis)
         if self._learn_goal:
             goals = quaternion.product(quaternion.exp_map(thetas[:, self.num_weights:]),

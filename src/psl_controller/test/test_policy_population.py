@@ -75,7 +75,7 @@ def test_a_bad_row_is_named():
         policy.references(thetas, np.tile(task.tau_default, (3, 1)))
     with pytest.raises(ValueError, match='one task instance per row'):
         policy.references(thetas, np.tile(task.tau_default, (2, 1)))
-    with pytest.raises(ValueError, match=r'thetas must be \(B, '):
+    with pytest.raises(ValueError, match=r'thetas must be \(P, '):
         policy.dmp.integrate_population(0.01, thetas[:, :5])
 
 
