@@ -24,7 +24,10 @@ deviation, min, max):
 - ``train_seconds``: wall time of the training tasks (sum of the per-task seconds);
 - ``session_seconds`` and ``simulation_share``: wall time of the whole session (training and
   held-out tasks) and the share of it spent in the simulation
-  (`BatchRollouts.simulation_seconds`), kept in the run folder (``bench_session.json``).
+  (`BatchRollouts.simulation_seconds`), kept in the run folder (``bench_session.json``);
+  ``ik_share`` and ``ik_ms_per_path``: of an end-effector-space task, the share spent in the
+  differential inverse kinematics and its wall time per candidate's path
+  (`TaskPolicy.ik_seconds`, ``ik_paths``).
 Plain Python, no ROS.
 """
 from __future__ import annotations
@@ -45,6 +48,7 @@ from psl_task import DEFAULT_TASK
 
 TARGETS = {'speedup': 5.0, 'zero_shot_success': 0.8}   # bootstrap vs scratch; every strategy
 SESSION_FILE = 'bench_session.json'   # a run folder's session and simulation time
+TIMINGS = ('session_seconds', 'simulation_share', 'ik_share', 'ik_ms_per_path')
 METRICS = ('total_rollouts', 'late_rollouts', 'speedup', 'zero_shot_success',
            'zero_shot_reward', 'train_seconds', 'refused')
 
@@ -81,8 +85,7 @@ def read_run(folder: Path, after: int) -> dict:
     timing = folder / SESSION_FILE      # absent for runs kept from before the bench wrote it
     timed = json.loads(timing.read_text()) if timing.is_file() else {}
     return {
-        **{key: float(timed[key]) for key in ('session_seconds', 'simulation_share')
-           if key in timed},
+        **{key: float(timed[key]) for key in TIMINGS if key in timed},
         'folder': str(folder),
         'seed': metrics.seed,
         'strategy': metrics.strategy,
@@ -135,6 +138,7 @@ def run(task_name: str = DEFAULT_TASK, strategies: Sequence[str] | None = None,
         ValueError: bad settings, or a run folder holding another session.
         RuntimeError: strategies of one seed saw different task instances.
     """
+    from psl_controller.policy import policy_for
     from psl_optimizer.batch_rollout import BatchRollouts
     from psl_optimizer.learning import SKILL_MAPS, Learner, LearnSettings
     from psl_optimizer.policy_search import STRATEGIES, SearchSettings
@@ -177,14 +181,20 @@ def run(task_name: str = DEFAULT_TASK, strategies: Sequence[str] | None = None,
                                     row['skill_map'])
                 reused = _reusable(folder, settings)
                 if not reused:
+                    policy = policy_for(task)
                     start, simulated = time.perf_counter(), rollouts.simulation_seconds
+                    solving, paths = policy.ik_seconds, policy.ik_paths
                     Learner(task, settings, folder, rollouts=rollouts).run()
                     session = time.perf_counter() - start
-                    # the session's wall time and its share spent simulating, kept beside
-                    # its metrics for a later reuse
-                    (folder / SESSION_FILE).write_text(json.dumps({
-                        'session_seconds': session,
-                        'simulation_share': (rollouts.simulation_seconds - simulated) / session}))
+                    # the session's wall time and its shares spent simulating and in the
+                    # inverse kinematics, kept beside its metrics for a later reuse
+                    timing = {'session_seconds': session, 'simulation_share': (
+                        rollouts.simulation_seconds - simulated) / session}
+                    if policy.ik_paths > paths:
+                        timing.update(ik_share=(policy.ik_seconds - solving) / session,
+                                      ik_ms_per_path=1e3 * (policy.ik_seconds - solving)
+                                      / (policy.ik_paths - paths))
+                    (folder / SESSION_FILE).write_text(json.dumps(timing))
                 record = read_run(folder, after)
                 record['reused'] = reused
                 runs[seed][name] = record
@@ -244,7 +254,7 @@ def _aggregate(runs: dict[int, dict[str, dict]], rows: dict[str, dict]) -> dict:
             row['speedup'] = over_seeds([runs[seed][scratch]['late_rollouts'] /
                                          runs[seed][name]['late_rollouts'] for seed in runs])
         row['fulfilled_tasks'] = over_seeds([r['fulfilled_tasks'] for r in records])
-        for key in ('session_seconds', 'simulation_share'):    # not for runs of old folders
+        for key in TIMINGS:                 # not for runs of old folders, nor without IK
             if all(key in r for r in records):
                 row[key] = over_seeds([r[key] for r in records])
         result[name] = row
@@ -298,6 +308,11 @@ def format_table(report: dict) -> str:
                      + ', '.join(f"{name} {row['session_seconds']['mean']:.1f} s, "
                                  f"{100 * row['simulation_share']['mean']:.0f} %"
                                  for name, row in rows.items() if 'session_seconds' in row))
+    if any('ik_share' in row for row in rows.values()):
+        lines.append('of it in the differential inverse kinematics (per candidate\'s path): '
+                     + ', '.join(f"{name} {100 * row['ik_share']['mean']:.0f} % "
+                                 f"({row['ik_ms_per_path']['mean']:.1f} ms)"
+                                 for name, row in rows.items() if 'ik_share' in row))
     lines.append('safety check, candidates refused (not executed) per session: ' + ', '.join(
         f"{name} {cell(row, 'refused', 1)} of {row['total_rollouts']['mean']:.0f}"
         for name, row in rows.items() if 'refused' in row))

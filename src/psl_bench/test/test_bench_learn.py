@@ -143,3 +143,19 @@ def test_runs_from_before_the_skill_map_option_are_reused(bench_run, tmp_path):
 def test_bad_skill_maps(skill_maps, tmp_path):
     with pytest.raises(ValueError, match='skill map'):
         bench_learn.run(out=tmp_path, **{**TINY, 'skill_maps': skill_maps})
+
+
+def test_the_inverse_kinematics_share_is_reported_where_there_is_one(bench_run, tmp_path):
+    """A joint-space task has no inverse kinematics (no share reported); an end-effector-space
+    one reports its share of the session, within (0, 1), and its time per path, which times
+    the number of paths solved cannot exceed the session."""
+    _, joint = bench_run
+    assert all('ik_share' not in row for row in joint['strategies'].values())
+    report = bench_learn.run(out=tmp_path, **{**TINY, 'task_name': 'point_reach_3d',
+                                              'strategies': ('bootstrap',), 'seeds': (0,)})
+    row = report['strategies']['bootstrap']
+    share, per_path = row['ik_share']['mean'], row['ik_ms_per_path']['mean']
+    assert 0.0 < share < 1.0 and per_path > 0.0
+    session = row['session_seconds']['mean']
+    assert per_path * 1e-3 <= share * session * (1 + 1e-9)
+    assert 'inverse kinematics' in bench_learn.format_table(report)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import time
 
 import numpy as np
 
@@ -67,6 +68,8 @@ class TaskPolicy:
         dt = task.control_period
         t, y = demonstration_from_waypoints(task.demo_times, task.demo_positions, dt)
         self.ik = None
+        # wall time spent in the inverse kinematics and the paths it solved (benchmarks)
+        self.ik_seconds, self.ik_paths = 0.0, 0
         if spec.space == 'end_effector':
             self.ik = end_effector_ik(task)
             y = np.array([self.ik.forward(q) for q in y])     # the demonstration's hand path
@@ -250,7 +253,10 @@ class TaskPolicy:
     def _joint_path(self, x: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """Joint angles and velocities (T, n) that follow the hand path x (T, 3) from the
         start posture (differential inverse kinematics; qd its finite difference)."""
+        start = time.perf_counter()
         solution = self.ik.solve(x, self.task.start_posture, dt)
+        self.ik_seconds += time.perf_counter() - start
+        self.ik_paths += 1
         return solution.q, solution.qd
 
 
