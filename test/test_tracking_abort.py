@@ -1,7 +1,10 @@
 """safety.max_tracking_error in the graph: the controller aborts an episode whose tracking
-error passes the bound (it holds where the arm is) and the rollout fails with the reason; a
-bound the episode stays within changes nothing. Batch mode's rollout of the same candidate
+error passes the bound (it holds where the arm is) and the rollout counts as the penalty, with
+the reason, in the graph as in batch mode; a learning session goes on past it; a bound the
+episode stays within changes nothing. Batch mode's rollout of the same candidate
 (the graph equals it within 1e-9 rad in lockstep) says where the error first passes it."""
+import json
+
 import numpy as np
 import pytest
 import yaml
@@ -40,14 +43,41 @@ def graph_task(tmp_path_factory, bound_and_first):
 
 def test_an_episode_beyond_the_bound_is_aborted_with_the_reason(client, graph_task,
                                                                 bound_and_first):
+    """The controller aborts the episode at the first state past the bound; the rollout
+    counts as the penalty minus the excess error, as batch mode's replay of the same check
+    says (the graph equals batch mode within 1e-9 rad in lockstep)."""
     bound, k, joint, _ = bound_and_first
     task = load_task(graph_task)
-    result = client.rollout(graph_task, task.tau_default, policy_for(task).default_theta,
-                            timeout=60)
-    assert not result.success and 'episode aborted' in result.message, result.message
-    assert f'joint {joint_names_of(task)[joint]!r}' in result.message, result.message
-    at = float(result.message.split(' rad from its reference at ')[1].split(' s')[0])
-    assert at == pytest.approx(k * task.control_period, abs=1e-9), result.message
+    theta = policy_for(task).default_theta
+    result = client.rollout(graph_task, task.tau_default, theta, timeout=60)
+    assert result.success, result.message
+    assert 'episode aborted' in result.aborted and result.aborted in result.message
+    assert f'joint {joint_names_of(task)[joint]!r}' in result.aborted, result.aborted
+    at = float(result.aborted.split(' rad from its reference at ')[1].split(' s')[0])
+    assert at == pytest.approx(k * task.control_period, abs=1e-9), result.aborted
+    evaluation = result.evaluation
+    assert not evaluation.fulfilled
+    assert list(evaluation.component_names) == ['tracking_abort']
+    violation = evaluation.component_values[0]
+    assert 0.0 < violation
+    assert evaluation.reward == pytest.approx(task.safety.penalty - violation, abs=1e-12)
+    batch = BatchRollouts(task).run(theta[None], task.tau_default)[0]
+    assert batch.aborted.startswith(result.aborted.split('; the controller holds')[0])
+    assert batch.evaluation.reward == pytest.approx(evaluation.reward, abs=1e-9)
+    assert not batch.evaluation.fulfilled and not batch.has_trajectory
+
+
+def test_a_learning_session_goes_on_past_aborted_episodes(client, graph_task, tmp_path):
+    """Candidates whose episodes the controller aborts are bad candidates, not a broken
+    robot: a graph-mode session on the bounded task runs its budget and ends with the task
+    not fulfilled, every rollout counted."""
+    result = client.learn(timeout=300, task=graph_task, strategy='scratch', num_tasks=1,
+                          max_rollouts_per_task=3, seed=0, mode='graph',
+                          output_dir=str(tmp_path / 'session'))
+    assert result.success, result.message
+    metrics = json.loads(open(result.metrics_path).read())
+    assert metrics['summary']['total_rollouts'] >= 3
+    assert not metrics['tasks'][0]['fulfilled']
 
 
 def test_the_bound_is_the_rollouts_tasks(client, graph_task):

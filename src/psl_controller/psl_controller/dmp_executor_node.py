@@ -177,8 +177,8 @@ class DMPExecutor(Node):
         self._states: list[tuple] = []          # (stamp [ns], q, qd, names), the newest last
         self._state_seen = 0.0                  # monotonic time of the newest
         self._selections: dict = {}             # task path -> its JointSelection
-        # trajectory start [ns] -> (what of FAULTS, why) the controller reported
-        self._faults: dict[int, tuple[str, str]] = {}
+        # trajectory start [ns] -> (what of FAULTS, why, violation) the controller reported
+        self._faults: dict[int, tuple[str, str, float]] = {}
         self._taken: set[int] = set()           # starts [ns] of trajectories the controller took
         if self.external:
             # the controller's report of its robot topics (remapped as this node's)
@@ -262,11 +262,12 @@ class DMPExecutor(Node):
             kind = status.name[len(controller):]
             if not status.name.startswith(controller) or kind not in (*FAULTS, TAKEN):
                 continue
-            start = int({kv.key: kv.value for kv in status.values}.get(
-                'trajectory_start_ns', 0))
+            values = {kv.key: kv.value for kv in status.values}
+            start = int(values.get('trajectory_start_ns', 0))
             with self._cv:
                 if kind != TAKEN:
-                    self._faults[start] = (kind, status.message)
+                    self._faults[start] = (kind, status.message, float(values.get(
+                        'violation', 0.0)))
                 elif self.external:
                     self._taken.add(start)
                 self._cv.notify_all()
@@ -287,8 +288,10 @@ class DMPExecutor(Node):
         with self._rollout_lock:
             result = ExecuteRollout.Result()
             try:
-                result.evaluation, notes, result.refused = self._rollout(goal_handle)
-                done = 'refused by the safety check' if result.refused else 'rollout done'
+                result.evaluation, notes, result.refused, result.aborted = self._rollout(
+                    goal_handle)
+                done = ('refused by the safety check' if result.refused else
+                        result.aborted if result.aborted else 'rollout done')
                 result.success, result.message = True, '; '.join([done] + notes)
                 goal_handle.succeed()
             except (TaskError, ValueError, RuntimeError) as exc:
@@ -300,8 +303,9 @@ class DMPExecutor(Node):
                     goal_handle.abort()
             return result
 
-    def _rollout(self, goal_handle) -> tuple[RolloutEvaluation, list[str], str]:
-        """(evaluation, notes, the safety check's reason or '')."""
+    def _rollout(self, goal_handle) -> tuple[RolloutEvaluation, list[str], str, str]:
+        """(evaluation, notes, the safety check's reason or '', the controller's reason for an
+        aborted episode or '')."""
         goal = goal_handle.request
         task = load_task(goal.task)
         tau, theta = np.asarray(goal.tau), np.asarray(goal.theta)
@@ -321,7 +325,7 @@ class DMPExecutor(Node):
             return RolloutEvaluation(
                 task=goal.task, tau=list(goal.tau), reward=verdict.penalty(task.safety.penalty),
                 fulfilled=False, component_names=['safety_violation'],
-                component_values=[verdict.violation]), [verdict.reason], verdict.reason
+                component_values=[verdict.violation]), [verdict.reason], verdict.reason, 
         if not self.external and not self.reset_client.wait_for_service(timeout_sec=5.0):
             raise RuntimeError('the simulator service sim/reset is not available')
         # joint order of the simulator, which the controller maps by name
@@ -337,12 +341,12 @@ class DMPExecutor(Node):
                 run.t0, run.num_steps = to_ns(response.stamp), response.num_steps
                 if run.pending is not None:
                     self._change_live(run, run.pending)
-            evaluation = self._await_evaluation(goal_handle, task, response)
+            evaluation, aborted = self._await_evaluation(goal_handle, task, response)
             with self._live_lock:
                 if run.change_time is not None and evaluation.goal_change_time < 0:
                     run.notes.append('the controller refused the changed trajectory (it came '
                                      'too late): the episode kept its goal')
-                return evaluation, run.notes, ''
+                return evaluation, run.notes, '', aborted
         finally:
             with self._live_lock:
                 self._running = None
@@ -639,7 +643,10 @@ class DMPExecutor(Node):
         return response
 
     def _await_evaluation(self, goal_handle, task: TaskDefinition,
-                          response: ResetTask.Response) -> RolloutEvaluation:
+                          response: ResetTask.Response) -> tuple[RolloutEvaluation, str]:
+        """The episode's evaluation and '', or for an episode the controller aborted the
+        penalty (`psl_task.safety_check`: penalty - violation, not fulfilled) and its reason;
+        RuntimeError for any other fault, a cancel or no evaluation in time."""
         t0 = to_ns(response.stamp)
         timeout = response.num_steps * task.control_period + self.get_parameter(
             'timeout_margin').value
@@ -673,9 +680,17 @@ class DMPExecutor(Node):
             self._faults.clear()
             self._progress.clear()
             self._reports.clear()
-        if fault is not None:
-            raise RuntimeError(fault[1])
-        return evaluation
+        if fault is None:
+            return evaluation, ''
+        kind, reason, violation = fault
+        if kind != 'tracking abort':
+            raise RuntimeError(reason)
+        return RolloutEvaluation(
+            stamp=evaluation.stamp, task=evaluation.task, tau=evaluation.tau,
+            reward=task.safety.penalty - violation, fulfilled=False,
+            component_names=['tracking_abort'], component_values=[violation],
+            num_steps=evaluation.num_steps, control_period=evaluation.control_period,
+            joint_names=evaluation.joint_names), reason
 
     # -- live goal changes ---------------------------------------------------------------
     def on_goal_update(self, msg: GoalUpdate) -> None:

@@ -62,6 +62,7 @@ from psl_ros.realtime import raise_priority
 from psl_ros.stamps import to_ns
 from psl_task.arm_model import joint_names_of
 from psl_task.joint_selection import JointSelection
+from psl_task.safety_check import abort_reason
 from psl_task.task import load_task
 
 
@@ -133,7 +134,7 @@ class PDController(Node):
         # one message each, refilled every step (publish copies it)
         self._command, self._reference = Float64MultiArray(), JointState()
         self.pub_diag = self.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
-        self._reports: list[tuple] = []       # (level, what, start_ns, reason) to send
+        self._reports: list[tuple] = []       # (level, what, reason, values) to send
         self._reports_lock = threading.Lock()
         self._send = self.create_guard_condition(self._send_reports)
         # one thread serves both, the trajectory first when both are ready: a trajectory
@@ -314,35 +315,37 @@ class PDController(Node):
         """The tracking error passed the task's safety.max_tracking_error: drop the trajectory,
         hold where the arm is, report it for the episode; the reference to serve now."""
         j = int(np.argmax(np.abs(q - q_ref)))
-        self._report('tracking abort', self.start_ns, (
-            f'episode aborted: joint {self.joint_names[j]!r} is {abs(q[j] - q_ref[j]):.4g} rad '
-            f'from its reference at {self.served_ns * 1e-9:.3f} s, beyond the bound '
-            f'{self.max_tracking_error:g} (safety.max_tracking_error); the controller holds'))
+        error = float(abs(q[j] - q_ref[j]))
+        self._report('tracking abort', self.start_ns, abort_reason(
+            self.joint_names[j], error, self.served_ns * 1e-9, self.max_tracking_error)
+            + '; the controller holds', violation=error - self.max_tracking_error)
         self.trajectory, self.hold = None, q.copy()
         return self.hold, np.zeros_like(q), np.zeros_like(q)
 
     def _report(self, what: str, start_ns: int, reason: str,
-                level: bytes = DiagnosticStatus.ERROR) -> None:
+                level: bytes = DiagnosticStatus.ERROR, violation: float | None = None) -> None:
         """Report `reason` on /diagnostics (``<node>: <what>``) for the trajectory that starts
         at `start_ns` (an error, also logged: the executor fails that rollout with it; OK:
         ``trajectory taken``, the acknowledgement the executor waits for on a robot).
         Sent from the node's executor (`_send_reports`), never from the hot path's thread:
         a publish there that waits (the middleware, the log's /rosout) delays the commands."""
+        values = [KeyValue(key='trajectory_start_ns', value=str(start_ns))]
+        if violation is not None:
+            values.append(KeyValue(key='violation', value=repr(float(violation))))
         with self._reports_lock:
-            self._reports.append((level, what, start_ns, reason))
+            self._reports.append((level, what, reason, values))
         self._send.trigger()
 
     def _send_reports(self) -> None:
         with self._reports_lock:
             reports, self._reports = self._reports, []
-        for level, what, start_ns, reason in reports:
+        for level, _, reason, _ in reports:
             if level == DiagnosticStatus.ERROR:
                 self.get_logger().error(reason)
         if reports:
             self.pub_diag.publish(DiagnosticArray(status=[DiagnosticStatus(
                 level=level, name=f'{self.get_fully_qualified_name()}: {what}', message=reason,
-                values=[KeyValue(key='trajectory_start_ns', value=str(start_ns))])
-                for level, what, start_ns, reason in reports]))
+                values=values) for level, what, reason, values in reports]))
 
     def destroy_node(self):
         self.hot_path.stop()

@@ -52,13 +52,13 @@ from mujoco import rollout as mj_rollout
 from psl_controller.pd_law import PDLaw, law_for
 from psl_controller.policy import Reference
 from psl_optimizer.reward import Reward
-from psl_optimizer.rollouts import RolloutResult, Rollouts, refused_result
+from psl_optimizer.rollouts import RolloutResult, Rollouts, aborted_result, refused_result
 from psl_task.arm_model import ArmModel
 from psl_task.model_error import ModelError
 from psl_task.key_values import parse_key_values
 from psl_task.model_spec import task_spec
 from psl_task.reward_geometry import RewardGeometry
-from psl_task.safety_check import SafetyCheck
+from psl_task.safety_check import SafetyCheck, tracking_abort
 from psl_task.task import TaskDefinition
 
 FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
@@ -240,8 +240,19 @@ class BatchRollouts(Rollouts):
                 chosen = [r for r, ok in zip(group, safe) if ok]
                 for i, result in zip(index[safe], self._run(
                         chosen, taus[index[safe]], *(a[safe] for a in arrays))):
-                    results[i] = result
+                    results[i] = self._bounded(result)
         return self._count(results)
+
+    def _bounded(self, result: RolloutResult) -> RolloutResult:
+        """The result, or the penalty of an episode the controller would have aborted
+        (`psl_task.safety_check.tracking_abort`: its tracking error passed the task's
+        ``safety.max_tracking_error``)."""
+        verdict = tracking_abort(result.q, result.q_ref, self.task.safety.max_tracking_error,
+                                 self.arm.joint_names, self.task.control_period)
+        if verdict.safe:
+            return result
+        return aborted_result(verdict.reason, verdict.penalty(self.task.safety.penalty),
+                              verdict.violation)
 
     def _run(self, references: list[Reference], taus: np.ndarray, q_ref: np.ndarray,
              qd_ref: np.ndarray, u_ffwd: np.ndarray) -> list[RolloutResult]:

@@ -19,7 +19,8 @@ import numpy as np
 
 from psl_controller.policy import Reference
 from psl_optimizer.reward import RewardResult
-from psl_optimizer.rollouts import RolloutResult, Rollouts, Stopped, refused_result
+from psl_optimizer.rollouts import (RolloutResult, Rollouts, Stopped, aborted_result,
+                                     refused_result)
 from psl_ros.client import RolloutClient
 from psl_ros.timeouts import ROLLOUT_TIMEOUT
 from psl_task.task import TaskDefinition, task_id
@@ -126,6 +127,8 @@ class GraphRollouts(Rollouts):
         ev = result.evaluation
         if result.refused:          # the executor's safety check: nothing was executed
             return refused_result(result.refused, ev.reward, ev.component_values[0])
+        if result.aborted:          # the controller stopped the episode: the penalty
+            return aborted_result(result.aborted, ev.reward, ev.component_values[0])
         return RolloutResult(evaluation=RewardResult(
             reward=ev.reward, fulfilled=ev.fulfilled,
             components=dict(zip(ev.component_names, ev.component_values))),

@@ -41,6 +41,7 @@ class RolloutResult:
                                            # state (row 0: 0)
     reference: Reference | None = None     # the commanded trajectory on the same grid
     refused: str = ''                      # the safety check's reason: nothing was executed
+    aborted: str = ''                      # the controller's reason: the episode was stopped
 
     @property
     def has_trajectory(self) -> bool:
@@ -61,6 +62,17 @@ def refused_result(reason: str, reward: float, violation: float) -> RolloutResul
     return RolloutResult(evaluation=RewardResult(
         reward=float(reward), fulfilled=False, components={'safety_violation': float(violation)}),
         refused=reason)
+
+
+def aborted_result(reason: str, reward: float, violation: float) -> RolloutResult:
+    """The result of an episode the controller aborted (its tracking error passed the task's
+    ``safety.max_tracking_error``): the penalty reward, not fulfilled, the violation as the one
+    component, no trajectory (what ran is no sample of the candidate)."""
+    from psl_optimizer.reward import RewardResult
+
+    return RolloutResult(evaluation=RewardResult(
+        reward=float(reward), fulfilled=False, components={'tracking_abort': float(violation)}),
+        aborted=reason)
 
 
 class Rollouts(abc.ABC):

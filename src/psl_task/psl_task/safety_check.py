@@ -19,7 +19,13 @@ the trajectory and resets the episode. A refused candidate is not executed; it g
 
 The violation (>= 0) grows with how far the candidate is from safe, so that CMA-ES, which sees
 the penalty, is led back: the excess in rad (range), the excess ratio (velocity, acceleration,
-torque) or in m (penetration). Imports no ROS.
+torque) or in m (penetration).
+
+While it moves, ``max_tracking_error`` bounds ``|q - q_ref|`` of every driven joint: the
+controller aborts the episode at the first state past it and holds. The rollout then counts
+as the penalty, ``penalty - violation`` with the violation the error beyond the bound at that
+state, in both modes (`tracking_abort` replays the controller's check on a batch episode).
+Imports no ROS.
 """
 from __future__ import annotations
 
@@ -48,6 +54,30 @@ class Verdict:
 
 
 SAFE = Verdict(True)
+
+
+def abort_reason(joint: str, error: float, seconds: float, bound: float) -> str:
+    """The controller's reason for a tracking abort (one wording in both modes)."""
+    return (f'episode aborted: joint {joint!r} is {error:.4g} rad from its reference at '
+            f'{seconds:.3f} s, beyond the bound {bound:g} (safety.max_tracking_error)')
+
+
+def tracking_abort(q: np.ndarray, q_ref: np.ndarray, bound: float, joint_names,
+                   dt: float) -> Verdict:
+    """The controller's tracking bound replayed on an episode's measured angles q and
+    reference q_ref (T, n) on the control grid (`psl_controller.pd_controller_node`: at the
+    first state whose ``|q - q_ref|`` passes `bound` on any joint it aborts the episode):
+    SAFE, or that state's reason and violation (the error beyond the bound)."""
+    if not np.isfinite(bound):
+        return SAFE
+    error = np.abs(np.asarray(q) - np.asarray(q_ref))
+    over = error.max(axis=1) > bound
+    if not over.any():
+        return SAFE
+    k = int(np.argmax(over))
+    j = int(np.argmax(error[k]))
+    return Verdict(False, abort_reason(joint_names[j], float(error[k, j]), k * dt, bound),
+                   float(error[k, j] - bound))
 
 
 def reference_acceleration(qd: np.ndarray, dt: float) -> np.ndarray:

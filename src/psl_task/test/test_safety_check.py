@@ -9,7 +9,7 @@ import yaml
 
 from psl_task.arm_model import ArmModel
 from psl_task.reward_geometry import RewardGeometry
-from psl_task.safety_check import SafetyCheck
+from psl_task.safety_check import SafetyCheck, tracking_abort
 from psl_task.task import EMBEDDED_TASKS, TaskError, load_task
 
 
@@ -224,3 +224,17 @@ def test_screening_a_population_gives_the_verdicts_of_one_by_one(tmp_path, safet
     screened = check.screen(taus, qs, qds)
     assert screened == [check.check(tau, a, b) for tau, a, b in zip(taus, qs, qds)]
     assert any(v.safe for v in screened) and not all(v.safe for v in screened)
+
+
+def test_the_tracking_bound_replayed_names_the_first_state_past_it():
+    q_ref = np.zeros((10, 3))
+    q = q_ref.copy()
+    q[4, 2] = 0.05                       # within the bound
+    q[6, 1], q[6, 2] = 0.25, -0.3        # the first state past 0.2: joint c, 0.1 beyond
+    q[8, 0] = 1.0                        # later and larger: not the abort
+    verdict = tracking_abort(q, q_ref, 0.2, ['a', 'b', 'c'], 0.002)
+    assert not verdict.safe
+    assert verdict.violation == pytest.approx(0.1, abs=1e-15)
+    assert "joint 'c' is 0.3 rad from its reference at 0.012 s" in verdict.reason
+    assert tracking_abort(q, q_ref, float('inf'), ['a', 'b', 'c'], 0.002).safe
+    assert tracking_abort(q, q_ref, 1.0, ['a', 'b', 'c'], 0.002).safe    # not beyond: equal
