@@ -325,7 +325,7 @@ class DMPExecutor(Node):
             return RolloutEvaluation(
                 task=goal.task, tau=list(goal.tau), reward=verdict.penalty(task.safety.penalty),
                 fulfilled=False, component_names=['safety_violation'],
-                component_values=[verdict.violation]), [verdict.reason], verdict.reason, 
+                component_values=[verdict.violation]), [verdict.reason], verdict.reason, ''
         if not self.external and not self.reset_client.wait_for_service(timeout_sec=5.0):
             raise RuntimeError('the simulator service sim/reset is not available')
         # joint order of the simulator, which the controller maps by name
