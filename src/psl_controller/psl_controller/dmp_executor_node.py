@@ -47,10 +47,11 @@ world's tau: psl's simulator playing a robot places it), run until a state at it
 then checked against ``homing.tolerance`` on the mean of the last `SETTLE_STATES` states
 (noise), again each new state for up to another ``homing.settle_time`` (a robot settles in
 its own time); an arm at rest off the start (the robot is heavier than its model) is held
-again with a corrected torque, up to `HOLD_CORRECTIONS` times; then the primitive, stamped the same way, its episode announced on ``task_instance``
-by the executor; the evaluator matches states and references by the robot's stamps
-(`psl_optimizer.episode_grid`). A state loss the controller's watchdog reports for the
-episode's trajectory fails the rollout at once, with the controller's reason.
+again with a corrected torque, up to `HOLD_CORRECTIONS` times; then the primitive, stamped
+the same way, its episode announced on ``task_instance`` by the executor; the evaluator
+matches states and references by the robot's stamps (`psl_optimizer.episode_grid`). A state
+loss the controller's watchdog reports for the episode's trajectory fails the rollout at
+once, with the controller's reason.
 """
 from __future__ import annotations
 
@@ -89,7 +90,7 @@ from psl_ros.qos import LATCHED, RELIABLE, SERVICES
 from psl_ros.stamps import duration_msg, time_msg, to_ns
 from psl_task.arm_model import ArmModel, joint_names_of
 from psl_task.joint_selection import JointSelection
-from psl_task.safety_check import SafetyCheck
+from psl_task.safety_check import SafetyCheck, Verdict
 from psl_task.task import TaskDefinition, TaskError, load_task
 
 LEAD_STEPS = 5          # control periods of lead at the least
@@ -120,6 +121,16 @@ def trajectory_msg(joint_names: list[str], ref: Reference) -> JointTrajectory:
             positions=ref.q[k].tolist(), velocities=ref.qd[k].tolist(),
             effort=ref.u_ffwd[k].tolist(), time_from_start=duration_msg(k * dt_ns)))
     return msg
+
+
+def penalty_evaluation(task_id: str, tau, task: TaskDefinition, component: str,
+                       verdict: Verdict) -> RolloutEvaluation:
+    """The evaluation of a candidate the safety check refused or whose episode the controller
+    aborted: the task's penalty minus the violation (`Verdict.penalty`), not fulfilled, the
+    violation as its one component."""
+    return RolloutEvaluation(task=task_id, tau=list(tau), reward=verdict.penalty(
+        task.safety.penalty), fulfilled=False, component_names=[component],
+        component_values=[verdict.violation])
 
 
 @dataclasses.dataclass
@@ -322,10 +333,8 @@ class DMPExecutor(Node):
         verdict = self._safety(task).check(tau, reference.q, reference.qd)
         if not verdict.safe:        # never sent: no trajectory, no episode
             self.get_logger().info(f'candidate refused by the safety check: {verdict.reason}')
-            return RolloutEvaluation(
-                task=goal.task, tau=list(goal.tau), reward=verdict.penalty(task.safety.penalty),
-                fulfilled=False, component_names=['safety_violation'],
-                component_values=[verdict.violation]), [verdict.reason], verdict.reason, ''
+            return (penalty_evaluation(goal.task, goal.tau, task, 'safety_violation', verdict),
+                    [verdict.reason], verdict.reason, '')
         if not self.external and not self.reset_client.wait_for_service(timeout_sec=5.0):
             raise RuntimeError('the simulator service sim/reset is not available')
         # joint order of the simulator, which the controller maps by name
@@ -472,13 +481,16 @@ class DMPExecutor(Node):
         self._run_on_robot(run, reference)
         q, qd = self._settled(run)
         held, waited = reference.u_ffwd[-1], float(reference.t[-1]) + spec.settle_time
+        stiffness = None
         for _ in range(HOLD_CORRECTIONS):
             if self._homed(run, q, qd) or np.abs(qd).max() > spec.tolerance:
                 break                                     # there, or not at rest
-            kp = self._gains[0] if self._gains else task.controller.kp
-            hold = corrected_hold(task.start_posture, held, hold_stiffness(
-                kp, self._inverse_dynamics(run), task.start_posture), q, spec.settle_time,
-                task.control_period)
+            if stiffness is None:
+                stiffness = hold_stiffness(self._gains[0] if self._gains else
+                                           task.controller.kp, self._inverse_dynamics(run),
+                                           task.start_posture)
+            hold = corrected_hold(task.start_posture, held, stiffness, q, spec.settle_time,
+                                  task.control_period)
             held = hold.u_ffwd[-1]
             self._run_on_robot(run, hold)
             q, qd = self._settled(run)
@@ -685,12 +697,10 @@ class DMPExecutor(Node):
         kind, reason, violation = fault
         if kind != 'tracking abort':
             raise RuntimeError(reason)
-        return RolloutEvaluation(
-            stamp=evaluation.stamp, task=evaluation.task, tau=evaluation.tau,
-            reward=task.safety.penalty - violation, fulfilled=False,
-            component_names=['tracking_abort'], component_values=[violation],
-            num_steps=evaluation.num_steps, control_period=evaluation.control_period,
-            joint_names=evaluation.joint_names), reason
+        aborted = penalty_evaluation(evaluation.task, evaluation.tau, task, 'tracking_abort',
+                                     Verdict(False, reason, violation))
+        aborted.stamp = evaluation.stamp
+        return aborted, reason
 
     # -- live goal changes ---------------------------------------------------------------
     def on_goal_update(self, msg: GoalUpdate) -> None:

@@ -21,8 +21,8 @@ state's stamp, so the tracking error can be computed and recorded.
 
 A tracking error beyond ``max_tracking_error`` (the rollout's task's ``safety.max_tracking_error``,
 set by the executor as the gains) while a trajectory runs aborts it: the controller holds
-where the arm is and reports it on /diagnostics (``tracking abort``);
-the executor fails the rollout with the reason.
+where the arm is and reports it on /diagnostics (``tracking abort``, with the excess error);
+the executor counts the rollout as the task's penalty minus that excess, with the reason.
 
 A trajectory stamped with a start the states have passed already (a robot's clock runs on while
 it travels) is refused and reported on /diagnostics (``late trajectory``, with its start): the
