@@ -99,6 +99,7 @@ LOAD_FACTOR = 3.0       # computing and publishing a trajectory during an episod
                         # busy on every core) may take this many times longer than before it
 LIVE_ATTEMPTS = 4       # switch times tried, each later, before a live change gives up
 DEFAULT_RATE = 5000.0   # steps/s assumed before the simulator has reported any
+REPORT_WAIT = 1.0       # s a live change waits for the simulator's report of the episode's start
 ACK_TIMEOUT = 5.0       # s for a subscriber or service to appear, a message to be acknowledged
 LEAD = 0.3              # s from the newest state of an external robot to a trajectory's start
                         # (it must reach the controller meanwhile: > 0.1 s seen under load)
@@ -293,7 +294,9 @@ class DMPExecutor(Node):
                 rate = float(values.get('steps_per_second', 0.0))
                 if rate > 0.0:
                     self._last_rate = rate
-                self._reports[t0] = (done, rate, time.monotonic())
+                with self._cv:
+                    self._reports[t0] = (done, rate, time.monotonic())
+                    self._cv.notify_all()
 
     def execute(self, goal_handle) -> ExecuteRollout.Result:
         with self._rollout_lock:
@@ -794,7 +797,12 @@ class DMPExecutor(Node):
 
     def _step_bound(self, run: _Rollout) -> int:
         """An upper bound of the step the episode has reached: the last progress report's,
-        or 0 at the reset, plus RATE_MARGIN times the measured rate over the time since."""
+        or 0 at the reset, plus RATE_MARGIN times the measured rate over the time since. A
+        live change can arrive before the simulator's report of the episode's start (another
+        topic, another thread): it waits for that report up to REPORT_WAIT."""
+        if not self.external:   # the simulator reports the episode's start with its rate
+            with self._cv:      # (a realtime loop's 500 steps/s, not DEFAULT_RATE's 5000)
+                self._cv.wait_for(lambda: run.t0 in self._reports, timeout=REPORT_WAIT)
         report = self._reports.get(run.t0)
         if report is None:
             done, since = 0, run.reset_sent
