@@ -237,7 +237,18 @@ class TaskPolicy:
         movement, feedforward = self._for_duration(self.task.duration_of(tau))
         movement.set_theta(theta[self.kinematics])
         traj = movement.integrate_goal_change(dt, t_switch, new_goal, t_end)
-        return self._reference_of(traj, theta, feedforward, dt)
+        if self.ik is None:
+            return self._reference_of(traj, theta, feedforward, dt)
+        # the joint path up to the switch is the reference's, bit for bit: the inverse
+        # kinematics (its knots and splines) see the path after a sample, so it continues
+        # from the reference's posture at the switch
+        switch = min(len(traj.t) - 1, int(np.ceil(t_switch / dt - 1e-9)))
+        before, _ = self._joint_path(movement.integrate(dt, t_end).y, dt)
+        after, _ = self._joint_path(traj.y[switch:], dt, start=before[switch])
+        q = np.concatenate([before[:switch + 1], after[1:]])
+        u_ffwd = (feedforward.signal(theta[self.dynamics], traj.t)
+                  if feedforward is not None else np.zeros_like(q))
+        return Reference(t=traj.t, q=q, qd=np.gradient(q, dt, axis=0), u_ffwd=u_ffwd)
 
     def _reference_of(self, traj, theta: np.ndarray, feedforward: FeedForward | None,
                       dt: float) -> Reference:
@@ -250,12 +261,14 @@ class TaskPolicy:
                   if feedforward is not None else np.zeros_like(q))
         return Reference(t=traj.t, q=q, qd=qd, u_ffwd=u_ffwd)
 
-    def _joint_path(self, x: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    def _joint_path(self, x: np.ndarray, dt: float, start: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
         """Joint angles and velocities (T, n) that follow the hand path x (T, 3) from the
-        start posture (differential inverse kinematics; qd its finite difference)."""
-        start = time.perf_counter()
-        solution = self.ik.solve(x, self.task.start_posture, dt)
-        self.ik_seconds += time.perf_counter() - start
+        start posture, or ``start`` (differential inverse kinematics; qd its finite
+        difference)."""
+        began = time.perf_counter()
+        solution = self.ik.solve(x, self.task.start_posture if start is None else start, dt)
+        self.ik_seconds += time.perf_counter() - began
         self.ik_paths += 1
         return solution.q, solution.qd
 

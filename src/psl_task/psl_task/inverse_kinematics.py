@@ -1,4 +1,4 @@
-"""Differential inverse kinematics of a site's position on a MuJoCo model.
+"""Differential inverse kinematics of a site's position (and orientation) on a MuJoCo model.
 
 `DifferentialIK.solve` turns a Cartesian reference of the end-effector position, x_ref (T, 3)
 on a control grid of step dt, into a joint reference q (T, n), qd (T, n) for the arm's n
@@ -42,12 +42,46 @@ root of the distance to the edge), so qd peaks there. One case stays stuck: an a
 straight (e.g. q = 0) asked to move exactly along itself has no first-order direction to bend
 in; its error grows and says so (any other direction, or a bent rest posture, bends it).
 
+Orientation (issue 26): with ``orientation_ref`` (T, 4), unit quaternions [w, x, y, z] of
+the site's orientation, the error and the Jacobian are six-dimensional,
+
+    e = [x_ref_k - fk(q) ; w_o log(q_ref_k (x) conj(q_site(q)))]     (6,) [m]
+    J = [J_p ; w_o J_r]                                               (6, n)
+
+(log: the rotation vector of the shortest rotation, ``mju_quat2Vel``; J_r the site's
+rotational Jacobian of ``mj_jacSite``; w_o = ``orientation_weight`` [m/rad]); the damping,
+the tolerance and the "worse" test measure the stacked error, the step is the same formula.
+This is the Cartesian-space orientation of Ude, Nemec, Petric, Morimoto (2014): the pose DMP
+(`psl_controller.quaternion_dmp`) produces q_ref, this follows it. `IKResult.rotation_error`
+holds the angle between the site's orientation and q_ref at each sample [rad].
+
+Knots: a DMP's path is smooth on the scale of its basis functions (tens of ms), the control
+grid is 1-2 ms. ``solve`` marches along the path in strides of s = knot_step / dt samples
+(``knot_step`` 8 ms: s = 4 at 500 Hz, 8 at 1 kHz): from a solved sample a it takes the steps
+above toward sample a + s directly (the null-space pull at the rate of s dt) and keeps that
+knot if it ends within ``tolerance``. Where it does not (the edge of the reach, a singular
+passage: where the linear model errs over a large step), the samples from the knot before a
+on are solved one by one, and the knots resume once s samples in a row ended within the
+tolerance. Between knots q is a cubic spline in time through each run of consecutive knots
+(scipy.interpolate.CubicSpline, not-a-knot; a sample solved one by one ends a run), clipped
+into the limits. The result is checked with the vectorised kinematics of
+`psl_task.site_chain.SiteChain` (the whole path in a few numpy calls): an interpolated
+sample more than twice the tolerance (stacked error) from its reference is solved one by one
+in another pass (from the last solved sample before it; after 3 passes every sample is).
+Along a reachable path the result differs from the solve of every sample (``knot_step`` 0)
+only in the null space (the pull integrated over steps of s dt): <= 1e-3 rad, the hand within
+twice the tolerance of the reference (test_inverse_kinematics.py,
+test_knots_track_like_every_sample). A chain SiteChain refuses (ball or free joints on it) is
+solved at every sample.
+
 Speed (``solve`` of a 1000-sample circle of radius 0.1 m at dt 1 ms, default settings, CPU
 time, best of 40, on the development machine): 7-joint 3-D arm 11.7 us per sample, 10-joint
 planar arm 11.1 us per sample; about 22 us per sample while a joint sits on its limit (two
 solves a step). Nearly all of it is Python call overhead: about 20 calls per step
 (mj_kinematics, mj_comPos, mj_jacSite, and mju_* vector routines on preallocated buffers,
-which cost less per call than numpy's on 3 x n arrays).
+which cost less per call than numpy's on 3 x n arrays). These are the costs per solved sample:
+with knots (above) a quarter to an eighth of the samples are solved (psl bench learn reports
+the milliseconds per path of a learning session).
 
 Not thread-safe: a `DifferentialIK` owns one MjData (never the caller's), and writes only the
 qpos at ``qpos_adr``; every other qpos (free bodies, passive joints) stays at the model's
@@ -67,6 +101,10 @@ method. IEEE Transactions on Robotics, 27(5), 984-991.
 
 Flacco, F., De Luca, A., Khatib, O. (2015). Control of redundant robots under hard joint
 constraints: saturation in the null space. IEEE Transactions on Robotics, 31(3), 637-654.
+
+Ude, A., Nemec, B., Petric, T., Morimoto, J. (2014). Orientation in Cartesian space dynamic
+movement primitives. IEEE International Conference on Robotics and Automation (ICRA),
+2997-3004.
 """
 from __future__ import annotations
 
@@ -74,16 +112,19 @@ import dataclasses
 
 import mujoco
 import numpy as np
+from scipy.interpolate import CubicSpline
 
+from psl_task.site_chain import IKError, SiteChain, orientation_error
+
+ORIENTATION_WEIGHT = 0.1   # m/rad: 1 rad of orientation error weighs as 0.1 m of position error
+QUATERNION_NORM_TOLERANCE = 1e-6   # |q| of an orientation reference may be off 1 by this much
+KNOT_STEP = 0.008    # s between the samples solved step by step (module docstring, "Knots")
+_KNOT_PASSES = 3     # passes over a path with knots before every sample is solved
 _ONE_DOF_JOINTS = (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)
 _HALVINGS = 8        # a step that makes the error worse is halved back at most this often
 _WORSE = 1.0 + 1e-9  # "worse": a squared error above this factor times the one before; the
                      # factor lets the tiny steps that leave an exactly singular posture pass
                      # (their gain is below the roundoff of |e|^2)
-
-
-class IKError(ValueError):
-    """Input the inverse kinematics refuses: wrong shapes, non-finite numbers, bad settings."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,10 +134,13 @@ class IKResult:
     q: np.ndarray           # (T, n) joint angles [rad] (slide joints: m)
     qd: np.ndarray          # (T, n) joint velocities, finite difference of q [rad/s]
     error: np.ndarray       # (T,) |fk(q_k) - x_ref_k| [m]
+    # (T,) the angle [rad] between the site's orientation and orientation_ref (None without)
+    rotation_error: np.ndarray | None = None
 
     def __post_init__(self):
-        for array in (self.q, self.qd, self.error):
-            array.setflags(write=False)
+        for array in (self.q, self.qd, self.error, self.rotation_error):
+            if array is not None:
+                array.setflags(write=False)
 
     @property
     def max_error(self) -> float:
@@ -124,6 +168,10 @@ class DifferentialIK:
         limit_margin: distance kept from every joint limit (rad for hinges, m for slides).
         iterations: maximal number of steps per sample (>= 1).
         tolerance: error [m] below which a sample takes no further step.
+        orientation_weight: w_o [m/rad], the weight of the orientation error against the
+            position error (only for a solve with an orientation reference).
+        knot_step: time [s] between the samples solved step by step, the others
+            interpolated (module docstring, "Knots"); 0 solves every sample.
 
     Raises:
         IKError: an unknown site, addresses that are not one-dof joints of the model, shapes
@@ -133,7 +181,8 @@ class DifferentialIK:
     def __init__(self, model: mujoco.MjModel, site: str | int, qpos_adr: np.ndarray,
                  dof_adr: np.ndarray, q_rest: np.ndarray, damping: float = 1e-3,
                  nullspace_gain: float = 5.0, limit_margin: float = 0.01,
-                 iterations: int = 3, tolerance: float = 1e-5):
+                 iterations: int = 3, tolerance: float = 1e-5,
+                 orientation_weight: float = ORIENTATION_WEIGHT, knot_step: float = KNOT_STEP):
         self.model = model
         self.site = self._site_id(model, site)
         joints = self._joints(model, qpos_adr, dof_adr)
@@ -144,7 +193,9 @@ class DifferentialIK:
         for name, value, positive in (('damping', damping, True),
                                       ('nullspace_gain', nullspace_gain, False),
                                       ('limit_margin', limit_margin, False),
-                                      ('tolerance', tolerance, False)):
+                                      ('tolerance', tolerance, False),
+                                      ('orientation_weight', orientation_weight, True),
+                                      ('knot_step', knot_step, False)):
             if not (np.isfinite(value) and (value > 0 if positive else value >= 0)):
                 raise IKError(f'{name} must be finite and {">" if positive else ">="} 0, '
                               f'got {value!r}')
@@ -153,6 +204,7 @@ class DifferentialIK:
         self.damping, self.nullspace_gain = float(damping), float(nullspace_gain)
         self.limit_margin, self.tolerance = float(limit_margin), float(tolerance)
         self.iterations = int(iterations)
+        self.orientation_weight, self.knot_step = float(orientation_weight), float(knot_step)
         # bounds (n,): limited joints' range narrowed by the margin, others unbounded
         limited = model.jnt_limited[joints].astype(bool)
         self.low = np.where(limited, model.jnt_range[joints, 0] + limit_margin, -np.inf)
@@ -162,11 +214,22 @@ class DifferentialIK:
             raise IKError(f'limit_margin {limit_margin:g} leaves no range for joints {names}')
         self._data = mujoco.MjData(model)
         self._jacp = np.zeros((3, model.nv))
+        self._jacr = np.zeros((3, model.nv))
         # contiguous addresses (the usual chain) index by slices: views, no copies
         self._qpos_index = self._index(self.qpos_adr)
         # the Jacobian's columns: all of jacp (None) when the arm has every dof
         self._dof_index = (None if np.array_equal(self.dof_adr, np.arange(model.nv))
                            else self._index(self.dof_adr))
+        self._chain = self._site_chain(joints)
+
+    def _site_chain(self, joints: np.ndarray):
+        """The vectorised kinematics of the chain (`psl_task.site_chain.SiteChain`) that
+        checks interpolated samples, or None for a chain it does not follow (ball or free
+        joints on it): then every sample is solved."""
+        try:
+            return SiteChain(self.model, self.site, joints)
+        except IKError:
+            return None
 
     # -- set-up ---------------------------------------------------------------------------
     @staticmethod
@@ -240,82 +303,115 @@ class DifferentialIK:
         self._jacobian(jac)
         return jac
 
-    def _backtrack(self, q: np.ndarray, q_old: np.ndarray, target: np.ndarray,
-                   e_new: np.ndarray, bound: float) -> float:
+    def _backtrack(self, q: np.ndarray, q_old: np.ndarray, error, e_new: np.ndarray,
+                   bound: float) -> float:
         """A step q_old -> q that made the squared error worse than bound is halved back
         toward q_old until it does not (a backtracking line search without the slope term),
         at most _HALVINGS times, then dropped; this keeps the linear model's large steps
-        near a singular posture from jumping across it. q and e_new (3,) are updated in
-        place; returns the squared error at the new q."""
-        x = self._data.site_xpos[self.site]
+        near a singular posture from jumping across it. q and e_new (m,) are updated in
+        place (error(e_new) writes the error at the posture last set); returns the squared
+        error at the new q."""
         for _ in range(_HALVINGS):
             mujoco.mju_addTo(q, q_old)
             mujoco.mju_scl(q, q, 0.5)
             self._set(q)
-            mujoco.mju_sub(e_new, target, x)
+            error(e_new)
             ee = mujoco.mju_dot(e_new, e_new)
             if ee <= bound:
                 return ee
         mujoco.mju_copy(q, q_old)
         self._set(q)
-        mujoco.mju_sub(e_new, target, x)
+        error(e_new)
         return mujoco.mju_dot(e_new, e_new)
 
     # -- the path -------------------------------------------------------------------------
-    def solve(self, x_ref: np.ndarray, q0: np.ndarray, dt: float) -> IKResult:
-        """The joint reference of a Cartesian position reference.
+    def solve(self, x_ref: np.ndarray, q0: np.ndarray, dt: float,
+              orientation_ref: np.ndarray | None = None) -> IKResult:
+        """The joint reference of a Cartesian position (and orientation) reference.
 
         Args:
             x_ref: (T, 3) site positions [m] on the control grid; x_ref[0] should be (near)
                 fk(q0), otherwise the first samples converge toward it and report the error.
             q0: (n,) joint angles at the start (clipped into the limits).
             dt: grid step [s] (scales the null-space pull and qd).
+            orientation_ref: None (the position only), or (T, 4) unit quaternions
+                [w, x, y, z] of the site's orientation on the same grid: the error is then
+                six-dimensional (module docstring, "Orientation").
 
         Returns:
-            IKResult with q, qd (T, n) and the position error (T,).
+            IKResult with q, qd (T, n), the position error (T,) and, with orientation_ref,
+            the orientation error (T,).
 
         Raises:
-            IKError: x_ref not (T, 3) with T >= 1, q0 not (n,), non-finite input, dt <= 0.
+            IKError: x_ref not (T, 3) with T >= 1, q0 not (n,), orientation_ref not (T, 4)
+                unit quaternions, non-finite input, dt <= 0.
         """
         x_ref = np.ascontiguousarray(x_ref, dtype=float)
         if x_ref.ndim != 2 or x_ref.shape[1] != 3 or len(x_ref) == 0:
             raise IKError(f'x_ref must have shape (T, 3) with T >= 1, got {x_ref.shape}')
-        if not np.all(np.isfinite(x_ref)):
-            bad = np.flatnonzero(~np.all(np.isfinite(x_ref), axis=1))
-            raise IKError(f'x_ref must be finite; {len(bad)} samples are not, the first at '
-                          f'index {bad[0]}')
+        _check_finite(x_ref, 'x_ref')
+        quat_ref = None if orientation_ref is None else _unit_quaternions(orientation_ref,
+                                                                          len(x_ref))
         q = np.clip(self._vector(q0, 'q0'), self.low, self.high)
         if not (np.isfinite(dt) and dt > 0):
             raise IKError(f'dt must be finite and > 0, got {dt!r}')
+        stride = max(1, int(self.knot_step / dt + 1e-9)) if self._chain is not None else 1
+        path = _Path(len(x_ref), self.n)
+        path.q[0] = q
+        for _ in range(_KNOT_PASSES):
+            self._follow(x_ref, quat_ref, dt, stride, path)
+            if path.solved.all():
+                break
+            result, missed = self._interpolated(path.q, path.solved, x_ref, quat_ref, dt)
+            if result is not None:
+                return result
+            path.redo(missed)
+        else:
+            path.redo(~path.solved)                  # every sample
+            self._follow(x_ref, quat_ref, dt, stride, path)
+        return self._result(path.q, self._errors(path.q, x_ref, quat_ref), dt)
 
+    def _follow(self, x_ref: np.ndarray, quat_ref: np.ndarray | None, dt: float, stride: int,
+                path: _Path) -> None:
+        """The damped least-squares path (module docstring) through the samples x_ref
+        (T, 3) (and quat_ref (T, 4)), continued from path.start (path.q[0] the start
+        posture), into path. From a solved sample a it tries the sample b = a + stride
+        (the pull at the rate of the time between) unless a sample up to it is marked
+        one by one or a ended outside ``tolerance``; if b ends within it b is taken,
+        otherwise the samples up to b are solved one by one from a (stride 1: every
+        sample, one by one)."""
         T, n = len(x_ref), self.n
-        q_out = np.empty((T, n))
-        x_out = np.empty((T, 3))
-        pull = min(1.0, self.nullspace_gain * dt)
+        a = path.start
+        q = path.q[a].copy()                          # updated in place below
         damping2, tolerance2, iterations = self.damping ** 2, self.tolerance ** 2, self.iterations
-        pulled_rest, low, high = pull * self.q_rest, self.low, self.high
-        step = _Step()
-        jac = self._jacp if self._dof_index is None else np.empty((3, n))   # (3, n)
-        e, e_new = np.empty(3), np.empty(3)           # position errors before / after a step
-        z, dq, q_old = np.empty(n), np.empty(n), np.empty(n)
-        x = self._data.site_xpos[self.site]         # (3,) a view: follows every _set
+        low, high, q_rest, gain = self.low, self.high, self.q_rest, self.nullspace_gain
+        m = 3 if quat_ref is None else 6
+        step_solve = _Step(m)
+        jac = self._jacp if (self._dof_index is None and m == 3) else np.empty((m, n))
+        e, e_new = np.empty(m), np.empty(m)           # errors before / after a step
+        z, dq, q_old, q_knot = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+        error = _Error(self, x_ref, quat_ref)
+        jacobian = self._jacobian if m == 3 else self._pose_jacobian
         slack = _slack(q, low, high)
         self._set(q)
-        for k in range(T):
-            target = x_ref[k]
-            mujoco.mju_sub(e, target, x)
+
+        def reach(k: int, pull: float, pulled_rest: np.ndarray) -> float:
+            """Take the steps toward sample k from q (in place); the squared error left."""
+            nonlocal q, slack, e, e_new
+            error.sample = k
+            error(e)
             ee = mujoco.mju_dot(e, e)
             for i in range(iterations):
                 if i > 0 and ee <= tolerance2:
                     break
-                self._jacobian(jac)
+                jacobian(jac)
                 lam2 = damping2 + 0.5 * ee
                 if i == 0 and pull > 0.0:
                     mujoco.mju_addScl(z, pulled_rest, q, -pull)     # z = pull (q_rest - q)
                     pulled = z
                 else:
                     pulled = None
-                step(dq, jac, e, pulled, lam2)
+                step_solve(dq, jac, e, pulled, lam2)
                 mujoco.mju_copy(q_old, q)
                 # the L1 norm bounds every joint's move: the bounds need a look only once
                 # the moves since the last look add up to the distance left to the nearest
@@ -323,33 +419,211 @@ class DifferentialIK:
                 if slack >= 0.0:
                     mujoco.mju_addTo(q, dq)
                 else:
-                    q, slack = _respect_limits(step, q, dq, jac, e, pulled, lam2, low, high)
+                    q, slack = _respect_limits(step_solve, q, dq, jac, e, pulled, lam2, low,
+                                               high)
                 self._set(q)
-                mujoco.mju_sub(e_new, target, x)
+                error(e_new)
                 ee_new = mujoco.mju_dot(e_new, e_new)
                 bound = max(ee * _WORSE, tolerance2)
                 if ee_new > bound:
-                    ee_new = self._backtrack(q, q_old, target, e_new, bound)
+                    ee_new = self._backtrack(q, q_old, error, e_new, bound)
                 e, e_new, ee = e_new, e, ee_new
-            q_out[k] = q
-            x_out[k] = x
-        error = np.sqrt(np.sum((x_out - x_ref) ** 2, axis=1))
-        qd = np.gradient(q_out, dt, axis=0) if T > 1 else np.zeros((1, n))
-        return IKResult(q=q_out, qd=qd, error=error)
+            return ee
+
+        pull = min(1.0, gain * dt)
+        pulled_rest = pull * q_rest
+        if a == 0:
+            path.within[0] = reach(0, pull, pulled_rest) <= tolerance2
+            path.q[0], path.solved[0] = q, True
+        while a < T - 1:
+            b = min(a + stride, T - 1)
+            # knots after `stride` samples within the tolerance, or a knot within it
+            steady = path.within[max(0, a - stride + 1):a + 1].all()
+            if b - a > 1 and steady and not path.one_by_one[a + 1:b + 1].any():
+                mujoco.mju_copy(q_knot, q)
+                knot_slack = slack
+                knot_pull = min(1.0, gain * (b - a) * dt)
+                if reach(b, knot_pull, knot_pull * q_rest) <= tolerance2:
+                    path.q[b], path.solved[b] = q, True
+                    path.within[a + 1:b + 1] = True
+                    a = b
+                    continue
+                # missed: the samples one by one, from the knot before a (the path bends
+                # there already: its spline would miss too)
+                before = a - stride
+                if before >= 0 and path.solved[before] and not path.solved[before + 1:a].any():
+                    a = before
+                    q[:] = path.q[a]
+                    path.solved[a + 1:] = False
+                    slack = _slack(q, low, high)
+                else:
+                    mujoco.mju_copy(q, q_knot)
+                    slack = knot_slack
+                self._set(q)
+            for k in range(a + 1, b + 1):
+                path.within[k] = reach(k, pull, pulled_rest) <= tolerance2
+                path.q[k] = q
+            path.solved[a + 1:b + 1] = True
+            a = b
+
+    def _pose_jacobian(self, out: np.ndarray) -> None:
+        """The site's position Jacobian over w_o times its rotational one (6, n), at the
+        posture last set, into out (6, n)."""
+        mujoco.mj_comPos(self.model, self._data)
+        mujoco.mj_jacSite(self.model, self._data, self._jacp, self._jacr, self.site)
+        index = slice(None) if self._dof_index is None else self._dof_index
+        out[:3] = self._jacp[:, index]
+        np.multiply(self._jacr[:, index], self.orientation_weight, out=out[3:])
+
+    def _errors(self, q: np.ndarray, x_ref: np.ndarray, quat_ref: np.ndarray | None):
+        """The position errors (T,) [m] and (None without quat_ref) orientation errors (T,)
+        [rad] of the postures q (T, n)."""
+        if self._chain is None:
+            x = np.empty_like(x_ref)
+            quat = None if quat_ref is None else np.empty((len(q), 4))
+            for k, q_k in enumerate(q):
+                self._set(q_k)
+                x[k] = self._data.site_xpos[self.site]
+                if quat is not None:
+                    mujoco.mju_mat2Quat(quat[k], self._data.site_xmat[self.site])
+        elif quat_ref is None:
+            x, quat = self._chain.forward(q), None
+        else:
+            x, quat = self._chain.pose(q)
+        position = np.sqrt(np.sum((x - x_ref) ** 2, axis=1))
+        if quat_ref is None:
+            return position, None
+        return position, orientation_error(quat, quat_ref)
+
+    def _interpolated(self, q_out: np.ndarray, solved: np.ndarray, x_ref: np.ndarray,
+                      quat_ref: np.ndarray | None, dt: float
+                      ) -> tuple[IKResult | None, np.ndarray]:
+        """The path at the solved samples (q_out[solved]) completed between knots by a cubic
+        spline in time through each run of consecutive knots (a sample solved one by one
+        ends a run: the spline does not see it), clipped into the limits; None if an
+        interpolated sample misses its reference by more than twice ``tolerance`` (the
+        stacked error: w_o times the orientation error counted as a distance); and the
+        interpolated samples that missed (T,) bool (`solve` solves them one by one in its
+        next pass)."""
+        t = np.arange(len(x_ref)) * dt
+        q = q_out.copy()
+        index = np.flatnonzero(solved)
+        wide = np.diff(index) > 1               # intervals with samples to interpolate
+        i = 0
+        while i < len(wide):
+            if not wide[i]:
+                i += 1
+                continue
+            j = i
+            while j < len(wide) and wide[j]:
+                j += 1
+            knots = index[i:j + 1]              # a run of knots
+            inner = np.arange(knots[0] + 1, knots[-1])
+            inner = inner[~solved[inner]]
+            q[inner] = CubicSpline(t[knots], q_out[knots], axis=0)(t[inner])
+            i = j
+        between = ~solved
+        q[between] = np.clip(q[between], self.low, self.high)
+        position, rotation = errors = self._errors(q, x_ref, quat_ref)
+        missed = between & (_stacked(position, rotation, self.orientation_weight)
+                            > 2.0 * self.tolerance)
+        if missed.any():
+            return None, missed
+        return self._result(q, errors, dt), missed
+
+    @staticmethod
+    def _result(q: np.ndarray, errors, dt: float) -> IKResult:
+        qd = np.gradient(q, dt, axis=0) if len(q) > 1 else np.zeros_like(q)
+        return IKResult(q=q, qd=qd, error=errors[0], rotation_error=errors[1])
+
+
+class _Path:
+    """A path being solved over passes (`DifferentialIK.solve`): q (T, n) at the samples
+    solved, which are solved, which ended within the tolerance, which a pass must solve one
+    by one, and the sample the next pass starts from (what comes before it is kept)."""
+
+    def __init__(self, length: int, n: int):
+        self.q = np.zeros((length, n))
+        self.solved = np.zeros(length, dtype=bool)
+        self.within = np.zeros(length, dtype=bool)
+        self.one_by_one = np.zeros(length, dtype=bool)
+        self.start = 0
+
+    def redo(self, samples: np.ndarray) -> None:
+        """Solve the samples (T,) bool one by one in the next pass, which starts at the last
+        solved sample before the first of them (the passes before it took the same
+        decisions up to there, so their result is kept)."""
+        first = int(np.argmax(samples))
+        self.one_by_one |= samples
+        self.start = int(np.flatnonzero(self.solved[:first])[-1])
+        self.solved[self.start + 1:] = False
+
+
+class _Error:
+    """The error (3,) x_ref_k - x or (6,) [x_ref_k - x; w_o log(q_ref_k (x) conj(q_site))]
+    of the posture last set, for the sample ``sample``: called with the output array."""
+
+    def __init__(self, ik: DifferentialIK, x_ref: np.ndarray, quat_ref: np.ndarray | None):
+        self.x_ref, self.quat_ref, self.sample = x_ref, quat_ref, 0
+        self.x = ik._data.site_xpos[ik.site]             # views: follow every _set
+        self.xmat = ik._data.site_xmat[ik.site]
+        self.weight = ik.orientation_weight
+        self.quat, self.conj, self.relative = np.empty(4), np.empty(4), np.empty(4)
+        self.rotation = np.empty(3)
+
+    def __call__(self, out: np.ndarray) -> None:
+        k = self.sample
+        if self.quat_ref is None:
+            mujoco.mju_sub(out, self.x_ref[k], self.x)
+            return
+        mujoco.mju_sub(out[:3], self.x_ref[k], self.x)
+        mujoco.mju_mat2Quat(self.quat, self.xmat)
+        mujoco.mju_negQuat(self.conj, self.quat)
+        mujoco.mju_mulQuat(self.relative, self.quat_ref[k], self.conj)
+        mujoco.mju_quat2Vel(self.rotation, self.relative, 1.0)      # the shortest rotation
+        mujoco.mju_scl(out[3:], self.rotation, self.weight)
+
+
+def _stacked(position: np.ndarray, rotation: np.ndarray | None, weight: float) -> np.ndarray:
+    """|e| of the stacked error [position; w_o rotation] (T,) [m]."""
+    return position if rotation is None else np.sqrt(position ** 2 + (weight * rotation) ** 2)
+
+
+def _check_finite(array: np.ndarray, name: str) -> None:
+    if not np.all(np.isfinite(array)):
+        bad = np.flatnonzero(~np.all(np.isfinite(array), axis=1))
+        raise IKError(f'{name} must be finite; {len(bad)} samples are not, the first at '
+                      f'index {bad[0]}')
+
+
+def _unit_quaternions(orientation_ref, length: int) -> np.ndarray:
+    """orientation_ref as (T, 4) unit quaternions (normalised), or IKError."""
+    quat = np.array(orientation_ref, dtype=float)
+    if quat.shape != (length, 4):
+        raise IKError(f'orientation_ref must have shape ({length}, 4) like x_ref, got '
+                      f'{quat.shape}')
+    _check_finite(quat, 'orientation_ref')
+    norm = np.sqrt(np.sum(quat * quat, axis=1))
+    off = np.flatnonzero(np.abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE)
+    if len(off):
+        raise IKError(f'orientation_ref must hold unit quaternions [w, x, y, z]; sample '
+                      f'{off[0]} has norm {float(norm[off[0]])!r}')
+    return quat / norm[:, None]
 
 
 class _Step:
     """The damped least-squares step (module docstring) on preallocated buffers:
-    dq (n,) = z + J^T (J J^T + lam2 I)^-1 (e - J z) toward the error e (3,), with the joint
-    displacement z (n,) projected onto J's damped null space (z None: no null-space term).
-    MuJoCo's mju_* routines instead of numpy: a fraction of the call overhead on 3 x n."""
+    dq (n,) = z + J^T (J J^T + lam2 I)^-1 (e - J z) toward the error e (m,) (m = 3, or 6 with
+    the orientation), with the joint displacement z (n,) projected onto J's damped null space
+    (z None: no null-space term). MuJoCo's mju_* routines instead of numpy: a fraction of the
+    call overhead on m x n."""
 
-    def __init__(self):
-        self.a = np.empty((3, 3))
-        self.a_flat = self.a.reshape(9)         # a view
-        self.eye_flat = np.eye(3).reshape(9)
-        self.r = np.empty(3)
-        self.y = np.empty(3)
+    def __init__(self, m: int = 3):
+        self.a = np.empty((m, m))
+        self.a_flat = self.a.reshape(m * m)     # a view
+        self.eye_flat = np.eye(m).reshape(m * m)
+        self.r = np.empty(m)
+        self.y = np.empty(m)
 
     def __call__(self, dq: np.ndarray, jac: np.ndarray, e: np.ndarray, z: np.ndarray | None,
                  lam2: float) -> None:

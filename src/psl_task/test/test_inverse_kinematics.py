@@ -504,3 +504,123 @@ def test_a_single_sample():
     result = ik.solve(ik.forward(q0)[None], q0, DT)
     assert result.q.shape == (1, 2) and np.array_equal(result.qd, np.zeros((1, 2)))
     assert result.max_error < TOL_FK
+
+
+# -- knots and orientation (issue 26) -------------------------------------------------------------
+TOL_KNOTS = 1e-3            # rad, knots + spline vs every sample: the null-space pull integrated
+                            # over 8 ms instead of 1 ms steps (measured 2.5e-4 on point_reach_3d)
+TOL_ANGLE_DRIFT = 1e-2      # rad, the orientation a position-only solve leaves (> this)
+
+
+def independent_pose(model, qpos_adr, q):
+    """Site 'tip' position (T, 3) and orientation (T, 4) along q (T, n) on a fresh MjData."""
+    data = mujoco.MjData(model)
+    site = model.site('tip').id
+    x, quat = np.empty((len(q), 3)), np.empty((len(q), 4))
+    for k, qk in enumerate(q):
+        data.qpos[qpos_adr] = qk
+        mujoco.mj_kinematics(model, data)
+        x[k] = data.site_xpos[site]
+        mujoco.mju_mat2Quat(quat[k], data.site_xmat[site])
+    return x, quat
+
+
+def angle_between(quat, quat_ref):
+    """The rotation angle (T,) [rad] from quat to quat_ref: 2 acos |<q, q_ref>|."""
+    return 2.0 * np.arccos(np.minimum(1.0, np.abs(np.sum(quat * quat_ref, axis=1))))
+
+
+def seven_dof_pose_path():
+    """A reachable pose path of the 7-DOF arm: the forward kinematics of a minimum-jerk joint
+    path (so every pose has an exact solution)."""
+    model = seven_dof_arm()
+    qpos_adr, _ = arm_addresses(model)
+    s, _ = timing()
+    goal = np.array([0.9, 0.4, -0.6, 1.2, 0.8, -0.5, 0.3])
+    return model, independent_pose(model, qpos_adr, ARM7_Q0 + s[:, None] * (goal - ARM7_Q0))
+
+
+def test_knots_track_like_every_sample():
+    """Solved every KNOT_STEP (8 samples at 1 ms) and interpolated by a cubic spline: every
+    sample within twice the tolerance (independent forward kinematics), the joints within
+    TOL_KNOTS of the solve of every sample, the limits kept; the knots are the postures of
+    the knots solved alone (bit for bit, the last one apart: its step is shorter)."""
+    model = seven_dof_arm()
+    qpos_adr, _ = arm_addresses(model)
+    ik, every = solver(model, ARM7_Q0), solver(model, ARM7_Q0, knot_step=0.0)
+    x0 = ik.forward(ARM7_Q0)
+    ring, _ = circle(x0, 0.1, EY, np.array([0.0, 0.6, 0.8]))
+    x_ref = np.vstack([ring, line(x0, x0 + [-0.1, 0.05, 0.12])[0]])
+    result, reference = ik.solve(x_ref, ARM7_Q0, DT), every.solve(x_ref, ARM7_Q0, DT)
+    reached = independent_fk(model, qpos_adr, result.q)
+    assert np.linalg.norm(reached - x_ref, axis=1).max() <= 2 * ik.tolerance + TOL_FK
+    np.testing.assert_allclose(result.error, np.linalg.norm(reached - x_ref, axis=1),
+                               rtol=0, atol=TOL_FK)
+    assert 0 < np.abs(result.q - reference.q).max() < TOL_KNOTS
+    low, high = hinge_bounds(model)
+    assert np.all(result.q >= low - TOL_LIMIT) and np.all(result.q <= high + TOL_LIMIT)
+    np.testing.assert_array_equal(result.qd, np.gradient(result.q, DT, axis=0))
+    stride = round(ik.knot_step / DT)
+    knots = np.r_[np.arange(0, len(x_ref) - 1, stride), len(x_ref) - 1]
+    alone = every.solve(x_ref[knots], ARM7_Q0, stride * DT)
+    np.testing.assert_array_equal(result.q[knots[:-1]], alone.q[:-1])
+
+
+def test_where_a_knot_misses_its_samples_are_solved_one_by_one():
+    """Out of reach and back (the two-link arm, 2 m out): beyond the reach no knot meets the
+    tolerance, so those samples are solved one by one from the last knot that did; the errors
+    are those of the solve of every sample (the distance beyond reach) within TOL_REACH, and
+    the arm tracks again once back."""
+    model = planar_arm(TWO_LINK)
+    q0 = np.array([0.3, 1.2])
+    ik, every = solver(model, q0), solver(model, q0, knot_step=0.0)
+    x0 = ik.forward(q0)
+    far = 2.0 * x0 / np.linalg.norm(x0)
+    x_ref = np.vstack([hold(line(x0, far)[0], 300), line(far, x0)[0]])
+    result, reference = ik.solve(x_ref, q0, DT), every.solve(x_ref, q0, DT)
+    assert np.abs(result.error - reference.error).max() < TOL_REACH
+    assert result.error[-1] < TOL_TRACK
+    assert not np.array_equal(result.q, reference.q)      # the knots did take part
+
+
+@pytest.mark.parametrize('knot_step', [0.0, 0.008])
+def test_a_pose_path_is_tracked_with_the_orientation_term(knot_step):
+    """With an orientation reference the hand follows position and orientation (forward
+    kinematics and angles on a separate MjData), within the tolerance on the stacked error
+    (twice between knots); without it the position only, and the orientation drifts."""
+    model, (x_ref, quat_ref) = seven_dof_pose_path()
+    qpos_adr, _ = arm_addresses(model)
+    ik = solver(model, ARM7_Q0, knot_step=knot_step)
+    posed = ik.solve(x_ref, ARM7_Q0, DT, orientation_ref=quat_ref)
+    plain = ik.solve(x_ref, ARM7_Q0, DT)
+    x, quat = independent_pose(model, qpos_adr, posed.q)
+    angle = angle_between(quat, quat_ref)
+    np.testing.assert_allclose(posed.rotation_error, angle, rtol=0, atol=1e-7)   # acos near 1
+    stacked = np.sqrt(np.sum((x - x_ref) ** 2, axis=1) + (ik.orientation_weight * angle) ** 2)
+    assert stacked.max() <= (2 if knot_step else 1) * ik.tolerance + 1e-7 * ik.orientation_weight
+    assert plain.rotation_error is None
+    drift = angle_between(independent_pose(model, qpos_adr, plain.q)[1], quat_ref)
+    assert drift.max() > TOL_ANGLE_DRIFT
+
+
+@pytest.mark.parametrize('change, message', [
+    (lambda q: q[:-1], r'orientation_ref must have shape \(800, 4\)'),
+    (lambda q: 2 * q, r'unit quaternions .* sample 0 has norm 2'),
+    (lambda q: np.where(np.arange(800)[:, None] == 5, np.nan, q), r'orientation_ref must be '
+     r'finite; 1 samples are not, the first at index 5'),
+])
+def test_bad_orientation_references_are_refused(change, message):
+    model, (x_ref, quat_ref) = seven_dof_pose_path()
+    ik = solver(model, ARM7_Q0)
+    with pytest.raises(IKError, match=message):
+        ik.solve(x_ref, ARM7_Q0, DT, orientation_ref=change(quat_ref))
+
+
+@pytest.mark.parametrize('settings,message', [
+    ({'knot_step': -0.01}, r'knot_step must be finite and >= 0'),
+    ({'orientation_weight': 0.0}, r'orientation_weight must be finite and > 0'),
+])
+def test_bad_knot_and_orientation_settings_are_refused(settings, message):
+    model = seven_dof_arm()
+    with pytest.raises(IKError, match=message):
+        solver(model, ARM7_Q0, **settings)

@@ -15,8 +15,8 @@ import pytest
 
 from psl_task.arm_model import ArmModel
 from psl_task.inverse_kinematics import DifferentialIK, IKError
-from psl_task.population_ik import (PopulationIK, orientation_error, quaternion_of,
-                                    rotation_vector)
+from psl_task.population_ik import PopulationIK
+from psl_task.site_chain import orientation_error, quaternion_of, rotation_vector
 from psl_task.task import TaskError, load_task
 
 EXAMPLES = Path(__file__).resolve().parents[3] / 'examples'
@@ -102,7 +102,7 @@ MIXED_ARM = ['elbow', 'lift', 'wrist', 'yaw', 'spin', 'pitch']   # q order != ch
 def mixed_ik(model, joints=MIXED_ARM, site='tip'):
     ids = [model.joint(name).id for name in joints]
     return DifferentialIK(model, site, model.jnt_qposadr[ids], model.jnt_dofadr[ids],
-                          q_rest=np.zeros(len(ids)))
+                          q_rest=np.zeros(len(ids)), knot_step=0.0)
 
 
 def mujoco_kinematics(model, ik, q):
@@ -223,7 +223,8 @@ def reach():
     on its limit and leaves the reach (0.03 m); out of reach and back (0.14 m beyond)."""
     arm, site = task_arm('point_reach_3d')
     task = arm.task
-    ik = DifferentialIK(arm.model, site, arm.qpos_adr, arm.dof_adr, task.start_posture)
+    ik = DifferentialIK(arm.model, site, arm.qpos_adr, arm.dof_adr, task.start_posture,
+                        knot_step=0.0)     # every sample, as PopulationIK
     q0 = np.array(task.start_posture)
     x0 = ik.forward(q0)
     half = PATH_SAMPLES // 2
@@ -447,3 +448,22 @@ def test_without_orientation_reference_the_weight_changes_nothing(reach):
     default = population.solve(x_ref, q0, dt)[0]
     weighted = population.solve(x_ref, q0, dt, orientation_ref=None, orientation_weight=5.0)[0]
     np.testing.assert_array_equal(default.q, weighted.q)
+
+
+def test_the_serial_pose_solve_matches_the_population_one(reach):
+    """DifferentialIK's six-dimensional step (mju_* calls, MuJoCo's quaternions and
+    Jacobians) against PopulationIK's (numpy, the chain's Rodrigues kinematics): the same
+    algorithm in two floating-point orders, along a pose path in reach."""
+    ik, q0, dt, paths = reach
+    population = PopulationIK(ik)
+    s = minimum_jerk(PATH_SAMPLES)[:, None]
+    goal = np.array([0.9, 0.4, -0.6, 1.2, 0.8, -0.5, 0.3])
+    x_ref, quat_ref = population.pose(q0 + s * (goal - q0))
+    serial = ik.solve(x_ref, q0, dt, orientation_ref=quat_ref)
+    side = population.solve(x_ref[None], q0, dt, orientation_ref=quat_ref[None],
+                            orientation_weight=ik.orientation_weight)[0]
+    np.testing.assert_allclose(serial.q, side.q, rtol=0, atol=TOL_PATH)
+    np.testing.assert_allclose(serial.rotation_error,
+                               orientation_error(population.pose(side.q)[1], quat_ref),
+                               rtol=0, atol=TOL_KINEMATICS)
+    assert serial.max_error < TOL_POSE_POSITION and serial.rotation_error.max() < TOL_POSE_ANGLE
