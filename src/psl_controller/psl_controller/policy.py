@@ -21,7 +21,12 @@ Task variability the DMP carries (``kind: dmp`` only):
 - ``policy.space: end_effector``: the DMP runs over the end-effector position (3-D, start and
   default goal from the demonstration's end-effector path) and the joint reference is its
   differential inverse kinematics on the task's model (`psl_task.inverse_kinematics`), computed
-  from theta before the rollout, the same in graph and batch mode.
+  from theta before the rollout, the same in graph and batch mode;
+- with ``policy.orientation: true`` as well (end-effector space only) the hand's orientation
+  is a unit-quaternion DMP on the same phase (Ude et al. 2014, `psl_controller.pose_dmp`):
+  theta_K = [position weights, position goal, orientation weights, goal rotation vector]
+  (the goals with ``learn_goal``; the rotation relative to the demonstration's last
+  orientation), and the inverse kinematics follows position and orientation.
 Imports no ROS; the DMP executor node and batch rollouts both call `TaskPolicy.reference`.
 """
 from __future__ import annotations
@@ -35,6 +40,8 @@ import numpy as np
 from psl_controller.dmp import DMP, demonstration_from_waypoints
 from psl_controller.feedforward import FeedForward
 from psl_controller.gmr_trajectory import GMRTrajectory
+from psl_controller.pose_dmp import PoseDMP
+from psl_controller.quaternion_dmp import QuaternionDMP
 from psl_task.task import TaskDefinition
 
 
@@ -64,15 +71,21 @@ class TaskPolicy:
         if spec.kind != 'dmp' and (spec.learn_goal or spec.space != 'joint' or varies_duration):
             raise ValueError(f'task {task.name!r}: learn_goal, space end_effector and a duration '
                              'task parameter need policy kind dmp')
+        if spec.orientation and spec.space != 'end_effector':
+            raise ValueError(f'task {task.name!r}: policy.orientation needs space end_effector '
+                             '(the hand\'s orientation is a DMP of its own only there)')
         self.task = task
         dt = task.control_period
         t, y = demonstration_from_waypoints(task.demo_times, task.demo_positions, dt)
         self.ik = None
         # wall time spent in the inverse kinematics and the paths it solved (benchmarks)
         self.ik_seconds, self.ik_paths = 0.0, 0
+        quat = None
         if spec.space == 'end_effector':
             self.ik = end_effector_ik(task)
-            y = np.array([self.ik.forward(q) for q in y])     # the demonstration's hand path
+            poses = [self.ik.pose(q) for q in y]             # the demonstration's hand path
+            y = np.array([x for x, _ in poses])
+            quat = np.array([r for _, r in poses])
         # the DMP's phase and basis also carry the feed-forward, whatever encodes theta_K
         self.dmp = DMP(n_dims=y.shape[1], n_basis=spec.n_basis, duration=task.duration,
                        y0=y[0], goal=y[-1], k_s=spec.k_s, canonical=spec.canonical,
@@ -81,6 +94,9 @@ class TaskPolicy:
         if spec.kind == 'gmr':
             self.movement = GMRTrajectory(task.n_joints, spec.n_components, task.duration)
             self.movement.fit(t, y, seed=spec.fit_seed)
+        elif spec.orientation:
+            self.movement = PoseDMP(self.dmp, self._orientation_dmp(quat[0], quat[-1]))
+            self.movement.orientation.fit(t, quat, dt)
         else:
             self.movement = self.dmp
         self.feedforward = (FeedForward(self.dmp.canonical, self.dmp.basis, task.n_joints)
@@ -90,16 +106,32 @@ class TaskPolicy:
         n_dyn = self.feedforward.num_parameters if spec.feedforward else 0
         self.kinematics = slice(0, n_kin)               # theta_K in theta
         self.dynamics = slice(n_kin, n_kin + n_dyn)     # theta_D in theta (empty without)
-        # the learned goal in theta (empty without learn_goal)
+        # the learned goal in theta (empty without learn_goal): the DMP's goal, or the pose's
+        # position goal; the pose's goal rotation vector (empty without orientation)
         n_goal = self.dmp.n_dims if spec.learn_goal else 0
-        self.goal = slice(n_kin - n_goal, n_kin)
+        self.goal = slice(self.dmp.num_weights, self.dmp.num_weights + n_goal)
+        self.orientation_goal = (self.movement.orientation_goal if spec.orientation
+                                 else slice(n_kin, n_kin))
         self.default_theta = np.concatenate([self.movement.get_theta(), np.zeros(n_dyn)])
         # range policy of a rollout: an entry this far from the default is an absurd magnitude
         self.theta_bound = THETA_SPREADS * max(1.0, float(np.max(np.abs(self.default_theta))))
 
+    def _orientation_dmp(self, q0: np.ndarray, goal: np.ndarray,
+                         time_scale: float = 1.0) -> QuaternionDMP:
+        """The hand's orientation DMP on the position DMP's phase (its settings)."""
+        spec = self.task.policy
+        return QuaternionDMP(n_basis=spec.n_basis, duration=self.task.duration * time_scale,
+                             q0=q0, goal=goal, k_s=spec.k_s, canonical=spec.canonical,
+                             learn_goal=spec.learn_goal, time_scale=time_scale)
+
     @property
     def num_parameters(self) -> int:
         return self.default_theta.size
+
+    @property
+    def controls_orientation(self) -> bool:
+        """Whether the hand's orientation is a DMP of its own (``policy.orientation``)."""
+        return isinstance(self.movement, PoseDMP)
 
     @property
     def has_feedforward(self) -> bool:
@@ -133,7 +165,12 @@ class TaskPolicy:
                       learn_goal=spec.learn_goal, time_scale=duration / self.task.duration)
             feedforward = (FeedForward(dmp.canonical, dmp.basis, self.task.n_joints)
                            if self.feedforward is not None else None)
-            self._stretched[duration] = (dmp, feedforward)
+            movement = dmp
+            if self.controls_orientation:
+                turn = self.movement.orientation
+                movement = PoseDMP(dmp, self._orientation_dmp(
+                    turn.q0, turn.default_goal, duration / self.task.duration))
+            self._stretched[duration] = (movement, feedforward)
         return self._stretched[duration]
 
     def feedforward_for(self, tau: np.ndarray | None = None) -> FeedForward:
@@ -243,8 +280,8 @@ class TaskPolicy:
         # kinematics (its knots and splines) see the path after a sample, so it continues
         # from the reference's posture at the switch
         switch = min(len(traj.t) - 1, int(np.ceil(t_switch / dt - 1e-9)))
-        before, _ = self._joint_path(movement.integrate(dt, t_end).y, dt)
-        after, _ = self._joint_path(traj.y[switch:], dt, start=before[switch])
+        before, _ = self._joint_path(movement.integrate(dt, t_end), dt)
+        after, _ = self._joint_path(traj, dt, start=before[switch], first=switch)
         q = np.concatenate([before[:switch + 1], after[1:]])
         u_ffwd = (feedforward.signal(theta[self.dynamics], traj.t)
                   if feedforward is not None else np.zeros_like(q))
@@ -256,18 +293,22 @@ class TaskPolicy:
         kinematics in end-effector space) and theta_D's feed-forward on the same grid."""
         q, qd = traj.y, traj.yd
         if self.ik is not None:
-            q, qd = self._joint_path(traj.y, dt)
+            q, qd = self._joint_path(traj, dt)
         u_ffwd = (feedforward.signal(theta[self.dynamics], traj.t)
                   if feedforward is not None else np.zeros_like(q))
         return Reference(t=traj.t, q=q, qd=qd, u_ffwd=u_ffwd)
 
-    def _joint_path(self, x: np.ndarray, dt: float, start: np.ndarray | None = None
+    def _joint_path(self, traj, dt: float, start: np.ndarray | None = None, first: int = 0
                     ) -> tuple[np.ndarray, np.ndarray]:
-        """Joint angles and velocities (T, n) that follow the hand path x (T, 3) from the
-        start posture, or ``start`` (differential inverse kinematics; qd its finite
+        """Joint angles and velocities (T, n) that follow the hand path traj.y (T, 3) (and
+        with a pose DMP its orientations traj.quat (T, 4)) from sample ``first`` on, from
+        the start posture or ``start`` (differential inverse kinematics; qd its finite
         difference)."""
         began = time.perf_counter()
-        solution = self.ik.solve(x, self.task.start_posture if start is None else start, dt)
+        quat = getattr(traj, 'quat', None)
+        solution = self.ik.solve(traj.y[first:],
+                                 self.task.start_posture if start is None else start, dt,
+                                 orientation_ref=None if quat is None else quat[first:])
         self.ik_seconds += time.perf_counter() - began
         self.ik_paths += 1
         return solution.q, solution.qd

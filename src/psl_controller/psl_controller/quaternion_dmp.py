@@ -61,6 +61,7 @@ movement primitives. IEEE International Conference on Robotics and Automation (I
 2997-3004. doi:10.1109/ICRA.2014.6907291
 """
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -347,23 +348,64 @@ class QuaternionDMP(GatedAttractor):
     def _rollout(self, dt: float, phi: np.ndarray, weights: np.ndarray,
                  goals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """q (P, N+1, 4), omega and omega_dot (P, N+1, 3) for weights (P, 3, K) and goals
-        (P, 4): one loop over time, each step over the whole population."""
+        (P, 4): one loop over time per row, in Python floats (a step is a few dozen scalar
+        operations: numpy's per-call overhead on arrays of 3 and 4 would be ten times that),
+        so a row does not depend on the others, bit for bit."""
         count, n_points = len(weights), len(phi)
         tau = self._time_scale
         a_d, b_d = self._step(dt)
+        constants = (self._k_s / tau**2, self._k_d / tau, 1.0 / tau**2, float(a_d[ROT, VEL]),
+                     float(b_d[ROT]), float(a_d[VEL, VEL]), float(b_d[VEL]))
         forces = np.matmul(phi, weights.transpose(0, 2, 1))  # f of eq. 16: (P, N+1, 3)
         q = np.empty((count, n_points, 4))
-        omega = np.zeros((count, n_points, AXES))
+        omega = np.empty((count, n_points, AXES))
         omega_dot = np.empty((count, n_points, AXES))
-        q[:, 0] = self._q0
-        for k in range(n_points):
-            error = quaternion.log_map(quaternion.product(goals, quaternion.conjugate(q[:, k])))
-            inputs = (self._k_s * error + forces[:, k]) / tau**2  # u_k: (P, 3)
-            omega_dot[:, k] = inputs - self._k_d / tau * omega[:, k]
-            if k + 1 == n_points:
-                break
-            turn = a_d[ROT, VEL] * omega[:, k] + b_d[ROT] * inputs  # d_k: (P, 3)
-            omega[:, k + 1] = a_d[VEL, VEL] * omega[:, k] + b_d[VEL] * inputs
-            turned = quaternion.product(quaternion.exp_map(turn), q[:, k])
-            q[:, k + 1] = turned / np.linalg.norm(turned, axis=-1, keepdims=True)  # rounding
+        for p in range(count):
+            q[p], omega[p], omega_dot[p] = _rollout_row(
+                constants, forces[p].tolist(), self._q0.tolist(), goals[p].tolist())
         return q, omega, omega_dot
+
+
+def _rollout_row(constants: tuple, forces: list, q0: list, goal: list
+                 ) -> tuple[list, list, list]:
+    """One row of `QuaternionDMP._rollout` (module docstring, "Integration"): the states
+    of eq. 16-17 on the grid, from q0 at rest toward goal, with the forcing forces (N+1
+    lists of 3). constants: (k_s / tau^2, k_d / tau, 1 / tau^2, A_d[0, 1], B_d[0],
+    A_d[1, 1], B_d[1])."""
+    ks_tau2, kd_tau, inv_tau2, a01, b0, a11, b1 = constants
+    gw, gx, gy, gz = goal
+    qw, qx, qy, qz = q0
+    wx = wy = wz = 0.0                                  # omega, from rest
+    q_out, omega_out, omega_dot_out = [], [], []
+    last = len(forces) - 1
+    for k, (fx, fy, fz) in enumerate(forces):
+        q_out.append((qw, qx, qy, qz))
+        omega_out.append((wx, wy, wz))
+        # the error: log_map(g * conj(q)), the shorter way
+        ew = gw * qw + gx * qx + gy * qy + gz * qz
+        ex = qw * gx - gw * qx - (gy * qz - gz * qy)
+        ey = qw * gy - gw * qy - (gz * qx - gx * qz)
+        ez = qw * gz - gw * qz - (gx * qy - gy * qx)
+        if ew < 0.0:
+            ew, ex, ey, ez = -ew, -ex, -ey, -ez
+        sv = math.sqrt(ex * ex + ey * ey + ez * ez)
+        factor = 2.0 * math.atan2(sv, ew) / sv if sv > 0.0 else 0.0
+        ux = ks_tau2 * factor * ex + inv_tau2 * fx      # u_k = (k_s e_k + f_k) / tau^2
+        uy = ks_tau2 * factor * ey + inv_tau2 * fy
+        uz = ks_tau2 * factor * ez + inv_tau2 * fz
+        omega_dot_out.append((ux - kd_tau * wx, uy - kd_tau * wy, uz - kd_tau * wz))
+        if k == last:
+            break
+        dx, dy, dz = a01 * wx + b0 * ux, a01 * wy + b0 * uy, a01 * wz + b0 * uz   # d_k
+        wx, wy, wz = a11 * wx + b1 * ux, a11 * wy + b1 * uy, a11 * wz + b1 * uz
+        # q <- exp_map(d_k) * q, renormalised against rounding
+        angle = math.sqrt(dx * dx + dy * dy + dz * dz)
+        half = math.sin(0.5 * angle) / angle if angle > 1e-8 else 0.5 - angle * angle / 48.0
+        rw, rx, ry, rz = math.cos(0.5 * angle), half * dx, half * dy, half * dz
+        nw = rw * qw - rx * qx - ry * qy - rz * qz
+        nx = rw * qx + qw * rx + (ry * qz - rz * qy)
+        ny = rw * qy + qw * ry + (rz * qx - rx * qz)
+        nz = rw * qz + qw * rz + (rx * qy - ry * qx)
+        norm = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+        qw, qx, qy, qz = nw / norm, nx / norm, ny / norm, nz / norm
+    return q_out, omega_out, omega_dot_out

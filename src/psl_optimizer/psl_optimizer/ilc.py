@@ -13,6 +13,12 @@ measured miss at the end of the rollout (the same iteration in task space)::
 
     g <- g - goal_gain * (x_hand(T) - x_target)
 
+and, when its DMP also moves the hand's orientation (``policy.orientation``) and its reward
+scores the orientation (``orientation_error``), the goal orientation is turned by that share of
+the rotation from the hand's final orientation to the target's (quaternions, world frame)::
+
+    g_o <- exp(goal_gain * log(q_target * conj(q_hand(T)))) * g_o
+
 Otherwise the commanded path (theta_K) is left as it is. It stops at the first
 rollout that fulfils the task instance, when the budget is spent, or after ``patience``
 iterations in a row without a better reward. It needs the applied torque of each rollout: it
@@ -25,10 +31,12 @@ import dataclasses
 
 import numpy as np
 
+from psl_controller import quaternion
 from psl_controller.pd_law import PDLaw
 from psl_controller.policy import TaskPolicy
 from psl_optimizer.policy_search import SearchResult
 from psl_optimizer.rollouts import RolloutResult, Rollouts
+from psl_task.site_chain import quaternion_of
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,8 +76,15 @@ def ilc_step(policy: TaskPolicy, theta: np.ndarray, result: RolloutResult,
     update = policy.feedforward_for(tau).fit(t, ahead)
     theta = policy.with_feedforward(theta, theta[policy.dynamics] + settings.gain * update)
     if corrects_goal(policy):
-        miss = policy.ik.forward(result.q[-1]) - policy.task.target_of(tau)[0]
-        theta[policy.goal] -= settings.goal_gain * miss
+        hand, hand_quat = policy.ik.pose(result.q[-1])
+        target, rotation = policy.task.target_of(tau)
+        theta[policy.goal] -= settings.goal_gain * (hand - target)
+        if corrects_orientation(policy):
+            turn = quaternion.log_map(quaternion.product(quaternion_of(rotation),
+                                                         quaternion.conjugate(hand_quat)))
+            goal = theta[policy.orientation_goal]
+            theta[policy.orientation_goal] = quaternion.log_map(quaternion.product(
+                quaternion.exp_map(settings.goal_gain * turn), quaternion.exp_map(goal)))
     return theta
 
 
@@ -77,6 +92,13 @@ def corrects_goal(policy: TaskPolicy) -> bool:
     """True when ILC also corrects the goal: a learned hand goal point and a target."""
     return (policy.ik is not None and policy.task.policy.learn_goal
             and policy.task.target is not None)
+
+
+def corrects_orientation(policy: TaskPolicy) -> bool:
+    """True when ILC also turns a learned goal orientation: `corrects_goal`, a pose DMP and a
+    reward that scores the hand's orientation."""
+    return (corrects_goal(policy) and policy.controls_orientation
+            and policy.task.reward.weights.get('orientation_error', 0.0) > 0.0)
 
 
 def ilc_search(rollouts: Rollouts, tau: np.ndarray, start: np.ndarray,

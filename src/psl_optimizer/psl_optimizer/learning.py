@@ -94,6 +94,7 @@ FEEDFORWARD_SCALE = 0.5          # theta_D's CMA-ES unit: this share of the join
 ILC_REFINE_SHARE = 0.04
 GOAL_SCALE = {'joint': 0.3,      # a learned goal's CMA-ES unit: rad (joint space) ...
               'end_effector': 0.1}    # ... or m (end-effector space)
+ORIENTATION_GOAL_SCALE = 0.3  # rad: a learned goal orientation's CMA-ES unit (policy.orientation)
 # with a learned goal the goal carries where to go and the weights only shape the way: their
 # CMA-ES unit shrinks to this share of the common spread (docs/benchmarks.md, psl bench learn
 # on planar_10dof_reach: with the full spread bootstrap needed 75 rollouts per late task, 2
@@ -381,7 +382,8 @@ def search_normalisation(task: TaskDefinition, default_theta: np.ndarray
     gets its own scale, a share (`FEEDFORWARD_SCALE`) of each joint's torque limit, since
     torques and DMP weights differ in units and size by orders of magnitude; a learned goal
     (``policy.learn_goal``) is centred on its default with a scale in its own units
-    (`GOAL_SCALE`: rad or m), and the weights' scale shrinks to `GOAL_WEIGHT_SHARE`."""
+    (`GOAL_SCALE`: rad or m; a goal orientation's rotation vector `ORIENTATION_GOAL_SCALE`),
+    and the weights' scale shrinks to `GOAL_WEIGHT_SHARE`."""
     policy = policy_for(task)
     default_theta = np.asarray(default_theta, dtype=float)
     scaler = scaler_around(default_theta[policy.kinematics])
@@ -392,6 +394,8 @@ def search_normalisation(task: TaskDefinition, default_theta: np.ndarray
         scale[policy.kinematics] *= GOAL_WEIGHT_SHARE
         centre[policy.goal] = default_theta[policy.goal]
         scale[policy.goal] = GOAL_SCALE[task.policy.space]
+        centre[policy.orientation_goal] = default_theta[policy.orientation_goal]
+        scale[policy.orientation_goal] = ORIENTATION_GOAL_SCALE
     if policy.has_feedforward:
         law = law_for(task)
         limit = np.maximum(np.abs(law.torque_low), np.abs(law.torque_high))   # (n_joints,)

@@ -293,3 +293,49 @@ def test_ilc_reaches_a_new_target_in_a_few_rollouts():
     assert found.fulfilled and found.rollouts <= 5
     final = batch.run(found.theta[None], tau)[0]
     assert np.linalg.norm(hand_by_mujoco(task, final.q[-1]) - tau) < 0.015
+
+
+def test_an_ilc_step_turns_the_goal_orientation_by_the_hands_miss():
+    """pose_reach_3d: the goal rotation vector r becomes log(exp(g c) * exp(r)), c the
+    rotation from the hand's final orientation to the target's (MuJoCo's quaternions), and
+    the goal point takes the position miss off as in point_reach_3d."""
+    import mujoco
+
+    from psl_controller import quaternion
+    from psl_optimizer.ilc import ILCSettings, ilc_step
+    from psl_task.arm_model import ArmModel
+    task = load_task('pose_reach_3d')
+    batch = BatchRollouts(task, n_threads=1)
+    policy = batch.policy
+    tau = np.array([0.45, 0.05, -0.05, 3.3])            # the yaw 0.215 rad off the default
+    theta = policy.default_theta
+    result = batch.run(theta[None], tau)[0]
+    arm = ArmModel(task)
+    arm.data.qpos[arm.qpos_adr] = result.q[-1]
+    mujoco.mj_kinematics(arm.model, arm.data)
+    hand, target = np.empty(4), np.empty(4)
+    mujoco.mju_mat2Quat(hand, arm.data.site_xmat[arm.ee_site])
+    mujoco.mju_mat2Quat(target, task.target_of(tau)[1].reshape(-1))
+    turn = quaternion.log_map(quaternion.product(target, quaternion.conjugate(hand)))
+    assert np.linalg.norm(turn) > 0.1
+    stepped = ilc_step(policy, theta, result, ILCSettings(goal_gain=0.5), tau)
+    expected = quaternion.log_map(quaternion.product(
+        quaternion.exp_map(0.5 * turn), quaternion.exp_map(theta[policy.orientation_goal])))
+    np.testing.assert_allclose(stepped[policy.orientation_goal], expected, rtol=0, atol=1e-12)
+    miss = arm.data.site_xpos[arm.ee_site] - tau[:3]
+    np.testing.assert_allclose(stepped[policy.goal], theta[policy.goal] - 0.5 * miss, atol=1e-12)
+
+
+def test_ilc_reaches_a_new_target_pose_in_a_few_rollouts():
+    """From the default theta, ILC alone (goal point, goal orientation and feed-forward)
+    fulfils a pose the default misses by centimetres and a tenth of a radian."""
+    from psl_optimizer.ilc import ILCSettings, ilc_search
+    task = load_task('pose_reach_3d')
+    batch = BatchRollouts(task, n_threads=1)
+    tau = np.array([0.47, -0.08, -0.15, 2.85])
+    start = batch.run(batch.policy.default_theta[None], tau)[0]
+    assert not start.evaluation.fulfilled
+    found = ilc_search(batch, tau, batch.policy.default_theta, ILCSettings(iterations=10))
+    assert found.fulfilled and found.rollouts <= 5
+    final = batch.run(found.theta[None], tau)[0].evaluation.components
+    assert final['goal_error'] < 0.015 and final['orientation_error'] < 0.05

@@ -296,6 +296,14 @@ class DifferentialIK:
         self._set(self._vector(q, 'q'))
         return self._data.site_xpos[self.site].copy()
 
+    def pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The site position (3,) [m] and orientation (4,) (unit quaternion [w, x, y, z],
+        MuJoCo's ``mju_mat2Quat``) at joint angles q (n,) (no limits applied)."""
+        self._set(self._vector(q, 'q'))
+        quat = np.empty(4)
+        mujoco.mju_mat2Quat(quat, self._data.site_xmat[self.site])
+        return self._data.site_xpos[self.site].copy(), quat
+
     def jacobian(self, q: np.ndarray) -> np.ndarray:
         """The site's position Jacobian (3, n) [m/rad] at joint angles q (n,)."""
         self._set(self._vector(q, 'q'))

@@ -132,6 +132,7 @@ class PolicySpec:
     fit_seed: int = 0               # gmr: seed of the EM fit to the demonstration
     learn_goal: StrictBool = False  # theta_K = [weights, goal]: the DMP goal is learned too
     space: Space = 'joint'          # joint | end_effector: the DMP's output (SPACES)
+    orientation: StrictBool = False  # end_effector: a second DMP moves the hand's orientation
 
 
 @with_config(SECTION)
