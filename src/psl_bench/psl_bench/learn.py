@@ -49,6 +49,9 @@ from psl_task import DEFAULT_TASK
 TARGETS = {'speedup': 5.0, 'zero_shot_success': 0.8}   # bootstrap vs scratch; every strategy
 SESSION_FILE = 'bench_session.json'   # a run folder's session and simulation time
 TIMINGS = ('session_seconds', 'simulation_share', 'ik_share', 'ik_ms_per_path')
+# a task with a target: the hand's final miss on the held-out instances, mean over them
+HAND_ERRORS = {'held_out_goal_error': 'goal_error',                 # m
+               'held_out_orientation_error': 'orientation_error'}   # rad
 METRICS = ('total_rollouts', 'late_rollouts', 'speedup', 'zero_shot_success',
            'zero_shot_reward', 'train_seconds', 'refused')
 
@@ -86,6 +89,8 @@ def read_run(folder: Path, after: int) -> dict:
     timed = json.loads(timing.read_text()) if timing.is_file() else {}
     return {
         **{key: float(timed[key]) for key in TIMINGS if key in timed},
+        **({key: float(np.nanmean(summary.test_hand_errors[name]))
+            for key, name in HAND_ERRORS.items()} if summary.test_hand_errors else {}),
         'folder': str(folder),
         'seed': metrics.seed,
         'strategy': metrics.strategy,
@@ -254,8 +259,8 @@ def _aggregate(runs: dict[int, dict[str, dict]], rows: dict[str, dict]) -> dict:
             row['speedup'] = over_seeds([runs[seed][scratch]['late_rollouts'] /
                                          runs[seed][name]['late_rollouts'] for seed in runs])
         row['fulfilled_tasks'] = over_seeds([r['fulfilled_tasks'] for r in records])
-        for key in TIMINGS:                 # not for runs of old folders, nor without IK
-            if all(key in r for r in records):
+        for key in (*TIMINGS, *HAND_ERRORS):    # not for runs of old folders, nor without
+            if all(key in r for r in records):  # IK or a target
                 row[key] = over_seeds([r[key] for r in records])
         result[name] = row
     return result
@@ -313,6 +318,11 @@ def format_table(report: dict) -> str:
                      + ', '.join(f"{name} {100 * row['ik_share']['mean']:.0f} % "
                                  f"({row['ik_ms_per_path']['mean']:.1f} ms)"
                                  for name, row in rows.items() if 'ik_share' in row))
+    if any('held_out_goal_error' in row for row in rows.values()):
+        lines.append('the hand\'s final miss on the held-out instances (mean): ' + ', '.join(
+            f"{name} {1000 * row['held_out_goal_error']['mean']:.1f} mm, "
+            f"{row['held_out_orientation_error']['mean']:.3f} rad"
+            for name, row in rows.items() if 'held_out_goal_error' in row))
     lines.append('safety check, candidates refused (not executed) per session: ' + ', '.join(
         f"{name} {cell(row, 'refused', 1)} of {row['total_rollouts']['mean']:.0f}"
         for name, row in rows.items() if 'refused' in row))

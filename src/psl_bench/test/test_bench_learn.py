@@ -159,3 +159,13 @@ def test_the_inverse_kinematics_share_is_reported_where_there_is_one(bench_run, 
     session = row['session_seconds']['mean']
     assert per_path * 1e-3 <= share * session * (1 + 1e-9)
     assert 'inverse kinematics' in bench_learn.format_table(report)
+    # a task with a target: the hand's final miss on the held-out instances, the mean of
+    # the run's own numbers
+    folder = bench_learn.run_folder(tmp_path, 'point_reach_3d', 'bootstrap', 0, None)
+    errors = json.loads((folder / 'metrics.json').read_text())['summary']['test_hand_errors']
+    assert len(errors['goal_error']) == TINY['num_test']
+    assert row['held_out_goal_error']['mean'] == pytest.approx(np.mean(errors['goal_error']))
+    assert row['held_out_orientation_error']['mean'] == pytest.approx(
+        np.mean(errors['orientation_error']))
+    assert 0.0 < row['held_out_goal_error']['mean'] < 0.5
+    assert "final miss on the held-out" in bench_learn.format_table(report)

@@ -94,6 +94,7 @@ FEEDFORWARD_SCALE = 0.5          # theta_D's CMA-ES unit: this share of the join
 ILC_REFINE_SHARE = 0.04
 GOAL_SCALE = {'joint': 0.3,      # a learned goal's CMA-ES unit: rad (joint space) ...
               'end_effector': 0.1}    # ... or m (end-effector space)
+HAND_ERRORS = ('goal_error', 'orientation_error')   # [m], [rad]: a held-out instance's final miss
 ORIENTATION_GOAL_SCALE = 0.3  # rad: a learned goal orientation's CMA-ES unit (policy.orientation)
 # with a learned goal the goal carries where to go and the weights only shape the way: their
 # CMA-ES unit shrinks to this share of the common spread (docs/benchmarks.md, psl bench learn
@@ -596,7 +597,13 @@ class Learner:
     def summary(self, done: list[TaskRecord]) -> Summary:
         test = held_out_tasks(self.task, self.settings.num_test, self.settings.seed)
         thetas = np.array([self.skill.query(t) for t in test])
-        rewards, fulfilled = self.rollouts.evaluate(thetas, test)
+        results = self.rollouts.run(thetas, test)
+        rewards = np.array([r.evaluation.reward for r in results])
+        fulfilled = np.array([r.evaluation.fulfilled for r in results])
+        # the hand's final miss of the target (a refused or aborted rollout has none: NaN)
+        hand_errors = None if self.task.target is None else {
+            name: [float(r.evaluation.components.get(name, np.nan)) for r in results]
+            for name in HAND_ERRORS}
         rollouts = [d.rollouts for d in done]
         tracking = (tracking_comparison(self.rollouts, test, thetas)
                     if self.policy.has_feedforward else None)
@@ -607,6 +614,7 @@ class Learner:
                        test_taus=test.tolist(), test_rewards=[float(r) for r in rewards],
                        zero_shot_success_rate=float(np.mean(fulfilled)),
                        zero_shot_mean_reward=float(np.mean(rewards)),
+                       test_hand_errors=hand_errors,
                        tracking_rmse=tracking,
                        tracking_rmse_mean=None if tracking is None else {
                            name: float(np.mean(values)) for name, values in tracking.items()})

@@ -68,6 +68,9 @@ class Summary:
     # a task with feed-forward: RMS tracking error [rad] per held-out instance of each variant
     # of FEEDFORWARD_VARIANTS (the learned feed-forward, PD only, the inverse-dynamics oracle),
     # and its mean over the instances
+    # a task with a target: the hand's final position [m] and orientation [rad] errors on each
+    # held-out instance (components goal_error, orientation_error)
+    test_hand_errors: dict[str, list[float]] | None = None
     tracking_rmse: dict[str, list[float]] | None = None
     tracking_rmse_mean: dict[str, float] | None = None
     # LearnSettings.confirm: fulfilled tasks whose success did not confirm (no sample added),
@@ -89,6 +92,9 @@ class Summary:
                    test_rewards=[float(r) for r in data['test_rewards']],
                    zero_shot_success_rate=float(data['zero_shot_success_rate']),
                    zero_shot_mean_reward=float(data['zero_shot_mean_reward']),
+                   test_hand_errors=({name: [float(x) for x in values] for name, values
+                                      in data['test_hand_errors'].items()}
+                                     if data.get('test_hand_errors') else None),
                    tracking_rmse=tracking, tracking_rmse_mean=means,
                    unconfirmed_tasks=int(data.get('unconfirmed_tasks', 0)),
                    confirm_rollouts=int(data.get('confirm_rollouts', 0)))
