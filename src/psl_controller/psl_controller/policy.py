@@ -249,7 +249,9 @@ class TaskPolicy:
         from the episode start; the first control period at or after it), then the DMP's
         attractor moving smoothly to ``new_goal`` (`DMP.integrate_goal_change`, no jump in
         q, qd). ``new_goal`` is in the DMP's space: joint angles (n_joints,) [rad], or for
-        ``policy.space: end_effector`` the hand point (3,) [m], whose path is then followed
+        ``policy.space: end_effector`` the hand point (3,) [m] (with ``policy.orientation``
+        also (7,): the point and the hand's orientation, a unit quaternion [w, x, y, z],
+        turned to with the position's goal filter), whose path is then followed
         by inverse kinematics (q is then the same up to the switch, qd, a central
         difference of q, up to the period before). Raises ValueError for a policy kind other
         than dmp, a new goal of the wrong size or not finite, a switch time outside the
@@ -258,11 +260,17 @@ class TaskPolicy:
             raise ValueError(f'task {self.task.name!r}: a goal change needs policy kind dmp, '
                              f'not {self.task.policy.kind!r}')
         new_goal = np.atleast_1d(np.asarray(new_goal, dtype=float))
-        space = ('the hand point [m]' if self.ik is not None
-                 else f'the joint angles [rad] of the {self.task.n_joints} joints')
-        if new_goal.shape != (self.dmp.n_dims,):
-            raise ValueError(f'task {self.task.name!r}: the new goal needs {self.dmp.n_dims} '
-                             f'values ({space}), got {new_goal.size}')
+        if self.controls_orientation:
+            sizes, space = (3, 7), ('the hand point [m], or the point and the hand\'s '
+                                    'orientation as a unit quaternion [w, x, y, z]')
+        else:
+            sizes = (self.dmp.n_dims,)
+            space = ('the hand point [m]' if self.ik is not None
+                     else f'the joint angles [rad] of the {self.task.n_joints} joints')
+        if new_goal.ndim != 1 or new_goal.size not in sizes:
+            raise ValueError(f'task {self.task.name!r}: the new goal needs '
+                             f'{" or ".join(map(str, sizes))} values ({space}), got '
+                             f'{new_goal.size}')
         if not np.all(np.isfinite(new_goal)):
             raise ValueError(f'the new goal must be finite, got {new_goal.tolist()}')
         theta = self.check_theta(theta)

@@ -13,7 +13,8 @@ uses for a movement (:class:`psl_controller.policy.TaskPolicy`):
 the goal rotation vector r relative to the default goal g0 (the demonstration's last
 orientation): g = exp(r) * g0 (``QuaternionDMP``). Without ``learn_goal`` the two goal blocks
 are absent. `integrate` returns a :class:`PoseTrajectory` on the control grid; a goal change
-(`integrate_goal_change`) moves the position goal, the orientation keeps its attractor.
+(`integrate_goal_change`) moves the position goal and, given a new orientation too, turns the
+orientation goal with the same goal filter.
 
 Imports no ROS.
 """
@@ -119,10 +120,24 @@ class PoseDMP:
 
     def integrate_goal_change(self, dt: float, t_switch: float, new_goal,
                               t_end: float | None = None) -> PoseTrajectory:
-        """`integrate` with the position goal moving to ``new_goal`` (3,) [m] from
-        ``t_switch`` on (`DMP.integrate_goal_change`); the orientation as integrated."""
-        return self._pose(self.position.integrate_goal_change(dt, t_switch, new_goal, t_end),
-                          self.orientation.integrate(dt, t_end))
+        """`integrate` with the goal changing from ``t_switch`` on: ``new_goal`` (3,) the
+        hand point [m] (`DMP.integrate_goal_change`; the orientation as integrated), or (7,)
+        the point and the hand's orientation as a unit quaternion [w, x, y, z], which turns
+        with the same goal filter (`QuaternionDMP.integrate_goal_change`).
+
+        Raises:
+            ValueError: a new goal of another size, not finite, or a quaternion part that is
+            not of unit norm; the errors of the two DMPs' goal changes.
+        """
+        new_goal = np.atleast_1d(np.asarray(new_goal, dtype=float))
+        if new_goal.shape not in ((3,), (7,)):
+            raise ValueError(f'a pose goal is the hand point (3 values) or the point and a unit '
+                             f'quaternion [w, x, y, z] (7 values), got {new_goal.size}')
+        position = self.position.integrate_goal_change(dt, t_switch, new_goal[:3], t_end)
+        orientation = (self.orientation.integrate(dt, t_end) if new_goal.size == 3 else
+                       self.orientation.integrate_goal_change(
+                           dt, t_switch, new_goal[3:], t_end, self.position.alpha_goal))
+        return self._pose(position, orientation)
 
     @staticmethod
     def _pose(position: DMPTrajectory, orientation) -> PoseTrajectory:

@@ -234,6 +234,48 @@ class QuaternionDMP(GatedAttractor):
         q, omega, omega_dot = self._rollout(dt, phi, weights, goals)
         return QuaternionTrajectory(t=t, q=q, omega=omega, omega_dot=omega_dot)
 
+    def integrate_goal_change(self, dt: float, t_switch: float, new_goal,
+                              t_end: float | None = None, alpha_goal: float = 10.0
+                              ) -> QuaternionTrajectory:
+        """`integrate` with the goal turning smoothly to ``new_goal`` from ``t_switch`` on:
+        the first-order goal filter of `DMP.integrate_goal_change` (Ijspeert et al. 2013) on
+        the sphere, ``tau gdot = alpha_goal 2 log(g_new * conj(g))`` (the rotation toward the
+        new goal, in the base frame), whose solution turns about one fixed axis::
+
+            g(t) = exp_map((1 - exp(-alpha_goal (t - t_s) / tau)) r) * g,
+            r = log_map(g_new * conj(g)),  t >= t_s
+
+        held over each step like the forcing. g is continuous, and with it q and omega; up to
+        the grid point after ``t_s`` the result is bit for bit that of `integrate`.
+
+        Args:
+            dt: step in seconds (> 0).
+            t_switch: when the goal starts turning, seconds from the start, in [0, t_end].
+            new_goal: unit quaternion [w, x, y, z].
+            t_end: end time in seconds (>= 0); default ``duration``.
+            alpha_goal: rate of the goal filter (> 0; the position DMP's, for a pose).
+
+        Raises:
+            ValueError: a new goal that is not a finite unit quaternion, a switch time outside
+            [0, t_end], alpha_goal not > 0, or the errors of `integrate`.
+        """
+        new_goal = quaternion.as_unit_quaternion(new_goal, 'new_goal')
+        if not (np.isfinite(alpha_goal) and alpha_goal > 0.0):
+            raise ValueError(f'alpha_goal must be finite and > 0, got {alpha_goal!r}')
+        t, phi = self._grid(dt, t_end)
+        if not (np.isfinite(t_switch) and 0.0 <= t_switch <= t[-1] * (1.0 + 1e-12)):
+            raise ValueError(f't_switch must lie in [0, {t[-1]:g}] s (the integrated span), '
+                             f'got {t_switch!r}')
+        k_s = min(len(t) - 1, int(np.ceil(t_switch / dt - 1e-9)))
+        goal = self.goal
+        turn = quaternion.log_map(quaternion.product(new_goal, quaternion.conjugate(goal)))
+        share = np.zeros(len(t))
+        share[k_s:] = 1.0 - np.exp(-alpha_goal * (t[k_s:] - t[k_s]) / self._time_scale)
+        goals = quaternion.product(quaternion.exp_map(share[:, None] * turn), goal)  # (N+1, 4)
+        goals[:k_s + 1] = goal                  # exactly the goal of `integrate` up to t_s
+        q, omega, omega_dot = self._rollout(dt, phi, self._theta[None], goals[None])
+        return QuaternionTrajectory(t=t, q=q[0], omega=omega[0], omega_dot=omega_dot[0])
+
     def fit(self, t: np.ndarray, q: np.ndarray, dt: float,
             regularization: float = 1e-9) -> 'QuaternionDMP':
         """Fit the weights (and the goal when learned) to a demonstration of orientations.
@@ -348,7 +390,7 @@ class QuaternionDMP(GatedAttractor):
     def _rollout(self, dt: float, phi: np.ndarray, weights: np.ndarray,
                  goals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """q (P, N+1, 4), omega and omega_dot (P, N+1, 3) for weights (P, 3, K) and goals
-        (P, 4): one loop over time per row, in Python floats (a step is a few dozen scalar
+        (P, 4), or (P, N+1, 4) a goal per grid point: one loop over time per row, in Python floats (a step is a few dozen scalar
         operations: numpy's per-call overhead on arrays of 3 and 4 would be ten times that),
         so a row does not depend on the others, bit for bit."""
         count, n_points = len(weights), len(phi)
@@ -361,24 +403,25 @@ class QuaternionDMP(GatedAttractor):
         omega = np.empty((count, n_points, AXES))
         omega_dot = np.empty((count, n_points, AXES))
         for p in range(count):
+            goal = goals[p].tolist()
+            per_step = goal if goals.ndim == 3 else [goal] * n_points
             q[p], omega[p], omega_dot[p] = _rollout_row(
-                constants, forces[p].tolist(), self._q0.tolist(), goals[p].tolist())
+                constants, forces[p].tolist(), self._q0.tolist(), per_step)
         return q, omega, omega_dot
 
 
-def _rollout_row(constants: tuple, forces: list, q0: list, goal: list
+def _rollout_row(constants: tuple, forces: list, q0: list, goals: list
                  ) -> tuple[list, list, list]:
     """One row of `QuaternionDMP._rollout` (module docstring, "Integration"): the states
-    of eq. 16-17 on the grid, from q0 at rest toward goal, with the forcing forces (N+1
-    lists of 3). constants: (k_s / tau^2, k_d / tau, 1 / tau^2, A_d[0, 1], B_d[0],
-    A_d[1, 1], B_d[1])."""
+    of eq. 16-17 on the grid, from q0 at rest toward the goals (N+1 quaternions, one per grid
+    point, held over its step), with the forcing forces (N+1 lists of 3). constants:
+    (k_s / tau^2, k_d / tau, 1 / tau^2, A_d[0, 1], B_d[0], A_d[1, 1], B_d[1])."""
     ks_tau2, kd_tau, inv_tau2, a01, b0, a11, b1 = constants
-    gw, gx, gy, gz = goal
     qw, qx, qy, qz = q0
     wx = wy = wz = 0.0                                  # omega, from rest
     q_out, omega_out, omega_dot_out = [], [], []
     last = len(forces) - 1
-    for k, (fx, fy, fz) in enumerate(forces):
+    for k, ((fx, fy, fz), (gw, gx, gy, gz)) in enumerate(zip(forces, goals)):
         q_out.append((qw, qx, qy, qz))
         omega_out.append((wx, wy, wz))
         # the error: log_map(g * conj(q)), the shorter way

@@ -193,3 +193,36 @@ def test_orientation_needs_end_effector_space(tmp_path):
     (tmp_path / 'joint.yaml').write_text(yaml.safe_dump(data))
     with pytest.raises(ValueError, match='orientation needs space end_effector'):
         TaskPolicy(load_task(str(tmp_path / 'joint.yaml')))
+
+
+def test_a_goal_change_of_the_pose_turns_the_hand_without_a_jump(pose_task):
+    """A new goal of 7 values (the point and the hand's orientation, [w, x, y, z]) at 0.4 s:
+    the joint reference is the reference's up to the switch, has no step larger than the
+    plain one's plus the goal filter's, and brings the palm to the new pose (MuJoCo's
+    forward kinematics)."""
+    policy = TaskPolicy(pose_task)
+    theta = policy.default_theta
+    plain = policy.reference(theta)
+    policy.movement.set_theta(theta[policy.kinematics])
+    goal_quat = policy.movement.orientation.goal
+    turned = quaternion.product(quaternion.exp_map([0.0, 0.0, 0.3]), goal_quat)
+    point = policy.movement.position.goal + [0.02, -0.03, 0.02]
+    changed = policy.reference_with_new_goal(theta, None, 0.4, np.concatenate([point, turned]))
+    k = int(round(0.4 / pose_task.control_period))
+    np.testing.assert_array_equal(changed.q[:k + 1], plain.q[:k + 1])
+    steps, plain_steps = (np.abs(np.diff(r.q, axis=0)).max(axis=0) for r in (changed, plain))
+    assert np.all(steps <= plain_steps + 0.3 * policy.dmp.alpha_goal * pose_task.control_period)
+    x, quat = hand_pose(pose_task, changed.q[-1:])
+    assert np.linalg.norm(x[0] - point) < 2e-3 and angles(quat[0], turned) < 5e-3
+    # 3 values: the point only, the orientation as before
+    point_only = policy.reference_with_new_goal(theta, None, 0.4, point)
+    assert angles(hand_pose(pose_task, point_only.q[-1:])[1][0], goal_quat) < 5e-3
+
+
+@pytest.mark.parametrize('goal, words', [([0.4, 0.0], 'needs 3 or 7 values'),
+                                         ([0.4, 0.0, -0.1, 2.0, 0.0, 0.0, 0.0], 'unit'),
+                                         ([0.4, 0.0, -0.1, np.nan, 0.0, 0.0, 1.0], 'finite')])
+def test_bad_pose_goals_are_refused(pose_task, goal, words):
+    policy = TaskPolicy(pose_task)
+    with pytest.raises(ValueError, match=words):
+        policy.reference_with_new_goal(policy.default_theta, None, 0.4, goal)

@@ -374,3 +374,52 @@ def test_bad_goal_theta_and_demonstration_are_refused():
         dmp.fit(t, q[:, :3], 0.01)
     with pytest.raises(ValueError, match='must cover'):
         dmp.fit(t[:6], np.tile(quaternion.IDENTITY, (6, 1)), 0.01)
+
+
+# -- goal change (issue 26) -----------------------------------------------------------------------
+def turning_dmp():
+    from psl_controller.quaternion_dmp import QuaternionDMP
+    dmp = QuaternionDMP(n_basis=5, duration=1.0, q0=quaternion.exp_map([0.1, 0.2, -0.1]),
+                        goal=quaternion.exp_map([-0.3, 0.4, 0.6]))
+    dmp.set_theta(np.random.default_rng(3).normal(0.0, 20.0, dmp.num_parameters))
+    return dmp
+
+
+def test_a_goal_change_to_the_same_goal_changes_nothing():
+    dmp = turning_dmp()
+    plain = dmp.integrate(0.002, 1.5)
+    same = dmp.integrate_goal_change(0.002, 0.4, dmp.goal, 1.5)
+    np.testing.assert_array_equal(same.q, plain.q)
+    np.testing.assert_array_equal(same.omega, plain.omega)
+
+
+def test_a_goal_change_turns_smoothly_to_the_new_goal():
+    """Up to the grid point after the switch bit for bit the plain path; then omega
+    continuous (no step larger than the plain path's largest plus the filter's), and the new
+    goal reached."""
+    dmp = turning_dmp()
+    new_goal = quaternion.exp_map([0.5, -0.2, 0.9])
+    plain = dmp.integrate(0.002, 2.0)
+    changed = dmp.integrate_goal_change(0.002, 0.4, new_goal, 2.0, alpha_goal=10.0)
+    k = 200
+    np.testing.assert_array_equal(changed.q[:k + 2], plain.q[:k + 2])
+    jumps = np.abs(np.diff(changed.omega, axis=0)).max()
+    change = np.linalg.norm(quaternion.log_map(quaternion.product(
+        new_goal, quaternion.conjugate(dmp.goal))))
+    # the filter moves the goal by at most alpha |change| dt a step, which changes omega_dot
+    # by k_s times that: omega's step grows by at most k_s alpha |change| dt^2 (a goal that
+    # jumped would add k_s |change| dt, fifty times more)
+    filter_step = 2 * 400.0 * 10.0 * change * 0.002**2
+    assert jumps <= np.abs(np.diff(plain.omega, axis=0)).max() + filter_step
+    assert np.linalg.norm(quaternion.log_map(quaternion.product(
+        new_goal, quaternion.conjugate(changed.q[-1])))) < 1e-3
+
+
+def test_bad_goal_changes_are_refused():
+    dmp = turning_dmp()
+    for goal, t_switch, alpha, words in (([1.0, 0.0, 0.0], 0.2, 10.0, 'new_goal'),
+                                         ([2.0, 0.0, 0.0, 0.0], 0.2, 10.0, 'unit'),
+                                         ([1.0, 0.0, 0.0, 0.0], 5.0, 10.0, 't_switch'),
+                                         ([1.0, 0.0, 0.0, 0.0], 0.2, 0.0, 'alpha_goal')):
+        with pytest.raises(ValueError, match=words):
+            dmp.integrate_goal_change(0.002, t_switch, goal, 1.5, alpha_goal=alpha)

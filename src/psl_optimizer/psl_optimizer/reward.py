@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import dataclasses
 
+import mujoco
 import numpy as np
 
+from psl_task.inverse_kinematics import QUATERNION_NORM_TOLERANCE
 from psl_task.reward_geometry import Measurements, RewardGeometry
 from psl_task.task import TaskDefinition
 
@@ -140,7 +142,7 @@ class Reward:
     of its ``reward`` section, the goal and the distances from its `RewardGeometry`. The goal
     is the instance's target (`TaskDefinition.target_of`) for a task with a ``target``
     section, else the end effector at the goal posture; after a goal change during a rollout,
-    the new goal's (`goal_position_of`, passed to `evaluate`). ``orientation_error`` needs a
+    the new goal's (`goal_of`, passed to `evaluate`). ``orientation_error`` needs a
     target.
 
     Raises:
@@ -165,25 +167,42 @@ class Reward:
         targets = [self.task.target_of(tau) for tau in taus]
         return np.array([p for p, _ in targets]), np.array([r for _, r in targets])
 
-    def goal_position_of(self, dmp_goal) -> np.ndarray:
-        """The goal position (3,) [m] of a DMP goal (a goal changed during a rollout): the hand
-        point itself when the task's DMP runs in end-effector space (``policy.space``), else
-        the end effector at the joint goal posture (n_joints,).
+    def goal_of(self, dmp_goal) -> tuple[np.ndarray, np.ndarray | None]:
+        """The goal position (3,) [m] and orientation (rotation matrix (3, 3), or None: the
+        instance's stays) of a DMP goal (a goal changed during a rollout): the hand point
+        itself when the task's DMP runs in end-effector space (``policy.space``), with a pose
+        DMP (``policy.orientation``) optionally followed by the hand's orientation as a unit
+        quaternion [w, x, y, z] (7 values); else the end effector at the joint goal posture
+        (n_joints,).
 
         Raises:
-            ValueError: a goal of the wrong size or not finite.
+            ValueError: a goal of the wrong size, not finite, or a quaternion part that is not
+                of unit norm.
         """
         in_hand_space = self.task.policy.space == 'end_effector'
-        n = 3 if in_hand_space else self.task.n_joints
+        sizes = ((3, 7) if self.task.policy.orientation else (3,)) if in_hand_space \
+            else (self.task.n_joints,)
         goal = np.atleast_1d(np.asarray(dmp_goal, dtype=float))
-        if goal.shape != (n,) or not np.all(np.isfinite(goal)):
-            raise ValueError(f'task {self.task.name!r}: a DMP goal is {n} finite values, got '
+        if goal.ndim != 1 or goal.size not in sizes or not np.all(np.isfinite(goal)):
+            raise ValueError(f'task {self.task.name!r}: a DMP goal is '
+                             f'{" or ".join(map(str, sizes))} finite values, got '
                              f'{goal.tolist()}')
-        return goal.copy() if in_hand_space else self.geometry.end_effector_at(goal)
+        if not in_hand_space:
+            return self.geometry.end_effector_at(goal), None
+        if goal.size == 3:
+            return goal.copy(), None
+        quat = goal[3:]
+        if abs(np.linalg.norm(quat) - 1.0) > QUATERNION_NORM_TOLERANCE:
+            raise ValueError(f'task {self.task.name!r}: the goal orientation must be a unit '
+                             f'quaternion [w, x, y, z], got norm {np.linalg.norm(quat):.9g}')
+        rotation = np.empty(9)
+        mujoco.mju_quat2Mat(rotation, quat / np.linalg.norm(quat))
+        return goal[:3].copy(), rotation.reshape(3, 3)
 
     def evaluate(self, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,
                  measured: Measurements, taus: np.ndarray,
-                 goal_positions: np.ndarray | None = None) -> list[RewardResult]:
+                 goal_positions: np.ndarray | None = None,
+                 goal_rotations: np.ndarray | None = None) -> list[RewardResult]:
         """Score a population of rollouts.
 
         Args:
@@ -193,8 +212,10 @@ class Reward:
             measured: the geometry along the rollouts (`RewardGeometry.read` or `replay`).
             taus: the rollouts' task instances (B, E) (their targets).
             goal_positions: (B, 3) [m] goal positions that replace those of `goals` for
-                ``goal_error`` (the final goals of rollouts whose goal changed,
-                `goal_position_of`); default: `goals`.
+                ``goal_error`` (the final goals of rollouts whose goal changed, `goal_of`);
+                default: `goals`.
+            goal_rotations: (B, 3, 3) goal orientations that replace those of `goals` for
+                ``orientation_error`` (a pose goal changed, `goal_of`); default: `goals`.
         Returns:
             One RewardResult per rollout, with every component of COMPONENTS.
         Raises:
@@ -211,6 +232,8 @@ class Reward:
         goal_position, goal_rotation = self.goals(taus)
         if goal_positions is not None:
             goal_position = _finite('goal_positions', goal_positions, 2)
+        if goal_rotations is not None:
+            goal_rotation = _finite('goal_rotations', goal_rotations, 3)
         columns = {
             'goal_error': goal_error(measured.end_effector[:, -1], goal_position),
             'penetration': penetration(distance) if distance is not None else np.zeros(len(q)),
@@ -228,9 +251,9 @@ class Reward:
                       self.spec.weights, self.spec.success_threshold) for b in range(len(q))]
 
     def evaluate_replayed(self, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,
-                          taus: np.ndarray, goal_positions: np.ndarray | None = None
-                          ) -> list[RewardResult]:
+                          taus: np.ndarray, goal_positions: np.ndarray | None = None,
+                          goal_rotations: np.ndarray | None = None) -> list[RewardResult]:
         """`evaluate` with the geometry from a kinematic replay of q on the task instances
         taus (B, E): graph mode, where only joint states were measured."""
         return self.evaluate(q, torque, q_ref, self.geometry.replay(q, taus), taus,
-                             goal_positions)
+                             goal_positions, goal_rotations)

@@ -19,7 +19,7 @@ warning says so).
 
 A goal change the executor made (``~/goal_change``, psl_msgs/GoalChange: stamped with the
 episode's start, or zero for the next episode) makes the episode's goal the new goal's
-position (`Reward.goal_position_of`) if the controller tracked it: its reference of the
+position (and, for a pose, orientation: `Reward.goal_of`) if the controller tracked it: its reference of the
 episode's last state is the changed trajectory's (``last_reference``, compared exactly; the
 controller refuses a live change that came too late, and the episode keeps its goal). The
 evaluation says which goal it scored against (``goal_position``) and when the goal started to
@@ -224,9 +224,11 @@ class RewardEvaluator(Node):
                 f'the goal change of episode {to_ns(ep.stamp)} ns at {change.time_from_start:g} '
                 's did not reach the controller in time: scored against the old goal')
             change = None
-        goal_position = (reward.goals(taus)[0][0] if change is None
-                         else reward.goal_position_of(change.goal))        # (3,)
-        result = reward.evaluate_replayed(q, torque, q_ref, taus, goal_position[None])[0]
+        goal_position, goal_rotation = ((reward.goals(taus)[0][0], None) if change is None
+                                        else reward.goal_of(change.goal))   # (3,), (3, 3)
+        result = reward.evaluate_replayed(
+            q, torque, q_ref, taus, goal_position[None],
+            None if goal_rotation is None else goal_rotation[None])[0]
 
         def rows(messages, field):
             return [x for m in messages for x in getattr(m, field)]

@@ -339,3 +339,23 @@ def test_ilc_reaches_a_new_target_pose_in_a_few_rollouts():
     assert found.fulfilled and found.rollouts <= 5
     final = batch.run(found.theta[None], tau)[0].evaluation.components
     assert final['goal_error'] < 0.015 and final['orientation_error'] < 0.05
+
+
+def test_a_pose_goal_is_a_point_and_a_rotation():
+    """Reward.goal_of on pose_reach_3d: 3 values the point (the orientation stays the
+    instance's), 7 the point and a quaternion, whose rotation matrix is the closed form of a
+    turn about z; other sizes and non-unit quaternions are refused."""
+    from psl_optimizer.batch_rollout import BatchRollouts
+    reward = BatchRollouts(load_task('pose_reach_3d'), n_threads=1).reward
+    point, rotation = reward.goal_of([0.4, 0.1, -0.1])
+    np.testing.assert_array_equal(point, [0.4, 0.1, -0.1])
+    assert rotation is None
+    a = 0.3
+    point, rotation = reward.goal_of([0.4, 0.1, -0.1, np.cos(a / 2), 0.0, 0.0, np.sin(a / 2)])
+    np.testing.assert_allclose(rotation, [[np.cos(a), -np.sin(a), 0.0],
+                                          [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]],
+                               rtol=0, atol=1e-15)
+    for goal, words in (([0.4, 0.1], '3 or 7 finite values'),
+                        ([0.4, 0.1, -0.1, 2.0, 0.0, 0.0, 0.0], 'unit quaternion')):
+        with pytest.raises(ValueError, match=words):
+            reward.goal_of(goal)
