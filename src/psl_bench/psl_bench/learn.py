@@ -49,7 +49,8 @@ from psl_task import DEFAULT_TASK
 TARGETS = {'speedup': 5.0, 'zero_shot_success': 0.8}   # bootstrap vs scratch; every strategy
 SESSION_FILE = 'bench_session.json'   # a run folder's session and simulation time
 TIMINGS = ('session_seconds', 'simulation_share', 'ik_share', 'ik_ms_per_path')
-# a task with a target: the hand's final miss on the held-out instances, mean over them
+# a task with a target: the hand's final miss on the held-out instances, mean over them (the
+# orientation where the reward scores it)
 HAND_ERRORS = {'held_out_goal_error': 'goal_error',                 # m
                'held_out_orientation_error': 'orientation_error'}   # rad
 METRICS = ('total_rollouts', 'late_rollouts', 'speedup', 'zero_shot_success',
@@ -89,8 +90,8 @@ def read_run(folder: Path, after: int) -> dict:
     timed = json.loads(timing.read_text()) if timing.is_file() else {}
     return {
         **{key: float(timed[key]) for key in TIMINGS if key in timed},
-        **({key: float(np.nanmean(summary.test_hand_errors[name]))
-            for key, name in HAND_ERRORS.items()} if summary.test_hand_errors else {}),
+        **{key: float(np.nanmean(summary.test_hand_errors[name]))
+           for key, name in HAND_ERRORS.items() if name in (summary.test_hand_errors or {})},
         'folder': str(folder),
         'seed': metrics.seed,
         'strategy': metrics.strategy,
@@ -320,8 +321,9 @@ def format_table(report: dict) -> str:
                                  for name, row in rows.items() if 'ik_share' in row))
     if any('held_out_goal_error' in row for row in rows.values()):
         lines.append('the hand\'s final miss on the held-out instances (mean): ' + ', '.join(
-            f"{name} {1000 * row['held_out_goal_error']['mean']:.1f} mm, "
-            f"{row['held_out_orientation_error']['mean']:.3f} rad"
+            f"{name} {1000 * row['held_out_goal_error']['mean']:.1f} mm"
+            + (f", {row['held_out_orientation_error']['mean']:.3f} rad"
+               if 'held_out_orientation_error' in row else '')
             for name, row in rows.items() if 'held_out_goal_error' in row))
     lines.append('safety check, candidates refused (not executed) per session: ' + ', '.join(
         f"{name} {cell(row, 'refused', 1)} of {row['total_rollouts']['mean']:.0f}"

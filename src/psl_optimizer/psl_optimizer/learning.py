@@ -600,10 +600,13 @@ class Learner:
         results = self.rollouts.run(thetas, test)
         rewards = np.array([r.evaluation.reward for r in results])
         fulfilled = np.array([r.evaluation.fulfilled for r in results])
-        # the hand's final miss of the target (a refused or aborted rollout has none: NaN)
+        # the hand's final miss of the target (a refused or aborted rollout has none: NaN);
+        # the orientation where the reward scores it
+        scored = [name for name in HAND_ERRORS if name == 'goal_error'
+                  or self.task.reward.weights.get(name, 0.0) > 0.0]
         hand_errors = None if self.task.target is None else {
             name: [float(r.evaluation.components.get(name, np.nan)) for r in results]
-            for name in HAND_ERRORS}
+            for name in scored}
         rollouts = [d.rollouts for d in done]
         tracking = (tracking_comparison(self.rollouts, test, thetas)
                     if self.policy.has_feedforward else None)

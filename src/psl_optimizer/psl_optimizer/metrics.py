@@ -68,8 +68,9 @@ class Summary:
     # a task with feed-forward: RMS tracking error [rad] per held-out instance of each variant
     # of FEEDFORWARD_VARIANTS (the learned feed-forward, PD only, the inverse-dynamics oracle),
     # and its mean over the instances
-    # a task with a target: the hand's final position [m] and orientation [rad] errors on each
-    # held-out instance (components goal_error, orientation_error)
+    # a task with a target: the hand's final position [m] and, where the reward scores it,
+    # orientation [rad] errors on each held-out instance (components goal_error,
+    # orientation_error)
     test_hand_errors: dict[str, list[float]] | None = None
     tracking_rmse: dict[str, list[float]] | None = None
     tracking_rmse_mean: dict[str, float] | None = None
