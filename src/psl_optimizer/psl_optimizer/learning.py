@@ -620,7 +620,8 @@ class Learner:
                        test_hand_errors=hand_errors,
                        tracking_rmse=tracking,
                        tracking_rmse_mean=None if tracking is None else {
-                           name: float(np.mean(values)) for name, values in tracking.items()})
+                           name: float(np.nanmean(values)) if not np.all(np.isnan(values))
+                           else float('nan') for name, values in tracking.items()})
 
 
 def feedforward_variants(task: TaskDefinition, taus: np.ndarray, thetas: np.ndarray
@@ -649,9 +650,11 @@ def tracking_comparison(rollouts: Rollouts, taus: np.ndarray,
                         thetas: np.ndarray) -> dict[str, list[float]]:
     """RMS tracking error [rad] on each task instance taus (B, E) of its policy thetas (B, F)
     beside the same commanded path with PD only and with the oracle's feed-forward
-    (`feedforward_variants`), per variant."""
+    (`feedforward_variants`), per variant; NaN for a rollout that did not run (the safety
+    check refused that variant, the controller aborted it: no tracking error)."""
     out = {}
     for name, variant in feedforward_variants(rollouts.task, taus, thetas).items():
-        rmse = [r.evaluation.components['tracking_error'] for r in rollouts.run(variant, taus)]
+        rmse = [r.evaluation.components.get('tracking_error', np.nan)
+                for r in rollouts.run(variant, taus)]
         out[name] = [float(v) for v in rmse]
     return out

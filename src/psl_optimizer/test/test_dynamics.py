@@ -113,3 +113,24 @@ def test_skill_interpolates_the_feedforward_between_trained_masses(task, batch, 
     assert np.all(learned < 1.5 * oracle)
     rewards, _ = learner.rollouts.evaluate(thetas, between)
     assert np.all(rewards > -0.3)        # PD only scores -2.5 (0.5 kg) to -8 (3 kg)
+
+
+def test_a_refused_variant_has_no_tracking_error(task, batch):
+    """A variant the safety check refuses (no rollout, no tracking error) is NaN in the
+    comparison; the other instances keep theirs, the same as alone."""
+    from psl_optimizer.rollouts import refused_result
+
+    class RefuseTheFirst:
+        """`batch`, except that the first rollout of every call is refused."""
+        def __init__(self):
+            self.task = task
+
+        def run(self, thetas, taus):
+            results = batch.run(thetas, taus)
+            return [refused_result('too fast', -10.0, 1.0)] + results[1:]
+    taus = np.array([[0.8], [2.2]])
+    thetas = np.repeat(batch.policy.default_theta[None], 2, axis=0)
+    comparison = tracking_comparison(RefuseTheFirst(), taus, thetas)
+    alone = tracking_comparison(batch, taus[1:], thetas[1:])
+    for name, values in comparison.items():
+        assert np.isnan(values[0]) and values[1] == alone[name][0]
