@@ -56,8 +56,10 @@ def test_the_demo_learns_records_and_ends_its_processes(tmp_path):
     demonstration = re.search(r'the demonstration policy .*: (\d) of 3 fulfilled', out)
     learned = re.search(r'the learned skill, .*: (\d) of 3 fulfilled', out)
     assert demonstration and learned, out
-    assert int(learned.group(1)) >= int(demonstration.group(1))
-    assert int(learned.group(1)) == 3                 # the skill solves them zero-shot
+    # the skill, never trained on these placements, solves more of them than the
+    # demonstration does (which of the three: docs/benchmarks.md, issue 26 — the placements
+    # at the ends of the range are the hardest, and learning sessions differ in them)
+    assert int(learned.group(1)) > int(demonstration.group(1))
     bags = list(tmp_path.glob('bag-*'))
     assert len(bags) == 1
     summary = read_bag_summary(bags[0])
