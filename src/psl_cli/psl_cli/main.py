@@ -732,6 +732,18 @@ def _render_options(p: argparse.ArgumentParser) -> None:
     render.add_arguments(p)
 
 
+def cmd_teach(args) -> int:
+    from psl_cli import teach
+
+    return teach.run(args)
+
+
+def _teach_options(p: argparse.ArgumentParser) -> None:
+    from psl_cli import teach
+
+    teach.add_arguments(p)
+
+
 def cmd_bench(args) -> int:
     from psl_cli import bench_commands
 
@@ -760,6 +772,8 @@ COMMANDS = {
                       cmd_memory),
     'learn': Command('learn a skill over random task instances (resumes from the checkpoint '
                      'in --out)', _learn_options, cmd_learn),
+    'teach': Command('skill samples from kinesthetic demonstrations in a bag: cut, fitted, '
+                     'checked, added to a skill memory file', _teach_options, cmd_teach),
     'plot': Command('plot learning runs (output folders of psl learn) into one PNG',
                     _plot_options, cmd_plot),
     'record': Command('record topics into a rosbag2 (MCAP) bag', _record_options, cmd_record),

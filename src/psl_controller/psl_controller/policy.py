@@ -31,6 +31,7 @@ Imports no ROS; the DMP executor node and batch rollouts both call `TaskPolicy.r
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import time
@@ -127,6 +128,42 @@ class TaskPolicy:
     @property
     def num_parameters(self) -> int:
         return self.default_theta.size
+
+    def fit_demonstration(self, times: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """theta whose movement reproduces a demonstration: joint angles positions (T, n) at
+        times (T,) [s, increasing], its time mapped linearly onto [0, the task's duration];
+        theta_K fitted as the default theta is to the YAML's demonstration (in end-effector
+        space to the hand's path, with ``policy.orientation`` to its orientation too; a
+        learned goal becomes the demonstration's end), theta_D zero. The policy itself is not
+        changed. Raises ValueError for shapes other than these, fewer than 2 samples,
+        non-finite values or times that do not increase."""
+        times = np.asarray(times, dtype=float)
+        positions = np.asarray(positions, dtype=float)
+        if (times.ndim != 1 or len(times) < 2 or positions.shape != (len(times),
+                                                                     self.task.n_joints)):
+            raise ValueError(f'a demonstration is times (T,) and positions (T, '
+                             f'{self.task.n_joints}) with T >= 2, got {times.shape} and '
+                             f'{positions.shape}')
+        if not (np.all(np.isfinite(times)) and np.all(np.isfinite(positions))):
+            raise ValueError('a demonstration must be finite')
+        if np.any(np.diff(times) <= 0.0):
+            raise ValueError('demonstration times must increase')
+        t = (times - times[0]) * (self.task.duration / (times[-1] - times[0]))
+        movement = copy.deepcopy(self.movement)
+        spec = self.task.policy
+        if self.ik is None:
+            y = positions
+        else:
+            poses = [self.ik.pose(q) for q in positions]
+            y = np.array([x for x, _ in poses])
+        if spec.kind == 'gmr':
+            movement.fit(t, y, seed=spec.fit_seed)
+        elif self.controls_orientation:
+            movement.fit(t, y, np.array([r for _, r in poses]), self.task.control_period)
+        else:
+            movement.fit(t, y, self.task.control_period)
+        return np.concatenate([movement.get_theta(), np.zeros(self.dynamics.stop
+                                                              - self.dynamics.start)])
 
     @property
     def controls_orientation(self) -> bool:

@@ -1,0 +1,234 @@
+"""psl teach's library (`psl_optimizer.teaching`): a bag of joint states written here (rosbags,
+MCAP, as psl record writes it; the robot's joint order, an extra joint, noise) with guided
+demonstrations (the policy's own movements for known instances, so the right theta is known),
+a nudge, and demonstrations that must be refused; against the segmentation's closed form,
+the policy's reference and the skill memory's samples."""
+import numpy as np
+import pytest
+
+from psl_controller.policy import TaskPolicy, policy_for
+from psl_memory.skill_memory import SkillMemory
+from psl_optimizer import teaching
+from psl_optimizer.learning import LearnSettings
+from psl_task.arm_model import joint_names_of
+from psl_task.task import load_task
+
+TASK = 'planar_10dof_reach'
+NOISE = 2e-4                # rad, the encoders' noise
+REST = 0.5                  # s at rest before and after each demonstration
+TOL_TAUGHT = 0.05           # rad, a taught movement against the demonstrated one (the
+                            # segment's rest at either end is mapped onto the movement)
+
+
+def write_bag(path, stamps, rows, names, instances=()):
+    """A rosbag2 (MCAP) with sensor_msgs/JointState on /joint_states (names, positions
+    rows (N, m), header stamps [s]) and std_msgs/Float64MultiArray on /perception at the
+    given (seconds, tau)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+    store = get_typestore(Stores.ROS2_JAZZY)
+    JointState = store.types['sensor_msgs/msg/JointState']
+    Header = store.types['std_msgs/msg/Header']
+    Time = store.types['builtin_interfaces/msg/Time']
+    Array = store.types['std_msgs/msg/Float64MultiArray']
+    Layout = store.types['std_msgs/msg/MultiArrayLayout']
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        joints = writer.add_connection('/joint_states', JointState.__msgtype__, typestore=store)
+        seen = writer.add_connection('/perception', Array.__msgtype__, typestore=store)
+        events = [(t, 'tau', tau) for t, tau in instances]
+        events += [(t, 'q', row) for t, row in zip(stamps, rows)]
+        for t, kind, value in sorted(events, key=lambda e: (e[0], e[1] == 'q')):
+            ns = int(round(t * 1e9))
+            if kind == 'tau':
+                msg = Array(layout=Layout(dim=[], data_offset=0),
+                            data=np.asarray(value, dtype=float))
+                writer.write(seen, ns, store.serialize_cdr(msg, Array.__msgtype__))
+            else:
+                msg = JointState(header=Header(stamp=Time(sec=ns // 10**9,
+                                                          nanosec=ns % 10**9), frame_id=''),
+                                 name=names, position=np.asarray(value, dtype=float),
+                                 velocity=np.zeros(0), effort=np.zeros(0))
+                writer.write(joints, ns, store.serialize_cdr(msg, JointState.__msgtype__))
+
+
+@pytest.fixture(scope='module')
+def task():
+    return load_task(TASK)
+
+
+def guided(task, thetas, taus, offsets=None, rng=None):
+    """Joint states (t, q) of demonstrations: each theta's reference (its motion, without
+    the settling) framed by REST s at rest, one after the other; offsets (per demonstration,
+    (n,) added to every posture) make one start elsewhere."""
+    policy = policy_for(task)
+    dt = task.control_period
+    chunks, t0 = [], 0.0
+    for k, (theta, tau) in enumerate(zip(thetas, taus)):
+        q = policy.reference(theta, tau).q[:int(round(task.duration / dt)) + 1]
+        if offsets is not None:
+            q = q + offsets[k]
+        rest = int(round(REST / dt))
+        q = np.vstack([np.repeat(q[:1], rest, axis=0), q, np.repeat(q[-1:], rest, axis=0)])
+        chunks.append((t0 + np.arange(len(q)) * dt, q))
+        t0 += len(q) * dt + 1.0
+    t = np.concatenate([c[0] for c in chunks])
+    q = np.vstack([c[1] for c in chunks])
+    if rng is not None:
+        q = q + rng.normal(0.0, NOISE, q.shape)
+    return t, q
+
+
+def test_rest_to_rest_finds_the_motions_and_drops_a_nudge():
+    """Three motions of 1 s (minimum jerk, out and back) between rests, a 0.2 s nudge: three
+    spans, each from the rest before its motion to the rest after it (within the speed's
+    50 ms window)."""
+    dt = 0.002
+    t = np.arange(0, 8.0, dt)
+    q = np.zeros((len(t), 2))
+    for begin, sign in ((1.0, 1.0), (3.0, -1.0), (6.0, 1.0)):
+        s = np.clip(t - begin, 0.0, 1.0)
+        q[:, 0] += sign * (10 * s**3 - 15 * s**4 + 6 * s**5)
+    nudge = (t > 5.0) & (t < 5.2)
+    q[nudge, 1] = 0.01 * np.sin(np.pi * (t[nudge] - 5.0) / 0.2)
+    spans = teaching.rest_to_rest(teaching.Recording(t=t, q=q), 0.05, 0.5)
+    assert len(spans) == 3
+    for (i, j), begin in zip(spans, (1.0, 3.0, 6.0)):
+        assert begin - 0.03 <= t[i] <= begin + 0.1 and begin + 0.9 <= t[j] <= begin + 1.03
+
+
+def test_a_bag_of_guided_demonstrations_becomes_the_skills_samples(task, tmp_path):
+    """Three demonstrations of known thetas on known instances (tau from a perception topic,
+    the robot's own joint order plus a gripper joint, encoder noise): each is accepted, its
+    theta's movement reproduces it, and the skill holds exactly these samples; a fourth that
+    starts 0.2 rad off the start posture is refused with the reason and adds nothing."""
+    policy = TaskPolicy(task)
+    rng = np.random.default_rng(0)
+    taus = [np.array([0.5, 0.2]), np.array([0.62, 0.35]), np.array([0.45, 0.1]),
+            np.array([0.55, 0.3])]
+    thetas = []
+    for tau in taus:
+        theta = policy.default_theta.copy()
+        theta[policy.goal] += rng.normal(0.0, 0.1, policy.goal.stop - policy.goal.start)
+        thetas.append(theta)
+    offsets = [np.zeros(task.n_joints)] * 3 + [np.full(task.n_joints, 0.02)]
+    offsets[3][0] = 0.2
+    t, q = guided(task, thetas, taus, offsets, rng)
+    names = joint_names_of(task)
+    robot_order = names[::-1] + ['gripper']
+    rows = np.column_stack([q[:, ::-1], np.zeros(len(q))])
+    starts = []
+    recording_t = t
+    bag = tmp_path / 'guided'
+    spans_expected = teaching.rest_to_rest(teaching.Recording(t=t, q=q))
+    for i, _ in spans_expected:
+        starts.append(recording_t[i] - 0.3)
+    write_bag(bag, t + 100.0, rows, robot_order,
+              [(s + 100.0, tau) for s, tau in zip(starts, taus)])
+
+    recording = teaching.read_joint_states(bag, '/joint_states', names)
+    np.testing.assert_array_equal(recording.q, q)
+    spans = teaching.rest_to_rest(recording)
+    assert len(spans) == 4
+    instances = teaching.read_instances(bag, '/perception')
+    found = [teaching.instance_at(instances, recording.t[i]) for i, _ in spans]
+    for got, tau in zip(found, taus):
+        np.testing.assert_array_equal(got, tau)
+    memory = SkillMemory(LearnSettings().skill)
+    outcomes = teaching.teach(task, recording, spans, found, memory)
+    assert [o.accepted for o in outcomes] == [True, True, True, False]
+    assert 'starts 0.200 rad from the start posture' in outcomes[3].reason
+    skill = memory.get(task.name)
+    assert skill.num_samples == 3
+    for outcome, tau, theta in zip(outcomes[:3], taus, thetas):
+        # the segment holds a few ms of rest at either end, mapped onto the movement's
+        # duration with it: the fit is that much slower at the ends
+        assert outcome.fit_error < TOL_TAUGHT
+        np.testing.assert_array_equal(outcome.tau, tau)
+        # the learned goal is where the demonstration ends (the DMP has nearly converged there
+        # at the end of its duration), the movement the demonstrated one
+        np.testing.assert_allclose(outcome.theta[policy.goal], theta[policy.goal],
+                                   atol=TOL_TAUGHT)
+        mine, shown = policy.reference(outcome.theta, tau), policy.reference(theta, tau)
+        assert np.abs(mine.q - shown.q).max() < TOL_TAUGHT
+    # the goals differ from the default's by far more than that
+    assert all(np.abs(theta[policy.goal] - policy.default_theta[policy.goal]).max() > 0.1
+               for theta in thetas[:3])
+
+
+def test_a_demonstration_the_policy_cannot_follow_is_refused(task):
+    """reach_over_obstacle's goal posture is fixed (no learned goal): a demonstration that
+    ends elsewhere cannot be fitted; so is an instance outside the task's range."""
+    task = load_task('reach_over_obstacle')
+    policy = TaskPolicy(task)
+    reference = policy.reference(policy.default_theta)
+    steps = int(round(task.duration / task.control_period)) + 1
+    q = reference.q[:steps] + np.linspace(0.0, 0.3, steps)[:, None]      # ends 0.3 rad off
+    t = reference.t[:steps]
+    far = teaching.teach_one(task, policy, t, q, task.tau_default)
+    assert not far.accepted and 'the fitted movement stays' in far.reason
+    good = teaching.teach_one(task, policy, t, reference.q[:steps], task.tau_default)
+    assert good.accepted and good.fit_error < 5e-3
+    outside = teaching.teach_one(task, policy, t, reference.q[:steps], task.tau_high + 1.0)
+    assert not outside.accepted and 'its task instance' in outside.reason
+    unknown = teaching.teach_one(task, policy, t, reference.q[:steps], None)
+    assert not unknown.accepted and 'no task instance' in unknown.reason
+
+
+def test_bags_that_are_not_demonstrations_get_clear_errors(task, tmp_path):
+    names = joint_names_of(task)
+    bag = tmp_path / 'short'
+    write_bag(bag, [0.0, 0.01], np.zeros((2, len(names) - 1)), names[:-1])
+    with pytest.raises(ValueError, match=names[-1]):
+        teaching.read_joint_states(bag, '/joint_states', names)
+    with pytest.raises(ValueError, match="no topic '/other'"):
+        teaching.read_joint_states(bag, '/other', names)
+
+
+def test_psl_teach_writes_a_memory_that_psl_learn_continues(task, tmp_path, capsys):
+    """The command end to end: a bag of two guided demonstrations and one that starts off
+    the start posture, instances from the perception topic -> a memory file with the two
+    samples (the refused one named with its reason) -> psl learn --continue-from it."""
+    from psl_cli.main import main
+    policy = TaskPolicy(task)
+    taus = [np.array([0.5, 0.2]), np.array([0.6, 0.3]), np.array([0.45, 0.15])]
+    offsets = [np.zeros(task.n_joints), np.zeros(task.n_joints),
+               np.full(task.n_joints, 0.15)]
+    t, q = guided(task, [policy.default_theta] * 3, taus, offsets, np.random.default_rng(1))
+    spans = teaching.rest_to_rest(teaching.Recording(t=t, q=q))
+    bag = tmp_path / 'taught'
+    write_bag(bag, t, q, joint_names_of(task), [(t[i] - 0.2, tau) for (i, _), tau in
+                                                zip(spans, taus)])
+    memory = tmp_path / 'taught.npz'
+    assert main(['teach', '--task', TASK, str(bag), '--tau-topic', '/perception',
+                 '-o', str(memory)]) == 0
+    out = capsys.readouterr().out
+    assert out.count('accepted') == 2 and 'refused: it starts 0.150 rad' in out
+    taught = SkillMemory.read(memory).get(task.name)
+    assert taught.num_samples == 2
+    assert main(['learn', '--task', TASK, '--tasks', '2', '--test-tasks', '2',
+                 '--continue-from', str(memory), '--continuation', 'samples',
+                 '--out', str(tmp_path / 'run')]) == 0
+    # a bag in which nothing is accepted writes nothing and says so
+    assert main(['teach', '--task', TASK, str(bag), '--tau', '0.5', '0.2', '--tau', '0.6',
+                 '0.3', '--tau', '3.0', '3.0', '--start-tolerance', '1e-6',
+                 '-o', str(tmp_path / 'none.npz')]) == 1
+    assert not (tmp_path / 'none.npz').exists()
+    assert 'every demonstration was refused' in capsys.readouterr().err
+
+
+@pytest.mark.parametrize('name', ['reach_over_obstacle', 'planar_10dof_reach',
+                                  'point_reach_3d', 'pose_reach_3d'])
+def test_the_yamls_demonstration_taught_at_another_speed_is_the_default_theta(name):
+    """TaskPolicy.fit_demonstration maps the demonstration's time onto the movement's: the
+    YAML's own demonstration, given 1.7 times slower, gives the default theta (fitted to it
+    at the task's duration) within the fit's rounding; the policy itself is not changed."""
+    from psl_controller.dmp import demonstration_from_waypoints
+    task = load_task(name)
+    policy = TaskPolicy(task)
+    before = policy.reference(policy.default_theta).q
+    t, q = demonstration_from_waypoints(task.demo_times, task.demo_positions,
+                                        task.control_period)
+    theta = policy.fit_demonstration(1.7 * t, q)
+    scale = max(1.0, np.abs(policy.default_theta).max())
+    np.testing.assert_allclose(theta, policy.default_theta, rtol=0, atol=1e-9 * scale)
+    np.testing.assert_array_equal(policy.reference(policy.default_theta).q, before)
