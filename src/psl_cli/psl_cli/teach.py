@@ -29,9 +29,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         help='a topic of the bag announcing the instances: psl_msgs/TaskInstance '
                         '(e.g. /task_instance) or std_msgs/Float64MultiArray; a demonstration '
                         'takes the last one announced before it starts')
-    p.add_argument('--window', nargs=2, type=float, action='append', metavar=('A', 'B'),
-                   help='a demonstration is the span [A, B] s of the recording (the robot\'s '
-                   'clock; repeatable); default: rest-to-rest segmentation')
+    cut = p.add_mutually_exclusive_group()
+    cut.add_argument('--window', nargs=2, type=float, action='append', metavar=('A', 'B'),
+                     help='a demonstration is the span [A, B] s of the recording (the robot\'s '
+                     'clock; repeatable); default: rest-to-rest segmentation')
+    cut.add_argument('--episodes', action='store_true',
+                     help='the demonstrations are the episodes --tau-topic announced '
+                     '(psl_msgs/TaskInstance: rollouts recorded from psl\'s graph), each with '
+                     'its tau')
     p.add_argument('--velocity-threshold', type=options.positive_float,
                    default=teaching.VELOCITY_THRESHOLD, metavar='RAD_S',
                    help='the arm rests while no joint moves faster (default %(default)g)')
@@ -81,12 +86,21 @@ def run(args) -> int:
         task = load_task(args.task)
         bag = Path(args.bag)
         recording = teaching.read_joint_states(bag, args.topic, joint_names_of(task))
-        spans = (teaching.windows(recording, args.window) if args.window else
-                 teaching.rest_to_rest(recording, args.velocity_threshold, args.min_duration))
+        if args.episodes:
+            if not args.tau_topic:
+                raise ValueError('--episodes needs --tau-topic (the topic announcing them)')
+            from psl_ros.bag_recorder import make_typestore
+            spans, taus = teaching.episodes(task, bag, args.tau_topic, recording,
+                                            make_typestore())
+        else:
+            spans = (teaching.windows(recording, args.window) if args.window else
+                     teaching.rest_to_rest(recording, args.velocity_threshold,
+                                           args.min_duration))
         if not spans:
             raise ValueError(f'no demonstration in {bag} (no motion from rest to rest above '
                              f'{args.velocity_threshold:g} rad/s for {args.min_duration:g} s)')
-        taus = _taus(args, spans, recording, bag)
+        if not args.episodes:
+            taus = _taus(args, spans, recording, bag)
         memory = (SkillMemory.read(args.into) if args.into
                   else SkillMemory(LearnSettings().skill))
         outcomes = teaching.teach(task, recording, spans, taus, memory, args.start_tolerance,

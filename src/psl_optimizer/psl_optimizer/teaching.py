@@ -11,7 +11,8 @@ policy optimization". This module turns a recording into such samples:
 2. `rest_to_rest` cuts the recording into demonstrations: the spans in which the arm moves
    (the largest joint speed, a difference over 50 ms, above ``velocity_threshold``; pauses
    under 0.2 s belong to the motion), each from the rest before to the rest after, kept if
-   it lasts ``min_duration``; or `windows` takes given time spans.
+   it lasts ``min_duration``; or `windows` takes given time spans; or `episodes` takes the
+   episodes psl announced (psl_msgs/TaskInstance: a recording of rollouts through the graph).
 3. `instance_at`: each demonstration's tau, given, or from a topic in the same bag: the last
    instance announced at or before the demonstration's start (psl_msgs/TaskInstance of the
    episode, homing episodes skipped, or std_msgs/Float64MultiArray of a perception node).
@@ -104,14 +105,15 @@ def _messages(bag: str | Path, topic: str, typestore=None):
 
 def read_joint_states(bag: str | Path, topic: str, joint_names: list[str],
                       typestore=None) -> Recording:
-    """The task's joints of every JointState on `topic`, sorted by stamp (repeated stamps
-    dropped). ValueError: no such topic, a message without one of the joints (named), fewer
-    than two messages."""
+    """The task's joints of every JointState on `topic`, sorted by stamp (of messages with
+    the same stamp the later in the bag: psl's simulator stamps an episode's first state with
+    the time the episode before ended). ValueError: no such topic, a message without one of
+    the joints (named), fewer than two messages."""
     select = JointSelection(joint_names)
     rows: dict[float, np.ndarray] = {}
     for t, msg in _messages(bag, topic, typestore):
         try:
-            rows.setdefault(t, select.pick(list(msg.name), list(msg.position)))
+            rows[t] = select.pick(list(msg.name), list(msg.position))
         except ValueError as exc:
             raise ValueError(f'{bag}, {topic} at {t:.3f} s: {exc}') from None
     if len(rows) < 2:
@@ -125,13 +127,36 @@ def read_instances(bag: str | Path, topic: str, typestore=None) -> list[tuple[fl
     """(seconds, tau) of each task instance on `topic`: psl_msgs/TaskInstance (the episode's
     stamp; homing episodes skipped) or std_msgs/Float64MultiArray (its data; the bag's
     receive time)."""
+    return [(t, tau) for t, tau, _ in _instances(bag, topic, typestore)]
+
+
+def episodes(task: TaskDefinition, bag: str | Path, topic: str, recording: Recording,
+             typestore=None) -> tuple[list[tuple[int, int]], list[np.ndarray]]:
+    """The demonstrations of a recording of episodes (rollouts replayed through psl's graph):
+    the movement of each episode psl_msgs/TaskInstance announced on `topic` (from its stamp
+    for the instance's duration, without the settling; homing episodes skipped) and its tau.
+    ValueError for a topic of another type."""
+    spans, taus = [], []
+    for t, tau, length in _instances(bag, topic, typestore):
+        if length is None:
+            raise ValueError(f'{bag}, {topic}: episodes need psl_msgs/TaskInstance messages '
+                             '(their stamp and length)')
+        motion = min(length, task.duration_of(tau))
+        spans.extend(windows(recording, [(t - 1e-9, t + motion + 1e-9)]))
+        taus.append(tau)
+    return spans, taus
+
+
+def _instances(bag, topic, typestore):
+    """(seconds, tau, episode length [s] or None) of each instance on `topic`."""
     out = []
     for t, msg in _messages(bag, topic, typestore):
         if hasattr(msg, 'tau'):
             if not getattr(msg, 'homing', False):
-                out.append((t, np.asarray(msg.tau, dtype=float)))
+                out.append((t, np.asarray(msg.tau, dtype=float),
+                            msg.num_steps * msg.control_period))
         elif hasattr(msg, 'data'):
-            out.append((t, np.asarray(msg.data, dtype=float)))
+            out.append((t, np.asarray(msg.data, dtype=float), None))
         else:
             raise ValueError(f'{bag}, {topic}: {type(msg).__name__} carries no tau (a '
                              'psl_msgs/TaskInstance or a std_msgs/Float64MultiArray is needed)')
