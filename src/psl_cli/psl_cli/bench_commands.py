@@ -165,6 +165,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help='ways of continuing the simulated skill, each a session: residual '
                    '(the default of continue_from) and/or samples')
     options.add_out(p, RUN_FOLDERS)
+    p = bench('teach', 'a skill taught with 3, 5, 10 demonstrations (psl teach) against the '
+              'YAML demonstration alone: rollouts for the training tasks, zero-shot after',
+              task=None)
+    p.add_argument('--tasks', nargs='+', default=['reach_over_obstacle', 'planar_10dof_reach'],
+                   help='tasks (names or YAML files)')
+    p.add_argument('--counts', nargs='+', type=non_negative_int, default=[0, 3, 5, 10],
+                   help='demonstrations taught, each a session (0: none, the YAML demonstration)')
+    p.add_argument('--seeds', nargs='+', type=options.seed, default=[0, 1, 2])
+    p.add_argument('--tasks-per-session', type=positive_int, default=30,
+                   help='training tasks per session')
+    p.add_argument('--test-tasks', type=positive_int, default=20)
+    p.add_argument('--budget', type=positive_int, default=300, help='rollouts per task at most')
+    p.add_argument('--noise', default='position=0.0002',
+                   help='measurement noise of the demonstrations (position=RAD,velocity=RAD_S)')
+    options.add_out(p, RUN_FOLDERS)
     p = bench('false-successes', 'a noisy robot (measurement noise): samples added on a lucky '
               'rollout, with and without confirming a success (k of n)', task=None)
     p.add_argument('--tasks', nargs='+', default=list(NOISE_LEVELS),
@@ -307,11 +322,20 @@ def _false_successes(args) -> tuple[dict, str]:
     return report, false_successes.format_table(report)
 
 
+def _teach(args) -> tuple[dict, str]:
+    from psl_bench import teach
+    report = teach.run(tasks=args.tasks, counts=args.counts, seeds=args.seeds,
+                       num_tasks=args.tasks_per_session, num_test=args.test_tasks,
+                       budget=args.budget, noise=args.noise, out=_folder(args.out),
+                       progress=_progress)
+    return report, teach.format_table(report)
+
+
 BENCHES = {'graph': _graph, 'rollout': _rollout, 'memory': _memory,
            'memory-load': _memory_load, 'cli': _cli, 'recording': _recording, 'workers': _workers,
            'learn': _learn, 'dynamics': _dynamics, 'memories': _memories,
            'encodings': _encodings, 'sim-to-real': _sim_to_real,
-           'false-successes': _false_successes}
+           'false-successes': _false_successes, 'teach': _teach}
 
 
 def run(args) -> int:

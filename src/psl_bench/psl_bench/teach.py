@@ -1,0 +1,157 @@
+"""``psl bench teach``: a skill taught with 3, 5 or 10 demonstrations against the single
+demonstration of the task YAML: rollouts for the training tasks, zero-shot success after.
+
+Method, per task and seed (batch mode, plain Python, no ROS):
+1. The demonstrator's instances: a scratch session (``psl learn``'s `Learner`, seed 1000 +
+   seed) solves ``max(counts)`` instances; its fulfilled samples (tau, theta) are what a person
+   would show (instances solved, as a person knows how).
+2. Each shown on the robot as a person's guided motion would be measured: the theta rolled
+   out in batch mode with measurement noise (``noise``, 0.2 mrad on the angles by default),
+   the measured joint angles of its movement (without the settling) are the demonstration.
+3. `psl_optimizer.teaching.teach_one` fits and checks each (the refused ones are counted), the
+   first ``count`` accepted ones are the taught skill's samples.
+4. A bootstrap session (seed ``seed``, ``num_tasks`` tasks) continues the taught skill
+   (``continue_from`` it, ``continuation`` samples), against one from an empty skill (count
+   0: the YAML demonstration only): total rollouts, rollouts per late task, zero-shot
+   success on the held-out instances.
+The path through a bag (psl record, psl teach) is tested in test_teach_graph.py; this bench
+measures what the samples are worth.
+"""
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import tempfile
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+COUNTS = (0, 3, 5, 10)
+TASKS = ('reach_over_obstacle', 'planar_10dof_reach')
+NOISE = 'position=0.0002'
+LATE = 20                   # rollouts per task are averaged over the tasks after this many
+
+
+def demonstrations(task_name: str, count: int, seed: int, noise: str, folder: Path
+                   ) -> tuple[list, int]:
+    """(tau, t, q) of `count` demonstrations accepted by `teach_one` and the number refused
+    on the way (module docstring, 1-3)."""
+    from psl_controller.policy import TaskPolicy
+    from psl_optimizer import teaching
+    from psl_optimizer.batch_rollout import BatchRollouts, MeasurementNoise
+    from psl_optimizer.learning import Learner, LearnSettings
+    from psl_task.task import load_task
+
+    task = load_task(task_name)
+    settings = LearnSettings(strategy='scratch', num_tasks=max(3 * count, 10),
+                             seed=1000 + seed, num_test=1)
+    source = Learner(task, settings, folder / 'demonstrator', rollouts=BatchRollouts(task))
+    source.run()
+    memory = source.skill.memory.get(task.name)
+    robot = BatchRollouts(task, measurement_noise=MeasurementNoise.parse(
+        f'{noise},seed={seed}'))
+    policy = TaskPolicy(task)
+    shown, refused = [], 0
+    for tau, theta in zip(memory.taus, memory.thetas):
+        if len(shown) == count:
+            break
+        result = robot.run(np.asarray(theta)[None], tau)[0]
+        motion = int(round(task.duration_of(tau) / task.control_period)) + 1
+        t = np.arange(motion) * task.control_period
+        outcome = teaching.teach_one(task, policy, t, result.q[:motion], tau)
+        if outcome.accepted:
+            shown.append(outcome)
+        else:
+            refused += 1
+    if len(shown) < count:
+        raise ValueError(f'{task_name}: {len(shown)} of {count} demonstrations accepted '
+                         f'({refused} refused): solve more instances')
+    return shown, refused
+
+
+def session(task_name: str, taught: list, seed: int, num_tasks: int, num_test: int,
+            budget: int, folder: Path) -> dict:
+    """A bootstrap session from the taught skill (empty: none taught)."""
+    from psl_memory.skill_memory import SkillMemory
+    from psl_optimizer.batch_rollout import BatchRollouts
+    from psl_optimizer.learning import Learner, LearnSettings
+    from psl_controller.policy import policy_for
+    from psl_task.task import load_task
+
+    task = load_task(task_name)
+    defaults = LearnSettings()
+    continue_from = ''
+    if taught:
+        memory = SkillMemory(defaults.skill)
+        memory.create(task.name, task.tau_low, task.tau_high, policy_for(task).default_theta)
+        for outcome in taught:
+            memory.add(task.name, outcome.tau, outcome.theta)
+        folder.mkdir(parents=True, exist_ok=True)
+        continue_from = str(folder / 'taught.npz')
+        memory.save(continue_from)
+    settings = LearnSettings(strategy='bootstrap', num_tasks=num_tasks, seed=seed,
+                             num_test=num_test, continue_from=continue_from,
+                             continuation='samples' if taught else '',
+                             search=dataclasses.replace(defaults.search, max_rollouts=budget))
+    learner = Learner(task, settings, folder / 'session', rollouts=BatchRollouts(task))
+    metrics = learner.run()
+    rollouts = [t.rollouts for t in metrics.tasks]
+    return {'total_rollouts': int(sum(rollouts)),
+            'late_rollouts': float(np.mean(rollouts[min(LATE, len(rollouts) - 1):])),
+            'zero_shot_success': float(metrics.summary.zero_shot_success_rate)}
+
+
+def run(tasks: Sequence[str] = TASKS, counts: Sequence[int] = COUNTS,
+        seeds: Sequence[int] = (0, 1, 2), num_tasks: int = 30, num_test: int = 20,
+        budget: int = 300, noise: str = NOISE, out: str | Path | None = None,
+        progress: Callable[[str], None] | None = None) -> dict:
+    """Every task x count x seed (module docstring); the report of `format_table`."""
+    if not counts or min(counts) < 0 or len(set(counts)) != len(counts):
+        raise ValueError(f'counts must be distinct and >= 0, got {list(counts)}')
+    if num_tasks <= LATE:
+        raise ValueError(f'num_tasks must exceed {LATE} (the late tasks), got {num_tasks}')
+    importlib.import_module('cma')
+    rows = []
+    with tempfile.TemporaryDirectory() as scratch:
+        base = Path(out) if out is not None else Path(scratch)
+        for task in tasks:
+            for seed in seeds:
+                folder = base / f'{Path(task).stem}-seed{seed}'
+                taught, refused = demonstrations(task, max(counts), seed, noise,
+                                                 folder) if max(counts) else ([], 0)
+                for count in counts:
+                    row = session(task, taught[:count], seed, num_tasks, num_test, budget,
+                                  folder / f'taught{count}')
+                    row.update(task=task, seed=seed, count=count, refused=refused)
+                    rows.append(row)
+                    if progress is not None:
+                        progress(f"{task} seed {seed}, {count} taught: "
+                                 f"{row['total_rollouts']} rollouts, zero-shot "
+                                 f"{100 * row['zero_shot_success']:.0f} %")
+    return {'tasks': list(tasks), 'counts': list(counts), 'seeds': list(seeds),
+            'num_tasks': num_tasks, 'num_test': num_test, 'budget': budget, 'noise': noise,
+            'rows': rows}
+
+
+def format_table(report: dict) -> str:
+    """Markdown: per task and count the mean ± SD over seeds."""
+    lines = [f"{report['num_tasks']} bootstrap tasks (budget {report['budget']}) from a skill "
+             f"taught with N demonstrations (noise {report['noise']}) or none (the YAML "
+             f"demonstration only), seeds {report['seeds']}, zero-shot on "
+             f"{report['num_test']} held-out instances", '',
+             f'| task | taught | total rollouts | per task after {LATE} | zero-shot |',
+             '|---|---|---|---|---|']
+    for task in report['tasks']:
+        for count in report['counts']:
+            rows = [r for r in report['rows'] if r['task'] == task and r['count'] == count]
+
+            def cell(key, scale=1.0, digits=1, unit=''):
+                values = scale * np.array([r[key] for r in rows])
+                return f'{values.mean():.{digits}f} ± {values.std():.{digits}f}{unit}'
+            lines.append(f"| {Path(task).stem} | {count or 'none'} | {cell('total_rollouts')} "
+                         f"| {cell('late_rollouts', digits=2)} | "
+                         f"{cell('zero_shot_success', 100.0, 0, ' %')} |")
+    refused = sum(r['refused'] for r in report['rows'] if r['count'] == max(report['counts']))
+    lines.append(f'\ndemonstrations refused by psl teach\'s checks on the way: {refused}')
+    return '\n'.join(lines) + '\n'
