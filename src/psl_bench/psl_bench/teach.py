@@ -7,7 +7,8 @@ Method, per task and seed (batch mode, plain Python, no ROS):
    would show (instances solved, as a person knows how).
 2. Each shown on the robot as a person's guided motion would be measured: the theta rolled
    out in batch mode with measurement noise (``noise``, 0.2 mrad on the angles by default),
-   the measured joint angles of its movement (without the settling) are the demonstration.
+   the measured joint angles of the whole episode, from rest to rest (the settling
+   included), are the demonstration.
 3. `psl_optimizer.teaching.teach_one` fits and checks each (the refused ones are counted), the
    first ``count`` accepted ones are the taught skill's samples.
 4. A bootstrap session (seed ``seed``, ``num_tasks`` tasks) continues the taught skill
@@ -57,9 +58,8 @@ def demonstrations(task_name: str, count: int, seed: int, noise: str, folder: Pa
         if len(shown) == count:
             break
         result = robot.run(np.asarray(theta)[None], tau)[0]
-        motion = int(round(task.duration_of(tau) / task.control_period)) + 1
-        t = np.arange(motion) * task.control_period
-        outcome = teaching.teach_one(task, policy, t, result.q[:motion], tau)
+        t = np.arange(len(result.q)) * task.control_period      # the episode, rest to rest
+        outcome = teaching.teach_one(task, policy, t, result.q, tau)
         if outcome.accepted:
             shown.append(outcome)
         else:
