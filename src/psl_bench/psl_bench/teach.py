@@ -28,8 +28,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from psl_task import DEFAULT_TASK
+
 COUNTS = (0, 3, 5, 10)
-TASKS = ('reach_over_obstacle', 'planar_10dof_reach')
+TASKS = (DEFAULT_TASK, 'planar_10dof_reach')
 NOISE = 'position=0.0002'
 LATE = 20                   # rollouts per task are averaged over the tasks after this many
 

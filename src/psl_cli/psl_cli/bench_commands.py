@@ -15,6 +15,7 @@ from psl_bench.dynamics import OPTIMISERS
 from psl_bench.false_successes import NOISE_LEVELS
 from psl_bench.memories import MEMORIES, STARTS
 from psl_bench.sim_to_real import REAL_ROBOT, TASKS as SIM_TO_REAL_TASKS
+from psl_bench.teach import COUNTS as TEACH_COUNTS, NOISE as TEACH_NOISE, TASKS as TEACH_TASKS
 from psl_cli import options
 from psl_cli.options import fail, non_negative_int, positive_int
 from psl_memory.registry import READOUTS
@@ -168,16 +169,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p = bench('teach', 'a skill taught with 3, 5, 10 demonstrations (psl teach) against the '
               'YAML demonstration alone: rollouts for the training tasks, zero-shot after',
               task=None)
-    p.add_argument('--tasks', nargs='+', default=['reach_over_obstacle', 'planar_10dof_reach'],
+    p.add_argument('--tasks', nargs='+', default=list(TEACH_TASKS),
                    help='tasks (names or YAML files)')
-    p.add_argument('--counts', nargs='+', type=non_negative_int, default=[0, 3, 5, 10],
+    p.add_argument('--counts', nargs='+', type=non_negative_int, default=list(TEACH_COUNTS),
                    help='demonstrations taught, each a session (0: none, the YAML demonstration)')
     p.add_argument('--seeds', nargs='+', type=options.seed, default=[0, 1, 2])
     p.add_argument('--tasks-per-session', type=positive_int, default=30,
                    help='training tasks per session')
     p.add_argument('--test-tasks', type=positive_int, default=20)
     p.add_argument('--budget', type=positive_int, default=300, help='rollouts per task at most')
-    p.add_argument('--noise', default='position=0.0002',
+    p.add_argument('--noise', default=TEACH_NOISE,
                    help='measurement noise of the demonstrations (position=RAD,velocity=RAD_S)')
     options.add_out(p, RUN_FOLDERS)
     p = bench('false-successes', 'a noisy robot (measurement noise): samples added on a lucky '
