@@ -405,6 +405,19 @@ def search_normalisation(task: TaskDefinition, default_theta: np.ndarray
     return centre, scale
 
 
+# LearnSettings fields a resumed session must share with its checkpoint besides those always
+# compared (`Learner._identity`): the search's budget and steps, ILC's, the skill's readout and
+# what fills the skill slot
+RESUMED_SETTINGS = ('search', 'ilc', 'skill', 'skill_map', 'add_only_fulfilled')
+
+
+def _plain(value):
+    """A settings value as JSON gives it back (dataclasses as dicts, tuples as lists)."""
+    if dataclasses.is_dataclass(value):
+        value = dataclasses.asdict(value)
+    return json.loads(json.dumps(value))
+
+
 class Learner:
     """Runs one learning session of one task, checkpointing into `out`.
 
@@ -465,11 +478,13 @@ class Learner:
         return self.out / 'memory.npz'
 
     def _identity(self) -> dict:
-        """What a checkpoint must match to be resumed by this session."""
+        """What a checkpoint must match to be resumed by this session: what decides its
+        searches and its skill (another budget or readout would go on as another session)."""
         s = self.settings
         return {'task': self.task.name, 'strategy': s.strategy, 'seed': s.seed,
                 'task_selection': s.task_selection, 'model_error': s.model_error,
-                'measurement_noise': s.measurement_noise, 'confirm': list(s.confirm)}
+                'measurement_noise': s.measurement_noise, 'confirm': list(s.confirm),
+                **{key: _plain(getattr(s, key)) for key in RESUMED_SETTINGS}}
 
     def _load_checkpoint(self) -> list[TaskRecord]:
         if not self.checkpoint_path.is_file():
@@ -478,7 +493,8 @@ class Learner:
         state = json.loads(self.checkpoint_path.read_text())
         mine = self._identity()
         state.setdefault('task_selection', 'random')      # checkpoints from before the option
-        for key, value in (('model_error', ''), ('measurement_noise', ''), ('confirm', [1, 1])):
+        for key, value in (('model_error', ''), ('measurement_noise', ''), ('confirm', [1, 1]),
+                           *((key, mine[key]) for key in RESUMED_SETTINGS)):
             state.setdefault(key, value)                   # checkpoints from before them
         if any(state.get(k) != v for k, v in mine.items()):
             raise ValueError(f'{self.out} holds a checkpoint of another session '

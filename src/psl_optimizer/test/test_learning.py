@@ -252,3 +252,16 @@ def test_a_session_killed_between_its_memory_and_its_checkpoint_resumes_alike(
     assert_same_memory(memory_arrays(tmp_path / 'memory.npz'),
                        memory_arrays(full_out / 'memory.npz'))
     assert not sorted(tmp_path.glob('memory.task*.npz'))
+
+
+@pytest.mark.parametrize('change', [
+    {'search': SearchSettings(max_rollouts=SETTINGS.search.max_rollouts + 1)},
+    {'skill': dataclasses.replace(SETTINGS.skill, regularization=0.5)},
+    {'add_only_fulfilled': not SETTINGS.add_only_fulfilled},
+])
+def test_a_resume_with_another_budget_or_skill_is_refused(task, evaluator, finished, change):
+    """The checkpoint names what decided its searches and its skill: resuming it with another
+    budget, readout or sample rule would go on as another session, silently; it is refused."""
+    out, _ = finished
+    with pytest.raises(ValueError, match='another session'):
+        Learner(task, dataclasses.replace(SETTINGS, **change), out, evaluator).run()
