@@ -44,6 +44,8 @@ def demonstrations(task_name: str, count: int, seed: int, noise: str, folder: Pa
     from psl_optimizer import teaching
     from psl_optimizer.batch_rollout import BatchRollouts, MeasurementNoise
     from psl_optimizer.learning import Learner, LearnSettings
+    from psl_task.arm_model import ArmModel
+    from psl_task.safety_check import SafetyCheck
     from psl_task.task import load_task
 
     task = load_task(task_name)
@@ -54,14 +56,14 @@ def demonstrations(task_name: str, count: int, seed: int, noise: str, folder: Pa
     memory = source.skill.memory.get(task.name)
     robot = BatchRollouts(task, measurement_noise=MeasurementNoise.parse(
         f'{noise},seed={seed}'))
-    policy = TaskPolicy(task)
+    policy, safety = TaskPolicy(task), SafetyCheck(ArmModel(task))
     shown, refused = [], 0
     for tau, theta in zip(memory.taus, memory.thetas):
         if len(shown) == count:
             break
         result = robot.run(np.asarray(theta)[None], tau)[0]
         t = np.arange(len(result.q)) * task.control_period      # the episode, rest to rest
-        outcome = teaching.teach_one(task, policy, t, result.q, tau)
+        outcome = teaching.teach_one(task, policy, t, result.q, tau, safety=safety)
         if outcome.accepted:
             shown.append(outcome)
         else:

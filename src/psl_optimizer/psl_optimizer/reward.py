@@ -15,7 +15,7 @@ import dataclasses
 import mujoco
 import numpy as np
 
-from psl_task.inverse_kinematics import QUATERNION_NORM_TOLERANCE
+from psl_controller import quaternion
 from psl_task.reward_geometry import Measurements, RewardGeometry
 from psl_task.task import TaskDefinition
 
@@ -191,12 +191,9 @@ class Reward:
             return self.geometry.end_effector_at(goal), None
         if goal.size == 3:
             return goal.copy(), None
-        quat = goal[3:]
-        if abs(np.linalg.norm(quat) - 1.0) > QUATERNION_NORM_TOLERANCE:
-            raise ValueError(f'task {self.task.name!r}: the goal orientation must be a unit '
-                             f'quaternion [w, x, y, z], got norm {np.linalg.norm(quat):.9g}')
+        quat = quaternion.as_unit_quaternion(goal[3:], 'the goal orientation')
         rotation = np.empty(9)
-        mujoco.mju_quat2Mat(rotation, quat / np.linalg.norm(quat))
+        mujoco.mju_quat2Mat(rotation, quat)
         return goal[:3].copy(), rotation.reshape(3, 3)
 
     def evaluate(self, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,

@@ -225,9 +225,11 @@ def instance_at(instances: list[tuple[float, np.ndarray]], start: float) -> np.n
 
 def teach_one(task: TaskDefinition, policy: TaskPolicy, t: np.ndarray, q: np.ndarray,
               tau, start_tolerance: float = START_TOLERANCE,
-              fit_tolerance: float = FIT_TOLERANCE) -> Outcome:
+              fit_tolerance: float = FIT_TOLERANCE, safety: SafetyCheck | None = None
+              ) -> Outcome:
     """One demonstration (q (T, n) at times t (T,)) on instance tau: its sample, or why it is
-    refused (module docstring, 4)."""
+    refused (module docstring, 4). ``safety``: the task's check, made once by a caller that
+    teaches many (default: made here)."""
     span = float(t[0]), float(t[-1])
 
     def refuse(reason: str, error: float = float('nan')) -> Outcome:
@@ -259,7 +261,7 @@ def teach_one(task: TaskDefinition, policy: TaskPolicy, t: np.ndarray, q: np.nda
         return refuse(f'the fitted movement stays {error:.3f} rad from it (tolerance '
                       f'{fit_tolerance:g}: a goal the policy cannot learn, or a motion its '
                       f'{task.policy.n_basis} basis functions cannot follow)', error)
-    verdict = SafetyCheck(ArmModel(task)).check(tau, reference.q, reference.qd)
+    verdict = (safety or SafetyCheck(ArmModel(task))).check(tau, reference.q, reference.qd)
     if not verdict.safe:
         return refuse(f'the safety check refuses its movement: {verdict.reason}', error)
     return Outcome(*span, tau=tau, theta=theta, fit_error=error)
@@ -273,9 +275,9 @@ def teach(task: TaskDefinition, recording: Recording, spans: list[tuple[int, int
     `memory` (a `SkillMemory`, created there if absent), the refused ones are not."""
     if len(taus) != len(spans):
         raise ValueError(f'{len(spans)} demonstrations but {len(taus)} task instances')
-    policy = TaskPolicy(task)
+    policy, safety = TaskPolicy(task), SafetyCheck(ArmModel(task))
     outcomes = [teach_one(task, policy, recording.t[i:j + 1], recording.q[i:j + 1], tau,
-                          start_tolerance, fit_tolerance)
+                          start_tolerance, fit_tolerance, safety)
                 for (i, j), tau in zip(spans, taus)]
     if task.name not in memory.skills:
         memory.create(task.name, task.tau_low, task.tau_high, policy.default_theta)
