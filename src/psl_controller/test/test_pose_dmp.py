@@ -74,8 +74,10 @@ def test_a_population_row_is_the_single_integration():
     for row, theta in enumerate(thetas):
         pose.set_theta(theta)
         single = pose.integrate(DT, 1.2)
-        np.testing.assert_array_equal(population.quat[row], single.quat)   # row by row
-        np.testing.assert_allclose(population.y[row], single.y, rtol=0, atol=1e-12)   # BLAS
+        # the forcing of both is one matrix product, which BLAS may sum in another order for
+        # another population size (README, "What is equal to what"): within rounding
+        np.testing.assert_allclose(population.quat[row], single.quat, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(population.y[row], single.y, rtol=0, atol=1e-12)
 
 
 def test_a_goal_change_moves_the_position_goal_and_keeps_the_orientation():
