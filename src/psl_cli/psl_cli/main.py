@@ -49,7 +49,7 @@ def cmd_up(args) -> int:
                                               ('effort_command', args.effort_command)) if topic}
     graph = Graph(task=args.task, mode=args.mode, namespace=args.namespace,
                   workers=args.workers, log_dir=log_dir, reset=args.reset, robot=args.robot,
-                  robot_topics=topics, extra_params=extra)
+                  robot_topics=topics, extra_params=extra, view_port=args.view)
     names = {name for name, *_ in graph.nodes_spec}
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -146,6 +146,7 @@ def _robot_param(text: str) -> tuple[str, str]:
 
 def _up_options(p: argparse.ArgumentParser) -> None:
     from psl_ros.graph import LOG_ROOT_VARIABLE, ROBOTS, SIM_MODES, STATE_TIMEOUT
+    from psl_ros.view_parameters import DEFAULT_PORT
 
     options.add_task(p)
     p.add_argument('--mode', choices=SIM_MODES, default=SIM_MODES[0])
@@ -189,6 +190,10 @@ def _up_options(p: argparse.ArgumentParser) -> None:
                    help="folder for the nodes' output, one <node>.log each (default: a new "
                    f'folder named by the start time under ${LOG_ROOT_VARIABLE}, or when that is '
                    'unset under ./log/graph in the current working directory)')
+    p.add_argument('--view', nargs='?', type=options.port, const=DEFAULT_PORT, metavar='PORT',
+                   help='also start the view node: the graph live in the Foxglove app, a '
+                   f'WebSocket server on ws://127.0.0.1:PORT (default {DEFAULT_PORT}); '
+                   'psl view --layout writes its layout')
     p.add_argument('--memory-dir', metavar='DIR',
                    help="the skill memory's folder: psl memory save/load, checkpoints of "
                    'graph-mode sessions and autosave stay inside it (default: $PSL_MEMORY_DIR, '
@@ -744,6 +749,18 @@ def _teach_options(p: argparse.ArgumentParser) -> None:
     teach.add_arguments(p)
 
 
+def cmd_view(args) -> int:
+    from psl_cli import view
+
+    return view.run(args)
+
+
+def _view_options(p: argparse.ArgumentParser) -> None:
+    from psl_cli import view
+
+    view.add_arguments(p)
+
+
 def cmd_bench(args) -> int:
     from psl_cli import bench_commands
 
@@ -787,6 +804,8 @@ COMMANDS = {
                       _params_options, cmd_params),
     'render': Command('draw one rollout offscreen into an animated GIF', _render_options,
                       cmd_render),
+    'view': Command('the running graph live in the Foxglove app (a WebSocket server on '
+                    'ws://127.0.0.1:8765), or its layout file', _view_options, cmd_view),
     'bench': Command('benchmarks (see docs/benchmarks.md)', _bench_options, cmd_bench),
 }
 

@@ -17,13 +17,14 @@ def node_parameters() -> dict[str, tuple[type, ...]]:
     from psl_memory.skill_config import SkillConfig
     from psl_optimizer.learner_parameters import LearnerParameters
     from psl_sim.sim_parameters import SimParameters
+    from psl_ros.view_parameters import ViewParameters
     from psl_sim.standard_robot_parameters import StandardRobotParameters
 
     return {'sim': (SimParameters,), 'pd_controller': (ControllerParameters,),
             'dmp_executor': (ExecutorParameters,),
             'skill_memory': (SkillConfig, MemoryLimits, MemoryFiles),
             'learner': (LearnerParameters,), 'reward_evaluator': (),
-            'standard_robot': (StandardRobotParameters,)}
+            'standard_robot': (StandardRobotParameters,), 'view': (ViewParameters,)}
 
 
 def parameter_file(node: str) -> str:

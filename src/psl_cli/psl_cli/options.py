@@ -66,6 +66,25 @@ def positive_float(text: str) -> float:
     return value
 
 
+def non_negative_float(text: str) -> float:
+    """An argparse type: a finite number >= 0 (a rate, 0 = unlimited)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+    if not 0.0 <= value < float('inf'):
+        raise argparse.ArgumentTypeError(f'must be a finite number >= 0, got {text}')
+    return value
+
+
+def port(text: str) -> int:
+    """An argparse type: a TCP port, 0..65535 (0 = a free one)."""
+    value = _integer(text, 0, '0 or more')
+    if value > 65535:
+        raise argparse.ArgumentTypeError(f'a TCP port is 0..65535, got {value}')
+    return value
+
+
 def output_folder(path: str | Path) -> Path:
     """The folder `path` (absolute), created with its parents if missing.
 

@@ -11,12 +11,14 @@ A session writes into ``<output_root>/<task>-<strategy>-seed<seed>``: after ever
 checkpoint (the memory node's memory saved there + the progress as JSON), at the end
 ``metrics.json``. Sending the same goal again, after a cancel, an abort or a crash of this
 node, resumes from the checkpoint: the memory node is loaded from it, no finished task is
-lost. Feedback comes after every batch of rollouts. A bad goal (unknown task or strategy, zero
+lost. Feedback comes after every batch of rollouts, and one psl_msgs/LearningProgress per
+rollout on ``learning_progress`` (the learning curve; `psl_optimizer.session_progress`). A bad goal (unknown task or strategy, zero
 tasks, a skill of the task's name but other sizes in the memory) ends with success=false and
 the reason; a skill the memory does not hold is created from the task.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 from pathlib import Path
@@ -25,21 +27,25 @@ import numpy as np
 from rclpy.action import CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
+from std_msgs.msg import Header
 
 from psl_controller.policy import policy_for
 from psl_msgs.action import LearnSkill
+from psl_msgs.msg import LearningProgress
 from psl_optimizer.learner_parameters import LearnerParameters
 from psl_optimizer.learning import (CORRECTION_SUFFIX, Learner, LearnSettings,
                                      ResidualComposition)
 from psl_optimizer.policy_search import STRATEGIES, SearchSettings
 from psl_optimizer.rollout_modes import make_rollouts
 from psl_optimizer.rollouts import MODES, Rollouts, Stopped
+from psl_optimizer.session_progress import SessionProgress
 from psl_ros import names
 from psl_ros.action_server import ActionServer
 from psl_ros.client import MemoryClient, RolloutClient
 from psl_ros.instance_source import InstanceStopped, TopicInstances
 from psl_ros.node_main import run_node
 from psl_ros.parameters import declare
+from psl_ros.qos import RELIABLE
 from psl_task.task import TaskDefinition, TaskError, load_task
 
 
@@ -144,6 +150,9 @@ class LearnerNode(Node):
         self.memory = MemoryClient(self, callback_group=clients)
         self.rollout_clients = [RolloutClient(self, worker, callback_group=clients)
                                 for worker in self.parameters.workers]
+        # the learning curve, one message per rollout (psl view plots it; psl record keeps it)
+        self.pub_progress = self.create_publisher(LearningProgress, names.LEARNING_PROGRESS,
+                                                  RELIABLE)
         self._busy = threading.Lock()
         self._batch: dict[Path, Rollouts] = {}     # batch mode's rollouts per task
         self._server = ActionServer(
@@ -195,7 +204,9 @@ class LearnerNode(Node):
                 goal_handle.abort()
                 result.message = str(exc)
                 return result
-            learner.rollouts = WatchedRollouts(learner.rollouts, goal_handle, learner)
+            learner.rollouts = WatchedRollouts(learner.rollouts, goal_handle, learner,
+                                               self.pub_progress, task.name,
+                                               self.get_clock())
             try:
                 metrics = learner.run()
             except (Stopped, InstanceStopped):
@@ -271,31 +282,33 @@ class LearnerNode(Node):
 
 
 class WatchedRollouts(Rollouts):
-    """The session's rollouts, checked for a cancel before each batch and reported as goal
-    feedback after it (task index, rollouts so far, best reward, fulfilled)."""
+    """The session's rollouts, checked for a cancel before each batch and reported after it:
+    one psl_msgs/LearningProgress per rollout on ``learning_progress`` and the goal feedback
+    (task index, rollouts so far, best reward, fulfilled), both from `SessionProgress`."""
 
-    def __init__(self, inner: Rollouts, goal_handle, learner: Learner):
+    def __init__(self, inner: Rollouts, goal_handle, learner: Learner, publisher, task: str,
+                 clock):
         super().__init__(inner.task)
-        self.inner, self.goal_handle, self.learner = inner, goal_handle, learner
-        self.current = {'index': -1, 'rollouts': 0, 'best': -np.inf, 'fulfilled': False}
+        self.inner, self.goal_handle, self.publisher = inner, goal_handle, publisher
+        self.progress, self.clock = SessionProgress(learner), clock
+        self.header = {'task': task, 'strategy': learner.settings.strategy}
 
     def run(self, thetas: np.ndarray, taus: np.ndarray):
         if self.goal_handle.is_cancel_requested:
             raise Stopped('the goal was cancelled')
         results = self.inner.run(thetas, taus)
-        done, current = self.learner.done, self.current
-        if len(done) >= self.learner.settings.num_tasks:
-            return results                                  # the held-out test at the end
-        if current['index'] != len(done):                   # a new task
-            current.update(index=len(done), rollouts=0, best=-np.inf, fulfilled=False)
-        current['rollouts'] += len(results)
-        current['best'] = max(current['best'], max(r.evaluation.reward for r in results))
-        current['fulfilled'] = current['fulfilled'] or any(r.evaluation.fulfilled
-                                                           for r in results)
-        self.goal_handle.publish_feedback(LearnSkill.Feedback(
-            task_index=current['index'],
-            rollouts=sum(d.rollouts for d in done) + current['rollouts'],
-            best_reward=current['best'], fulfilled=current['fulfilled']))
+        points = self.progress.after(taus, results)
+        stamp = self.clock.now().to_msg()
+        for point in points:
+            fields = dataclasses.asdict(point)
+            fields['tau'] = list(point.tau)
+            self.publisher.publish(LearningProgress(header=Header(stamp=stamp), **self.header,
+                                                    **fields))
+        if points:
+            last = points[-1]
+            self.goal_handle.publish_feedback(LearnSkill.Feedback(
+                task_index=last.task_index, rollouts=last.rollout,
+                best_reward=last.best_reward, fulfilled=last.task_fulfilled))
         return results
 
 

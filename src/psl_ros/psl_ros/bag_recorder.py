@@ -266,7 +266,7 @@ def offered_qos(profile: QoSProfile) -> Qos:
 # Recording
 # --------------------------------------------------------------------------------------------
 
-def _is_hidden(topic: str) -> bool:
+def is_hidden(topic: str) -> bool:
     """Hidden topic: a name token starts with '_' (e.g. '/fibonacci/_action/status')."""
     return any(token.startswith('_') for token in topic.split('/'))
 
@@ -391,7 +391,7 @@ class _Recorder:
             candidates = self._wanted
         elif accept_new:
             candidates = sorted(t for t in available
-                                if t not in EXCLUDED_TOPICS and not _is_hidden(t))
+                                if t not in EXCLUDED_TOPICS and not is_hidden(t))
         else:
             return
         for topic in candidates:

@@ -43,6 +43,7 @@ WORKER_NODES = ('sim', 'robot', 'pd_controller', 'dmp_executor', 'reward_evaluat
 # running already (psl starts no robot). With the last two psl runs the episodes itself.
 ROBOTS = ('sim', 'standard', 'external')
 STANDARD_ROBOT = ('robot', 'psl_sim', 'standard_robot')
+VIEW = ('view', 'psl_ros', 'view')     # the graph live in Foxglove (psl up --view)
 STATE_TIMEOUT = 0.3     # [s] the controller's watchdog on a robot psl does not simulate (0.105 s
                         # gaps seen in a Python robot loop on a loaded 2-core machine)
 
@@ -168,7 +169,8 @@ class Graph:
                  nodes: tuple = NODES, extra_params: dict[str, dict] | None = None,
                  workers: int = 0, reset: str = '',
                  launch_prefix: dict[str, list[str]] | None = None,
-                 robot: str = ROBOTS[0], robot_topics: dict[str, str] | None = None):
+                 robot: str = ROBOTS[0], robot_topics: dict[str, str] | None = None,
+                 view_port: int | None = None):
         if mode not in SIM_MODES:
             raise ValueError(f'mode must be one of {SIM_MODES}, got {mode!r}')
         if robot not in ROBOTS:
@@ -179,6 +181,9 @@ class Graph:
             nodes = tuple(n for n in nodes if n[0] != 'sim')
             if robot == 'standard':
                 nodes = (STANDARD_ROBOT,) + nodes
+        if view_port is not None:       # the view node, serving Foxglove on this port
+            nodes = nodes + (VIEW,)
+        self.view_port = view_port
         if workers < 0:
             raise ValueError(f'workers must be >= 0, got {workers}')
         self.workers, self.reset = workers, reset
@@ -196,7 +201,8 @@ class Graph:
         """The -p parameters of a node: the task for the simulator and the controller (none:
         their default, psl_task.DEFAULT_TASK), the mode for the simulator, the reset for the executor, the workers for the learner, the
         memory folder
-        (``PSL_MEMORY_DIR``, if set) for the skill memory, then `extra_params`."""
+        (``PSL_MEMORY_DIR``, if set) for the skill memory, the port for the view, then
+        `extra_params`."""
         params = ({'task': self.task} if self.task and name in ('sim', 'robot', 'pd_controller')
                   else {})
         if name == 'sim':
@@ -209,6 +215,8 @@ class Graph:
             params['reset'] = self.reset          # teleport | drive ('' = the task's)
         if name == 'learner' and self.workers:
             params['workers'] = '[' + ','.join(self.worker_namespaces(relative=True)) + ']'
+        if name == 'view' and self.view_port is not None:
+            params['port'] = self.view_port
         if name == 'skill_memory' and os.environ.get('PSL_MEMORY_DIR'):
             params['memory_dir'] = os.environ['PSL_MEMORY_DIR']   # the memory files' folder
         params.update(self.extra_params.get(name, {}))

@@ -15,6 +15,7 @@ TASK_INSTANCE = 'task_instance'         # psl_msgs/TaskInstance (latched), the s
 ROLLOUT_EVALUATION = 'rollout_evaluation'   # psl_msgs/RolloutEvaluation, the evaluator
 EE_POSE = 'ee_pose'                     # geometry_msgs/PoseStamped, the simulator
 SCENE = 'scene'                         # visualization_msgs/MarkerArray (latched), the simulator
+LEARNING_PROGRESS = 'learning_progress'  # psl_msgs/LearningProgress, the learner: one per rollout
 GOAL_UPDATE = 'goal_update'             # psl_msgs/GoalUpdate: a live new goal for the executor
 MATCHED_ENDPOINTS = 'matched_endpoints'  # diagnostic_msgs/DiagnosticStatus (latched), every
                                         # loop node: what its endpoints matched (psl_ros.matching)

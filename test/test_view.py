@@ -1,0 +1,226 @@
+"""psl up --view: the running graph live in Foxglove, checked with a WebSocket client of the
+Foxglove protocol (psl_bench.foxglove_client) against what the graph published in ROS.
+
+The view node offers every topic with its message definition; it subscribes to a topic in ROS
+only while a viewer watches it; a viewer receives the very bytes the graph published (compared
+with the test's own ROS subscriptions) and decodes them with the advertised schemas; the
+learning progress of a graph-mode session arrives rollout by rollout and agrees with the
+session's metrics; a viewer joining later gets the latched scene; the shipped layout names
+topics and fields the graph has."""
+import json
+import re
+import subprocess
+import threading
+from pathlib import Path
+
+import pytest
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from psl_bench.foxglove_client import SUBPROTOCOLS, FoxgloveClient
+from psl_ros import names
+from psl_ros.bag_recorder import import_message_class
+from psl_ros.foxglove_layout import layout_json
+from psl_ros.graph import Graph, find_executable, pid_alive
+from psl_ros.client import RosClient
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED_LAYOUT = ROOT / 'docs' / 'foxglove' / 'psl.layout.json'
+TASK = 'reach_over_obstacle'
+VIEWED = ['/' + t for t in (names.SCENE, names.JOINT_STATES, names.REFERENCE,
+                            names.TASK_INSTANCE, names.LEARNING_PROGRESS)]
+LATCHED = {'/' + names.SCENE, '/' + names.TASK_INSTANCE}
+SESSION = dict(task=TASK, strategy='bootstrap', num_tasks=2, max_rollouts_per_task=6, seed=1,
+               mode='graph', num_test=1)
+PORT_LINE = re.compile(r'serving Foxglove on ws://([0-9.]+):(\d+)')
+WAIT = 30.0                 # s, for a process, a port or a delivery
+
+
+@pytest.fixture(scope='module')
+def graph(tmp_path_factory):
+    root = tmp_path_factory.mktemp('view_memory')
+    g = Graph(task=TASK, log_dir=tmp_path_factory.mktemp('view_logs'), view_port=0,
+              extra_params={'skill_memory': {'memory_dir': str(root)},
+                            'learner': {'output_root': str(root / 'runs')}})
+    try:
+        g.start()
+        g.wait_ready(timeout=60)
+        yield g
+    finally:
+        g.stop()
+        left = [p.name for p in g.processes if pid_alive(p.pid)]
+        assert not left, f'processes left behind: {left}'
+
+
+@pytest.fixture(scope='module')
+def url(graph, wait_until):
+    view = next(p for p in graph.processes if p.name == 'view')
+    found = []
+
+    def port_logged():
+        match = PORT_LINE.search(view.log_path.read_text(errors='replace'))
+        if match:
+            found.append(f'ws://{match[1]}:{match[2]}')
+        return bool(found) or view.process.poll() is not None
+    assert wait_until(port_logged, WAIT) and found, view.tail()
+    return found[0]
+
+
+@pytest.fixture(scope='module')
+def client(graph):
+    with RosClient() as c:
+        yield c
+
+
+class Published:
+    """The test's own ROS subscriptions (raw bytes) to the viewed topics: what the graph
+    published, to compare the viewer's messages with."""
+
+    def __init__(self, node, topics):
+        self.lock, self.messages = threading.Lock(), {t: [] for t in topics}
+        self.subscriptions = []
+        for topic in topics:
+            msgtype = dict(node.get_topic_names_and_types())[topic][0]
+            qos = QoSProfile(history=HistoryPolicy.KEEP_ALL,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=(DurabilityPolicy.TRANSIENT_LOCAL if topic in LATCHED
+                                         else DurabilityPolicy.VOLATILE))
+            self.subscriptions.append(node.create_subscription(
+                import_message_class(msgtype), topic,
+                lambda data, t=topic: self._keep(t, data), qos, raw=True))
+
+    def matched(self) -> bool:
+        """Every subscription has matched its topic's publishers (none is missed from now)."""
+        return all(s.get_publisher_count() > 0 for s in self.subscriptions)
+
+    def _keep(self, topic, data) -> None:
+        with self.lock:
+            self.messages[topic].append(bytes(data))
+
+    def of(self, topic) -> list[bytes]:
+        with self.lock:
+            return list(self.messages[topic])
+
+
+def view_subscribes(client, topic: str) -> bool:
+    return any(info.node_name == 'view'
+               for info in client.node.get_subscriptions_info_by_topic(topic))
+
+
+def test_a_topic_is_subscribed_in_ros_only_while_a_viewer_watches_it(url, client, wait_until):
+    viewer = FoxgloveClient(url)
+    try:
+        assert viewer.wait_channels(VIEWED, WAIT), sorted(viewer.channels)
+        assert not any(view_subscribes(client, t) for t in VIEWED)     # nobody watches
+        viewer.subscribe(['/' + names.JOINT_STATES])
+        assert wait_until(lambda: view_subscribes(client, '/' + names.JOINT_STATES), WAIT)
+        assert not view_subscribes(client, '/' + names.REFERENCE)
+    finally:
+        viewer.close()
+    assert wait_until(lambda: not view_subscribes(client, '/' + names.JOINT_STATES), WAIT)
+
+
+def test_a_viewer_sees_the_session_as_the_graph_published_it(url, client, graph,
+                                                            wait_until):
+    assert wait_until(lambda: set(VIEWED) <= set(dict(client.node.get_topic_names_and_types())),
+                      WAIT)
+    published = Published(client.node, VIEWED)
+    assert wait_until(published.matched, WAIT)
+    viewer = FoxgloveClient(url)
+    try:
+        assert viewer.subprotocol in SUBPROTOCOLS and viewer.server_info['name'] == 'psl'
+        assert viewer.wait_channels(VIEWED, WAIT)
+        types = dict(client.node.get_topic_names_and_types())
+        for topic in VIEWED:             # each channel: the topic's type and its definition
+            channel = viewer.channels[topic]
+            assert [channel['schemaName']] == types[topic], topic
+            assert (channel['encoding'], channel['schemaEncoding']) == ('cdr', 'ros2msg')
+        viewer.subscribe(VIEWED)
+        assert wait_until(lambda: all(view_subscribes(client, t) for t in VIEWED), WAIT)
+
+        result = client.learn(timeout=300, **SESSION,
+                              output_dir=str(Path(graph.params('learner')['output_root'])
+                                             / 'viewed'))
+        assert result.success, result.message
+        metrics = json.loads(Path(result.metrics_path).read_text())
+        rollouts = sum(task['rollouts'] for task in metrics['tasks'])
+        progress = '/' + names.LEARNING_PROGRESS
+        assert wait_until(lambda: len(published.of(progress)) == rollouts, WAIT)
+        assert viewer.pump(lambda: len(viewer.messages.get(progress, [])) == rollouts, WAIT)
+        assert viewer.pump(lambda: all(viewer.messages.get(t) for t in VIEWED), WAIT), \
+            {t: len(viewer.messages.get(t, [])) for t in VIEWED}
+
+        # the very bytes the graph published (of a latched topic, whose publisher keeps only
+        # its newest message, a reader may miss one in a quick succession: the newest, then);
+        # the learning curve complete and in order
+        for topic in VIEWED:
+            sent = published.of(topic)
+            seen = [data for _, data in viewer.messages[topic]]
+            if topic in LATCHED:
+                assert viewer.pump(lambda: viewer.messages[topic][-1][1] == sent[-1], WAIT), \
+                    topic
+            else:
+                assert set(seen) <= set(sent), topic
+        assert [d for _, d in viewer.messages[progress]] == published.of(progress)
+
+        # decoded with the advertised schema: the session's learning curve
+        points = viewer.decoded(progress)
+        assert [p.rollout for p in points] == list(range(1, rollouts + 1))
+        for record in metrics['tasks']:
+            mine = [p for p in points if p.task_index == record['index']]
+            assert len(mine) == record['rollouts']
+            assert mine[-1].best_reward == record['best_reward']
+            assert bool(mine[-1].task_fulfilled) == record['fulfilled']
+            assert [list(p.tau) for p in mine] == [record['tau']] * len(mine)
+        assert all(p.task == TASK and p.header.stamp.sec > 0 for p in points)
+        scenes = viewer.decoded('/' + names.SCENE)
+        assert all(m.header.frame_id == names.WORLD_FRAME
+                   for scene in scenes for m in scene.markers)
+        states = viewer.decoded('/' + names.JOINT_STATES)
+        assert all(len(s.position) == len(s.name) > 0 for s in states)
+
+        # a viewer joining now (no episode runs, nothing new is published) gets the scene
+        late = FoxgloveClient(url)
+        try:
+            assert late.wait_channels(LATCHED, WAIT)
+            late.subscribe(sorted(LATCHED))
+            assert late.pump(lambda: all(late.messages.get(t) for t in LATCHED), WAIT)
+            for topic in LATCHED:
+                assert late.messages[topic][-1][1] == published.of(topic)[-1], topic
+        finally:
+            late.close()
+    finally:
+        viewer.close()
+        for subscription in published.subscriptions:
+            client.node.destroy_subscription(subscription)
+
+
+def test_the_shipped_layout_is_generated_and_names_what_the_graph_publishes(client,
+                                                                          wait_until):
+    assert wait_until(lambda: set(VIEWED) <= set(dict(client.node.get_topic_names_and_types())),
+                      WAIT)
+    assert SHIPPED_LAYOUT.read_text() == layout_json(), \
+        'regenerate it: psl view --layout docs/foxglove/psl.layout.json'
+    types = dict(client.node.get_topic_names_and_types())
+    text = SHIPPED_LAYOUT.read_text()
+    paths = set(re.findall(r'"(/[a-z_/]+)(?:\.([a-z_]+))?', text))
+    assert {topic for topic, _ in paths} == set(VIEWED)
+    for topic, field in paths:
+        assert topic in types, f'the layout names {topic}, which the graph does not publish'
+        if field:
+            fields = import_message_class(types[topic][0]).get_fields_and_field_types()
+            assert field in fields, f'{topic} has no field {field}'
+
+
+def test_a_second_view_on_a_taken_port_says_so_and_exits(url):
+    port = url.rsplit(':', 1)[1]
+    process = subprocess.Popen([str(find_executable('psl_ros', 'view')), '--ros-args', '-p',
+                                f'port:={port}'], stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        out, _ = process.communicate(timeout=WAIT)
+        assert process.returncode == 1
+        assert f'cannot serve Foxglove on 127.0.0.1:{port}' in out.decode()
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
