@@ -20,6 +20,7 @@ class Up:
     def __init__(self, log_path, *options):
         self.log_path = log_path
         self.nodes: dict[str, NodeHandle] = {}
+        self.expected = len(NODES) + ('--view' in options)     # the view node: one more
         with open(log_path, 'w') as log:
             self.proc = subprocess.Popen(PSL + ['up', *options], stdout=log,
                                          stderr=subprocess.STDOUT, start_new_session=True)
@@ -35,7 +36,7 @@ class Up:
             for name, pid in re.findall(r'started (\S+)\s+pid (\d+)\n', self.output()):
                 if name not in self.nodes:
                     self.nodes[name] = NodeHandle(name, int(pid), self.proc.pid)
-            if len(self.nodes) == len(NODES):
+            if len(self.nodes) == self.expected:
                 return self.nodes
             assert not ended and time.monotonic() < deadline, f'psl up printed: {self.output()}'
             time.sleep(0.05)
@@ -106,6 +107,22 @@ def test_up_serves_rollouts_and_ends_its_processes_on_sigterm(start_up):
     bad = subprocess.run(PSL + ['rollout', '--task', 'nope'], capture_output=True,
                          text=True, timeout=60)
     assert bad.returncode == 2 and 'unknown task' in bad.stderr
+    up.proc.send_signal(signal.SIGTERM)
+    assert up.proc.wait(timeout=30) == 0
+    assert not up.alive_nodes()
+
+
+def test_up_with_view_serves_foxglove_and_ends_the_view_too(start_up):
+    """psl up --view: the view node starts with the graph, psl up says where it serves, a
+    Foxglove viewer sees the graph's channels there, and SIGTERM ends the view as well."""
+    from psl_bench.foxglove_client import FoxgloveClient
+
+    up = start_up('--view', '0')
+    assert 'view' in up.nodes
+    up.wait_for_line('graph ready')
+    url = re.search(r'view: (ws://\S+)', up.output())[1]
+    with FoxgloveClient(url) as viewer:
+        assert viewer.wait_channels(['/scene', '/joint_states', '/learning_progress'], 30.0)
     up.proc.send_signal(signal.SIGTERM)
     assert up.proc.wait(timeout=30) == 0
     assert not up.alive_nodes()

@@ -31,7 +31,6 @@ VIEWED = ['/' + t for t in (names.SCENE, names.JOINT_STATES, names.REFERENCE,
 LATCHED = {'/' + names.SCENE, '/' + names.TASK_INSTANCE}
 SESSION = dict(task=TASK, strategy='bootstrap', num_tasks=2, max_rollouts_per_task=6, seed=1,
                mode='graph', num_test=1)
-PORT_LINE = re.compile(r'serving Foxglove on ws://([0-9.]+):(\d+)')
 WAIT = 30.0                 # s, for a process, a port or a delivery
 
 
@@ -52,17 +51,8 @@ def graph(tmp_path_factory):
 
 
 @pytest.fixture(scope='module')
-def url(graph, wait_until):
-    view = next(p for p in graph.processes if p.name == 'view')
-    found = []
-
-    def port_logged():
-        match = PORT_LINE.search(view.log_path.read_text(errors='replace'))
-        if match:
-            found.append(f'ws://{match[1]}:{match[2]}')
-        return bool(found) or view.process.poll() is not None
-    assert wait_until(port_logged, WAIT) and found, view.tail()
-    return found[0]
+def url(graph):
+    return graph.view_url(WAIT)
 
 
 @pytest.fixture(scope='module')

@@ -4,7 +4,9 @@ Lockstep control steps per second (the simulator's own end-of-episode figures on
 /diagnostics, with the medians of its step phases) beside the bare publish/answer round trip
 between two processes measured in the same run, in chunks between the rollouts
 (`psl_bench.round_trip`), and the deadline misses of the realtime mode over one long
-episode (simulator and controller only).
+episode (simulator and controller only). With ``view`` the lockstep rollouts run beside the
+view node (`psl_ros.foxglove_view`): idle (no viewer) or watched (a viewer of the Foxglove
+protocol subscribed to every channel, in this process), with the view's CPU share.
 """
 from __future__ import annotations
 
@@ -37,9 +39,35 @@ class EpisodeStats:
                 self.event.set()
 
 
+VIEW_MODES = ('off', 'idle', 'watched')
+
+
+class Viewer:
+    """A Foxglove viewer subscribed to every channel of the view, receiving in a thread."""
+
+    def __init__(self, url: str, topics: list[str]):
+        from psl_bench.foxglove_client import FoxgloveClient
+
+        self.client = FoxgloveClient(url)
+        if not self.client.wait_channels(topics, 30.0):
+            raise RuntimeError(f'the view offered {sorted(self.client.channels)}, not {topics}')
+        self.client.subscribe(sorted(self.client.channels))
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self.client.pump,
+                                       kwargs={'until': self.stop.is_set, 'timeout': 1e9})
+        self.thread.start()
+
+    def close(self) -> dict:
+        """Stop; the messages received per topic."""
+        self.stop.set()
+        self.thread.join()
+        self.client.close()
+        return {topic: len(messages) for topic, messages in self.client.messages.items()}
+
+
 def measure(task_name: str = DEFAULT_TASK, rollouts: int = 10,
             round_trips: int = 2000, realtime_seconds: float = 60.0, busy: int = 0,
-            realtime_priority: int = 0, spin_margin: float = 0.0) -> dict:
+            realtime_priority: int = 0, spin_margin: float = 0.0, view: str = 'off') -> dict:
     """Round trip, lockstep and (realtime_seconds > 0) realtime figures of one run.
 
     Raises:
@@ -50,19 +78,29 @@ def measure(task_name: str = DEFAULT_TASK, rollouts: int = 10,
     from psl_ros.graph import Graph
     from psl_task.task import load_task, task_id
 
+    if view not in VIEW_MODES:
+        raise ValueError(f'view must be one of {", ".join(VIEW_MODES)}, got {view!r}')
     task = load_task(task_name)
     theta = policy_for(task).default_theta
     rng = np.random.default_rng(0)
-    report: dict = {'task': task.name, 'machine_cores': os.cpu_count()}
+    report: dict = {'task': task.name, 'machine_cores': os.cpu_count(), 'view': view}
 
     # the anchor in chunks between the rollouts, so that a drifting machine moves both alike
     chunk = max(1, round_trips // max(1, rollouts))
     rtt, chunk_medians = [], []
-    with Graph(task=task_id(task), mode='lockstep') as graph, RoundTrip() as round_trip:
+    viewer = None
+    with Graph(task=task_id(task), mode='lockstep',
+               view_port=None if view == 'off' else 0) as graph, RoundTrip() as round_trip:
         graph.wait_ready()
+        if view == 'watched':
+            viewer = Viewer(graph.view_url(), ['/' + t for t in (
+                names.SCENE, names.JOINT_STATES, names.REFERENCE, names.TASK_INSTANCE)])
+        viewed = next((p for p in graph.processes if p.name == 'view'), None)
         with RosClient() as client:
             stats = EpisodeStats(client.node)
             time.sleep(0.5)
+            cpu_before = None if viewed is None else _cpu_seconds(viewed.pid)
+            wall_before = time.perf_counter()
             rollout_wall = []
             for _ in range(rollouts):
                 times = round_trip.measure(chunk)
@@ -73,7 +111,12 @@ def measure(task_name: str = DEFAULT_TASK, rollouts: int = 10,
                 rollout_wall.append(time.perf_counter() - start)
                 if not result.success:
                     raise RuntimeError(result.message)
+            if viewed is not None:
+                report['view_cpu_share'] = ((_cpu_seconds(viewed.pid) - cpu_before)
+                                            / (time.perf_counter() - wall_before))
             time.sleep(0.5)
+        if viewer is not None:
+            report['viewer_messages'] = viewer.close()
     report['round_trip_ms'] = {'p50': 1e3 * statistics.median(rtt),
                                'p99': 1e3 * float(np.percentile(rtt, 99)), 'n': len(rtt)}
     rates = [float(s['steps_per_second']) for s in stats.done]
@@ -169,6 +212,11 @@ def format_report(report: dict) -> str:
              f"{ls['ceiling_ratio']:.2f}, paired median {ls['ceiling_ratio_paired_median']:.2f}); "
              "rollout wall "
              f"{ls['rollout_wall_s_median']:.2f} s for {ls['steps_per_episode']} steps"]
+    if report.get('view', 'off') != 'off':
+        lines.append(f"  with the view {report['view']}: view node CPU "
+                     f"{100 * report.get('view_cpu_share', float('nan')):.0f} % of a core"
+                     + ('' if 'viewer_messages' not in report else '; the viewer received '
+                        + ', '.join(f'{t} {n}' for t, n in report['viewer_messages'].items())))
     if ls.get('phases_us'):
         lines.append('  per step (simulator, median us): ' + ', '.join(
             f'{phase} {us:.0f}' for phase, us in ls['phases_us'].items()))

@@ -57,6 +57,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument('--realtime-priority', type=non_negative_int, default=0,
                    help='SCHED_FIFO priority of the realtime loop and the controller (0: '
                    'normal scheduling; applied only where the machine allows it)')
+    p.add_argument('--view', choices=('off', 'idle', 'watched'), default='off',
+                   help='the lockstep rollouts with the view node (psl up --view): off (none), '
+                   'idle (running, no viewer) or watched (a Foxglove viewer subscribed to '
+                   'every channel)')
     p.add_argument('--spin-margin', type=float, default=0.0,
                    help='the realtime loop sleeps until this long before each deadline, then '
                    'spins [s]; 0 = sleep only')
@@ -218,7 +222,7 @@ def _graph(args) -> tuple[dict, str]:
     from psl_bench import graph
     report = graph.measure(args.task, args.rollouts, args.round_trips, args.realtime_seconds,
                            busy=args.busy, realtime_priority=args.realtime_priority,
-                           spin_margin=args.spin_margin)
+                           spin_margin=args.spin_margin, view=args.view)
     return report, graph.format_report(report)
 
 

@@ -66,6 +66,9 @@ def cmd_up(args) -> int:
             graph.wait_ready(timeout=60, stop=stop)
             if 'skill_memory' in names and not stop.is_set():
                 print(create_task_skill(args.task, graph.namespace), flush=True)
+            if args.view is not None and not stop.is_set():
+                print(f'view: {graph.view_url()} (the Foxglove app: Open connection, Foxglove '
+                      'WebSocket; its layout: psl view --layout FILE)', flush=True)
         except (RuntimeError, TimeoutError) as exc:
             print(exc, file=sys.stderr)
             return 1

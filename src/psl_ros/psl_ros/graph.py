@@ -84,7 +84,7 @@ class NodeHandle:
         # read with the pidfd held: if its process runs still, what was read was its own (an
         # empty command line: it is exiting, its memory already released)
         if self.alive() and any(cmdline):
-            package, executable = next((p, e) for n, p, e in NODES + (STANDARD_ROBOT,)
+            package, executable = next((p, e) for n, p, e in NODES + (STANDARD_ROBOT, VIEW)
                                        if n == label.rsplit('/', 1)[-1])
             if ppid != parent or not any(arg.endswith(f'/lib/{package}/{executable}')
                                          for arg in cmdline):
@@ -320,6 +320,27 @@ class Graph:
                         f'the graph was not ready within {timeout:.0f} s: missing '
                         f'{client.missing_endpoints()} in {namespace or "/"} (logs in '
                         f'{self.log_dir})')
+
+    def view_url(self, timeout: float = 30.0) -> str:
+        """The URL the graph's view node serves Foxglove on, once its log says so (it may
+        have been given port 0). RuntimeError if the graph has no view node, it died, or it
+        did not listen within `timeout` s."""
+        from psl_ros.view_parameters import serving_url
+
+        view = next((p for p in self.processes if p.name == VIEW[0]), None)
+        if view is None:
+            raise RuntimeError('this graph runs no view node (view_port)')
+        deadline = time.monotonic() + timeout
+        while True:
+            url = serving_url(view.tail(200))
+            if url:
+                return url
+            if view.process.poll() is not None:
+                raise RuntimeError(self.describe_death(view))
+            if time.monotonic() > deadline:
+                raise RuntimeError(f'the view node did not listen within {timeout:.0f} s '
+                                   f'(log: {view.log_path})')
+            time.sleep(0.05)
 
     def stop(self, timeout: float = 5.0) -> None:
         """End every process this graph started, by PID."""

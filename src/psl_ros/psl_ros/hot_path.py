@@ -75,6 +75,9 @@ class HotPath:
         self._pause = pause
         self._lock = threading.Lock()
         self._subs: tuple[_Subscription, ...] = ()   # replaced, never changed, under _lock
+        self._retired: list[_Subscription] = []      # unsubscribed, to destroy (under _lock)
+        self._generation = 0        # counts the changes of _subs (an empty tuple is always the
+                                    # same object: identity cannot tell () from () again)
         self._guard = _rclpy.GuardCondition(node.context.handle)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -115,9 +118,30 @@ class HotPath:
         with self._lock:
             self._subs = self._subs + (_Subscription(handle, msg_type, callback, topic, raw,
                                                      info, events),)
+            self._generation += 1
         if self._thread is not None:
             self._guard.trigger_guard_condition()    # the loop rebuilds its wait set
         return handle
+
+    def unsubscribe(self, handle) -> None:
+        """Remove a subscription `subscribe` returned. The loop destroys it once its wait set
+        no longer holds it (at once when the loop does not run)."""
+        with self._lock:
+            self._retired += [s for s in self._subs if s.handle is handle]
+            self._subs = tuple(s for s in self._subs if s.handle is not handle)
+            self._generation += 1
+        if self._thread is not None and self._thread.is_alive():
+            self._guard.trigger_guard_condition()    # the loop rebuilds its wait set
+        else:
+            self._destroy_retired()
+
+    def _destroy_retired(self) -> None:
+        with self._lock:
+            retired, self._retired = self._retired, []
+        for sub in retired:
+            for event in sub.events:
+                event.handle.destroy_when_not_in_use()
+            sub.handle.destroy_when_not_in_use()
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name=self._name, daemon=True)
@@ -125,15 +149,17 @@ class HotPath:
 
     def _run(self) -> None:
         logger = self._node.get_logger()
-        subs: tuple[_Subscription, ...] | None = None
+        subs: tuple[_Subscription, ...] = ()
+        generation = -1
         while not self._stop.is_set():
             try:
-                if subs is not self._subs:
+                if generation != self._generation:
                     with self._lock:
-                        subs = self._subs
+                        subs, generation = self._subs, self._generation
                     events = tuple((sub, event) for sub in subs for event in sub.events)
                     wait_set = _rclpy.WaitSet(len(subs), 1, 0, 0, 0, len(events),
                                               self._node.context.handle)
+                    self._destroy_retired()      # no wait set holds them any more
                 wait_set.clear_entities()
                 for sub in subs:
                     wait_set.add_subscription(sub.handle)
@@ -205,7 +231,6 @@ class HotPath:
                         self._take_event(sub, event, logger)
                 except Exception:  # noqa: BLE001 - the context was shut down: nothing left
                     break
-        for sub in subs:
-            for event in sub.events:
-                event.handle.destroy_when_not_in_use()
-            sub.handle.destroy_when_not_in_use()
+        with self._lock:
+            self._retired += subs
+        self._destroy_retired()

@@ -11,7 +11,7 @@ from rclpy.node import Node
 from psl_ros.foxglove_view import FoxgloveView
 from psl_ros.node_main import run_node
 from psl_ros.parameters import declare
-from psl_ros.view_parameters import ViewParameters
+from psl_ros.view_parameters import SERVING, ViewParameters
 
 
 class ViewNode(Node):
@@ -22,8 +22,8 @@ class ViewNode(Node):
             self.view = FoxgloveView(self, self.parameters)
         except RuntimeError as exc:      # the port is taken: the configuration's fault
             raise ValueError(str(exc)) from None
-        self.get_logger().info(f'serving Foxglove on ws://{self.parameters.host}:'
-                               f'{self.view.port}')
+        self.url = f'ws://{self.parameters.host}:{self.view.port}'
+        self.get_logger().info(SERVING.format(url=self.url))
 
     def destroy_node(self):
         self.view.close()

@@ -5,10 +5,19 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import field
 
 ALL_TOPICS = ('',)
 DEFAULT_PORT = 8765             # the Foxglove app's default connection: ws://localhost:8765
+SERVING = 'serving Foxglove on {url}'          # the view node's log line once it listens
+_SERVING = re.compile(r'serving Foxglove on (ws://[0-9A-Za-z.:\[\]-]+:\d+)')
+
+
+def serving_url(log: str) -> str | None:
+    """The URL a view node's log says it serves on (the last one), None before it listens."""
+    found = _SERVING.findall(log)
+    return found[-1] if found else None
 
 
 @dataclasses.dataclass(frozen=True)
