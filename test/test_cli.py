@@ -5,10 +5,14 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from psl_msgs.msg import LearningProgress
+from psl_ros.client import RosClient
 from psl_ros.graph import NODES, NodeHandle
 
 PSL = [sys.executable, '-m', 'psl_cli.main']
@@ -174,23 +178,40 @@ def test_learn_in_graph_mode_cancels_on_ctrl_c_and_resumes(start_up, tmp_path):
         [t['best_reward'] for t in batch['tasks']], abs=1e-9)
 
 
-def test_where_a_session_runs_and_how_its_rollouts_run_are_two_choices(start_up, tmp_path):
+def test_where_a_session_runs_and_how_its_rollouts_run_are_two_choices(start_up, tmp_path,
+                                                                       wait_until):
     """--learner here --mode graph: the session in this process, its rollouts through the
     graph's workers; --learner node --mode batch: the session in the learner node, its
     rollouts in-process there. Both learn what batch mode here learns (graph rollouts give
-    the batch rewards)."""
+    the batch rewards). Both publish the learning curve on the graph; a batch session in this
+    process does not."""
     up = start_up()
     session = ['--tasks', '2', '--budget', '12', '--seed', '5', '--test-tasks', '2']
     up.wait_for_line('graph ready')
-    results = {}
-    for label, options in (('here_graph', ['--learner', 'here', '--mode', 'graph']),
-                           ('node_batch', ['--learner', 'node', '--mode', 'batch']),
-                           ('here_batch', [])):
-        out = tmp_path / label
-        done = subprocess.run(PSL + ['learn', *options, *session, '--out', str(out)],
-                              capture_output=True, text=True, timeout=300)
-        assert done.returncode == 0, (label, done.stderr)
-        results[label] = json.loads((out / 'metrics.json').read_text())
+    results, curves = {}, {}
+    with RosClient() as watcher:          # the learning curve the sessions publish
+        curve, lock = [], threading.Lock()
+
+        def keep(msg):
+            with lock:
+                curve.append(msg)
+        watcher.node.create_subscription(
+            LearningProgress, '/learning_progress', keep,
+            QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE))
+        for label, options in (('here_graph', ['--learner', 'here', '--mode', 'graph']),
+                               ('node_batch', ['--learner', 'node', '--mode', 'batch']),
+                               ('here_batch', [])):
+            out = tmp_path / label
+            done = subprocess.run(PSL + ['learn', *options, *session, '--out', str(out)],
+                                  capture_output=True, text=True, timeout=300)
+            assert done.returncode == 0, (label, done.stderr)
+            results[label] = json.loads((out / 'metrics.json').read_text())
+            total = sum(t['rollouts'] for t in results[label]['tasks'])
+            # the session's last point has arrived (its held-out test ran after it)
+            assert label == 'here_batch' or wait_until(
+                lambda: curve and curve[-1].rollout == total, 30.0), label
+            with lock:
+                curves[label], curve[:] = list(curve), []
     up.end()
     want = results['here_batch']['tasks']
     for label in ('here_graph', 'node_batch'):
@@ -199,6 +220,16 @@ def test_where_a_session_runs_and_how_its_rollouts_run_are_two_choices(start_up,
         assert [t['fulfilled'] for t in got] == [t['fulfilled'] for t in want], label
         assert [t['best_reward'] for t in got] == pytest.approx(
             [t['best_reward'] for t in want], abs=1e-9), label
+    # a session with the graph publishes its curve (the learner node's publisher is matched
+    # before the session: every point; a psl learn process's may miss the first ones before
+    # it is matched); one without the graph publishes none
+    total = sum(t['rollouts'] for t in want)
+    assert [m.rollout for m in curves['node_batch']] == list(range(1, total + 1))
+    rollouts = [m.rollout for m in curves['here_graph']]
+    assert rollouts == list(range(rollouts[0], total + 1))
+    assert all(m.task == 'reach_over_obstacle' and m.strategy == 'bootstrap'
+               for m in curves['here_graph'] + curves['node_batch'])
+    assert curves['here_batch'] == []
 
 
 # how long psl learn may take to notice that the learner has gone: a deadline for the event

@@ -14,7 +14,7 @@ from rclpy.parameter_client import AsyncParameterClient
 
 from psl_cli.node_parameters import node_parameters, parameter_file
 from psl_ros.client import RosClient
-from psl_ros.futures import wait_for
+from psl_ros.futures import ask, wait_for
 from psl_ros.graph import NODES, Graph
 from psl_ros.parameters import defaults
 
@@ -55,16 +55,12 @@ def _expected(node: str) -> dict:
     return out
 
 
-def _asked(call, what: str, attempts: int = 4):
-    """The answer to a read-only parameter request, asked again after 10 s without one (a
-    request sent while the server's reader has not yet matched this client's writer is lost,
-    though the service counts as ready: seen once in CI for list_parameters)."""
-    for attempt in range(attempts):
-        try:
-            return wait_for(call(), 10.0, what)
-        except TimeoutError:
-            if attempt == attempts - 1:
-                raise
+def _asked(call, what: str):
+    """The answer to a read-only parameter request, asked again after 10 s without one
+    (`psl_ros.futures.ask`: a request sent while the server's reader has not yet matched this
+    client's writer is lost, though the service counts as ready: seen once in CI for
+    list_parameters)."""
+    return ask(call, 10.0, what, attempts=4)
 
 
 def _declared(client, node: str) -> tuple[dict, dict]:

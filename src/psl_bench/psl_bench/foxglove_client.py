@@ -17,6 +17,7 @@ import struct
 import time
 
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 SUBPROTOCOLS = ('foxglove.websocket.v1', 'foxglove.sdk.v1')
@@ -60,7 +61,9 @@ class FoxgloveClient:
             raise TimeoutError(f'{url} sent no serverInfo within {timeout} s')
 
     def pump(self, until=lambda: False, timeout: float = 10.0) -> bool:
-        """Receive until `until()` is true (True) or `timeout` s passed (False)."""
+        """Receive until `until()` is true (True) or `timeout` s passed (False).
+        ConnectionError when the server closes the connection (e.g. it drops a viewer that
+        does not keep up)."""
         deadline = time.monotonic() + timeout
         while not until():
             left = deadline - time.monotonic()
@@ -70,6 +73,8 @@ class FoxgloveClient:
                 frame = self.ws.recv(timeout=min(left, 0.1))
             except TimeoutError:
                 continue
+            except ConnectionClosed as exc:
+                raise ConnectionError(f'the server closed the connection: {exc}') from None
             self._take(frame)
         return True
 

@@ -43,7 +43,9 @@ VIEW_MODES = ('off', 'idle', 'watched')
 
 
 class Viewer:
-    """A Foxglove viewer subscribed to every channel of the view, receiving in a thread."""
+    """A Foxglove viewer subscribed to the channels of psl's layout (`psl_ros.foxglove_layout`:
+    the scene, the joints measured and referenced, the task instance, the learning curve),
+    receiving in a thread."""
 
     def __init__(self, url: str, topics: list[str]):
         from psl_bench.foxglove_client import FoxgloveClient
@@ -51,18 +53,24 @@ class Viewer:
         self.client = FoxgloveClient(url)
         if not self.client.wait_channels(topics, 30.0):
             raise RuntimeError(f'the view offered {sorted(self.client.channels)}, not {topics}')
-        self.client.subscribe(sorted(self.client.channels))
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self.client.pump,
-                                       kwargs={'until': self.stop.is_set, 'timeout': 1e9})
+        self.client.subscribe(topics)
+        self.stop, self.dropped = threading.Event(), ''
+        self.thread = threading.Thread(target=self._receive)
         self.thread.start()
 
+    def _receive(self) -> None:
+        try:
+            self.client.pump(until=self.stop.is_set, timeout=1e9)
+        except ConnectionError as exc:      # the server dropped this viewer
+            self.dropped = str(exc)
+
     def close(self) -> dict:
-        """Stop; the messages received per topic."""
+        """Stop; the messages received per topic (and why the server dropped the viewer)."""
         self.stop.set()
         self.thread.join()
         self.client.close()
-        return {topic: len(messages) for topic, messages in self.client.messages.items()}
+        received = {topic: len(messages) for topic, messages in self.client.messages.items()}
+        return {**received, **({'dropped': self.dropped} if self.dropped else {})}
 
 
 def measure(task_name: str = DEFAULT_TASK, rollouts: int = 10,
@@ -94,7 +102,8 @@ def measure(task_name: str = DEFAULT_TASK, rollouts: int = 10,
         graph.wait_ready()
         if view == 'watched':
             viewer = Viewer(graph.view_url(), ['/' + t for t in (
-                names.SCENE, names.JOINT_STATES, names.REFERENCE, names.TASK_INSTANCE)])
+                names.SCENE, names.JOINT_STATES, names.REFERENCE, names.TASK_INSTANCE,
+                names.LEARNING_PROGRESS)])
         viewed = next((p for p in graph.processes if p.name == 'view'), None)
         with RosClient() as client:
             stats = EpisodeStats(client.node)

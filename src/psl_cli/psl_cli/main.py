@@ -464,11 +464,13 @@ def _learn_in_process(args, task, out: Path, stop: threading.Event, progress) ->
             progress.close()
             return fail('psl learn', exc, 2)
         return _learn_here(args, task, out, stop, progress, workers=workers,
-                           instances=instances)
+                           instances=instances, node=client.node)
 
 
 def _learn_here(args, task, out: Path, stop: threading.Event, progress, workers,
-                instances=None) -> int:
+                instances=None, node=None) -> int:
+    """The session in this process; with the graph's `node` (graph mode, instances from a
+    topic) it publishes its learning curve on the graph as the learner node does."""
     from psl_optimizer.learning import Learner, LearnSettings
     from psl_optimizer.policy_search import SearchSettings
     from psl_optimizer.rollout_modes import make_rollouts
@@ -492,6 +494,11 @@ def _learn_here(args, task, out: Path, stop: threading.Event, progress, workers,
                                         model_error=args.model_error,
                                         measurement_noise=args.measurement_noise),
                           instances=instances)
+        if node is not None:
+            from psl_optimizer.progress_topic import ReportedRollouts, progress_publisher
+
+            learner.rollouts = ReportedRollouts(learner.rollouts, learner,
+                                                progress_publisher(node), node.get_clock())
 
         def finished(record) -> None:
             progress.finished(record.index, record.best_reward, record.fulfilled,

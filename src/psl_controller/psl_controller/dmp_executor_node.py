@@ -80,7 +80,7 @@ from psl_msgs.msg import GoalUpdate, RolloutEvaluation, TaskInstance
 from psl_msgs.srv import GoalChange, ResetTask
 from psl_ros import names
 from psl_ros.action_server import ActionServer
-from psl_ros.futures import wait_for
+from psl_ros.futures import ask, wait_for
 from psl_ros.guard import guard_subscription
 from psl_ros.hot_path import HotPath
 from psl_ros.matching import PUBLISHER, SUBSCRIPTION, MatchedEndpoints, MatchReport
@@ -101,6 +101,8 @@ LIVE_ATTEMPTS = 4       # switch times tried, each later, before a live change g
 DEFAULT_RATE = 5000.0   # steps/s assumed before the simulator has reported any
 REPORT_WAIT = 1.0       # s a live change waits for the simulator's report of the episode's start
 ACK_TIMEOUT = 5.0       # s for a subscriber or service to appear, a message to be acknowledged
+PARAMETER_TIMEOUT = 5.0  # s for the controller's parameter service to answer a request (asked
+                         # up to three times: `psl_ros.futures.ask`)
 LEAD = 0.3              # s from the newest state of an external robot to a trajectory's start
                         # (it must reach the controller meanwhile: > 0.1 s seen under load)
 STALE = 0.5             # s: an external robot whose newest state is older is not streaming
@@ -308,7 +310,7 @@ class DMPExecutor(Node):
                         result.aborted if result.aborted else 'rollout done')
                 result.success, result.message = True, '; '.join([done] + notes)
                 goal_handle.succeed()
-            except (TaskError, ValueError, RuntimeError) as exc:
+            except (TaskError, ValueError, RuntimeError, TimeoutError) as exc:
                 result.success, result.message = False, str(exc)
                 self.get_logger().warning(f'rollout failed: {exc}')
                 if goal_handle.is_cancel_requested:
@@ -555,10 +557,10 @@ class DMPExecutor(Node):
             return
         if not self.external:
             self._probe(run.goal)      # the simulator runs this task's robot, or says why not
-        future = self.controller_parameters.set_parameters([
+        response = ask(lambda: self.controller_parameters.set_parameters([
             Parameter('kp', value=list(wanted[0])), Parameter('kd', value=list(wanted[1])),
-            Parameter('max_tracking_error', value=float(wanted[2]))])
-        response = wait_for(future, 10.0, 'pd_controller/set_parameters')
+            Parameter('max_tracking_error', value=float(wanted[2]))]),
+            PARAMETER_TIMEOUT, 'pd_controller/set_parameters')
         refused = [r.reason for r in response.results if not r.successful]
         if refused:
             raise ValueError(f'the controller refused the gains of task {task.name!r}: '
@@ -570,8 +572,8 @@ class DMPExecutor(Node):
         ``task`` parameter)."""
         if not self.controller_parameters.wait_for_services(timeout_sec=5.0):
             raise RuntimeError("the controller's parameter service is not available")
-        response = wait_for(self.controller_parameters.get_parameters(['task']), 10.0,
-                            'pd_controller/get_parameters')
+        response = ask(lambda: self.controller_parameters.get_parameters(['task']),
+                       PARAMETER_TIMEOUT, 'pd_controller/get_parameters')
         start = load_task(response.values[0].string_value)
         return (tuple(start.controller.kp.tolist()), tuple(start.controller.kd.tolist()),
                 start.safety.max_tracking_error)

@@ -18,7 +18,6 @@ the reason; a skill the memory does not hold is created from the task.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import threading
 from pathlib import Path
@@ -27,25 +26,22 @@ import numpy as np
 from rclpy.action import CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
-from std_msgs.msg import Header
 
 from psl_controller.policy import policy_for
 from psl_msgs.action import LearnSkill
-from psl_msgs.msg import LearningProgress
 from psl_optimizer.learner_parameters import LearnerParameters
 from psl_optimizer.learning import (CORRECTION_SUFFIX, Learner, LearnSettings,
                                      ResidualComposition)
 from psl_optimizer.policy_search import STRATEGIES, SearchSettings
 from psl_optimizer.rollout_modes import make_rollouts
 from psl_optimizer.rollouts import MODES, Rollouts, Stopped
-from psl_optimizer.session_progress import SessionProgress
+from psl_optimizer.progress_topic import ReportedRollouts, progress_publisher
 from psl_ros import names
 from psl_ros.action_server import ActionServer
 from psl_ros.client import MemoryClient, RolloutClient
 from psl_ros.instance_source import InstanceStopped, TopicInstances
 from psl_ros.node_main import run_node
 from psl_ros.parameters import declare
-from psl_ros.qos import RELIABLE
 from psl_task.task import TaskDefinition, TaskError, load_task
 
 
@@ -151,8 +147,7 @@ class LearnerNode(Node):
         self.rollout_clients = [RolloutClient(self, worker, callback_group=clients)
                                 for worker in self.parameters.workers]
         # the learning curve, one message per rollout (psl view plots it; psl record keeps it)
-        self.pub_progress = self.create_publisher(LearningProgress, names.LEARNING_PROGRESS,
-                                                  RELIABLE)
+        self.pub_progress = progress_publisher(self)
         self._busy = threading.Lock()
         self._batch: dict[Path, Rollouts] = {}     # batch mode's rollouts per task
         self._server = ActionServer(
@@ -204,9 +199,13 @@ class LearnerNode(Node):
                 goal_handle.abort()
                 result.message = str(exc)
                 return result
-            learner.rollouts = WatchedRollouts(learner.rollouts, goal_handle, learner,
-                                               self.pub_progress, task.name,
-                                               self.get_clock())
+            learner.rollouts = ReportedRollouts(
+                learner.rollouts, learner, self.pub_progress, self.get_clock(),
+                should_stop=lambda: goal_handle.is_cancel_requested,
+                on_points=lambda points: goal_handle.publish_feedback(LearnSkill.Feedback(
+                    task_index=points[-1].task_index, rollouts=points[-1].rollout,
+                    best_reward=points[-1].best_reward,
+                    fulfilled=points[-1].task_fulfilled)))
             try:
                 metrics = learner.run()
             except (Stopped, InstanceStopped):
@@ -279,37 +278,6 @@ class LearnerNode(Node):
         if task.path not in self._batch:
             self._batch[task.path] = make_rollouts(mode, task)
         return self._batch[task.path]
-
-
-class WatchedRollouts(Rollouts):
-    """The session's rollouts, checked for a cancel before each batch and reported after it:
-    one psl_msgs/LearningProgress per rollout on ``learning_progress`` and the goal feedback
-    (task index, rollouts so far, best reward, fulfilled), both from `SessionProgress`."""
-
-    def __init__(self, inner: Rollouts, goal_handle, learner: Learner, publisher, task: str,
-                 clock):
-        super().__init__(inner.task)
-        self.inner, self.goal_handle, self.publisher = inner, goal_handle, publisher
-        self.progress, self.clock = SessionProgress(learner), clock
-        self.header = {'task': task, 'strategy': learner.settings.strategy}
-
-    def run(self, thetas: np.ndarray, taus: np.ndarray):
-        if self.goal_handle.is_cancel_requested:
-            raise Stopped('the goal was cancelled')
-        results = self.inner.run(thetas, taus)
-        points = self.progress.after(taus, results)
-        stamp = self.clock.now().to_msg()
-        for point in points:
-            fields = dataclasses.asdict(point)
-            fields['tau'] = list(point.tau)
-            self.publisher.publish(LearningProgress(header=Header(stamp=stamp), **self.header,
-                                                    **fields))
-        if points:
-            last = points[-1]
-            self.goal_handle.publish_feedback(LearnSkill.Feedback(
-                task_index=last.task_index, rollouts=last.rollout,
-                best_reward=last.best_reward, fulfilled=last.task_fulfilled))
-        return results
 
 
 def main(args=None):

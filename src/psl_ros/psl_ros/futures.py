@@ -8,6 +8,7 @@ execute_rollout) and the CLI's client.
 from __future__ import annotations
 
 import threading
+from typing import Callable
 
 
 def wait_for(future, timeout: float, what: str):
@@ -17,3 +18,19 @@ def wait_for(future, timeout: float, what: str):
     if not event.wait(timeout):
         raise TimeoutError(f'no answer from {what} within {timeout:.0f} s')
     return future.result()
+
+
+def ask(call: Callable[[], object], timeout: float, what: str, attempts: int = 3):
+    """The answer to an idempotent request (``call()`` sends it and returns its future), sent
+    again after `timeout` s without one, up to `attempts` times; TimeoutError after the last.
+    For services that do not keep an answer they cannot send yet (rclpy's parameter
+    services): a request or its answer sent while the two ends are not yet matched in DDS is
+    lost ("failed to send response (timeout)" in the server's log), and only a new request
+    gets through."""
+    for attempt in range(attempts):
+        try:
+            return wait_for(call(), timeout, what)
+        except TimeoutError:
+            if attempt == attempts - 1:
+                raise TimeoutError(f'no answer from {what} to {attempts} requests of '
+                                   f'{timeout:.0f} s each') from None
