@@ -62,7 +62,9 @@ def _taus(args, spans, recording, bag: Path) -> list:
     if args.tau_topic:
         from psl_ros.bag_recorder import make_typestore
         instances = teaching.read_instances(bag, args.tau_topic, make_typestore())
-        return [teaching.instance_at(instances, recording.t[i]) for i, _ in spans]
+        return [teaching.instance_at(instances, recording.t[span[0]] if args.window
+                                     else teaching.motion_start(recording, span))
+                for span in spans]
     if args.tau_file:
         rows = [line.split() for line in Path(args.tau_file).read_text().splitlines()
                 if line.strip() and not line.lstrip().startswith('#')]
@@ -86,19 +88,23 @@ def run(args) -> int:
         task = load_task(args.task)
         bag = Path(args.bag)
         recording = teaching.read_joint_states(bag, args.topic, joint_names_of(task))
+        returns = []
         if args.episodes:
             if not args.tau_topic:
                 raise ValueError('--episodes needs --tau-topic (the topic announcing them)')
             from psl_ros.bag_recorder import make_typestore
             spans, taus = teaching.episodes(task, bag, args.tau_topic, recording,
                                             make_typestore())
+        elif args.window:
+            spans = teaching.windows(recording, args.window)
         else:
-            spans = (teaching.windows(recording, args.window) if args.window else
-                     teaching.rest_to_rest(recording, args.velocity_threshold,
-                                           args.min_duration))
+            spans, returns = teaching.split_returns(task, recording, teaching.rest_to_rest(
+                recording, args.velocity_threshold, args.min_duration), args.start_tolerance)
         if not spans:
             raise ValueError(f'no demonstration in {bag} (no motion from rest to rest above '
-                             f'{args.velocity_threshold:g} rad/s for {args.min_duration:g} s)')
+                             f'{args.velocity_threshold:g} rad/s for {args.min_duration:g} s '
+                             f'that is not a return to the start posture; {len(returns)} '
+                             'returns)')
         if not args.episodes:
             taus = _taus(args, spans, recording, bag)
         memory = (SkillMemory.read(args.into) if args.into
@@ -107,6 +113,9 @@ def run(args) -> int:
                                   args.fit_tolerance)
     except (ValueError, OSError) as exc:        # TaskError, a bag or file that is not one
         return options.fail('psl teach', exc, 2)
+    for i, j in returns:
+        print(f'motion [{recording.t[i]:.3f}, {recording.t[j]:.3f}] s: the arm brought back '
+              'to the start posture, no demonstration')
     for k, outcome in enumerate(outcomes, 1):
         tau = ('?' if outcome.tau is None
                else ' '.join(f'{x:g}' for x in np.asarray(outcome.tau)))

@@ -13,9 +13,13 @@ policy optimization". This module turns a recording into such samples:
    under 0.2 s belong to the motion), each from the rest before to the rest after, kept if
    it lasts ``min_duration``; or `windows` takes given time spans; or `episodes` takes the
    episodes psl announced (psl_msgs/TaskInstance: a recording of rollouts through the graph).
-3. `instance_at`: each demonstration's tau, given, or from a topic in the same bag: the last
-   instance announced at or before the demonstration's start (psl_msgs/TaskInstance of the
-   episode, homing episodes skipped, or std_msgs/Float64MultiArray of a perception node).
+   A person brings the arm back to the start between two demonstrations: those returns
+   (motions that end at the start posture from elsewhere, `split_returns`) are no
+   demonstrations (said, given no tau, not refused).
+3. `instance_at`: each demonstration's tau, given (in order), or from a topic in the same bag:
+   the last instance announced at or before the arm starts to move (`motion_start`;
+   psl_msgs/TaskInstance of the episode, homing episodes skipped, or
+   std_msgs/Float64MultiArray of a perception node).
 4. `teach_one` fits theta for the task's policy (`TaskPolicy.fit_demonstration`: the DMP's
    weights and, with a learned goal, its goal; joint or end-effector space) and checks it:
    the demonstration starts within ``start_tolerance`` of the start posture, the fitted
@@ -196,6 +200,30 @@ def rest_to_rest(recording: Recording, velocity_threshold: float = VELOCITY_THRE
         if t[last] - t[first] >= min_duration:
             spans.append((first, last))
     return spans
+
+
+def split_returns(task: TaskDefinition, recording: Recording, spans: list[tuple[int, int]],
+                  start_tolerance: float = START_TOLERANCE
+                  ) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
+    """(demonstrations, returns) of rest-to-rest spans: a return starts off the task's start
+    posture and ends at it (within start_tolerance): the arm brought back between two
+    demonstrations, which is no demonstration. Every other motion is one (`teach_one` refuses
+    one that does not start at the start posture, with the reason)."""
+    start = np.asarray(task.start_posture)
+
+    def at(k: int) -> bool:
+        return bool(np.abs(recording.q[k] - start).max() <= start_tolerance)
+    back = [not at(i) and at(j) for i, j in spans]
+    return ([s for s, r in zip(spans, back) if not r], [s for s, r in zip(spans, back) if r])
+
+
+def motion_start(recording: Recording, span: tuple[int, int]) -> float:
+    """When the arm starts to move in a span of `rest_to_rest`: its first moving sample plus
+    half the speed window (a difference centred on a sample sees a motion half a window
+    before it begins). The span's first sample, the last at rest, may lie before an
+    instance psl announced for the very time its episode starts."""
+    i, j = span
+    return float(recording.t[min(i + 1, j)]) + 0.5 * VELOCITY_WINDOW
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:

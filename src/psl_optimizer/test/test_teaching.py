@@ -232,3 +232,62 @@ def test_the_yamls_demonstration_taught_at_another_speed_is_the_default_theta(na
     scale = max(1.0, np.abs(policy.default_theta).max())
     np.testing.assert_allclose(theta, policy.default_theta, rtol=0, atol=1e-9 * scale)
     np.testing.assert_array_equal(policy.reference(policy.default_theta).q, before)
+
+
+def with_returns(task, thetas, taus):
+    """A person's session: for each instance REST s at rest at the start posture, the
+    policy's movement (without the settling), REST s at rest, the arm brought back to the
+    start posture (1 s, minimum jerk); (t, q) and the time each movement begins."""
+    policy = policy_for(task)
+    dt = task.control_period
+    start = np.asarray(task.start_posture)
+    s = np.linspace(0.0, 1.0, int(round(1.0 / dt)) + 1)[1:]
+    blend = (10 * s**3 - 15 * s**4 + 6 * s**5)[:, None]
+    rest = int(round(REST / dt))
+    pieces, begins, count = [], [], 0
+    for theta, tau in zip(thetas, taus):
+        moved = policy.reference(theta, tau).q[:int(round(task.duration / dt)) + 1]
+        begins.append((count + rest) * dt)
+        piece = np.vstack([np.repeat(start[None], rest, axis=0), moved,
+                           np.repeat(moved[-1:], rest, axis=0),
+                           moved[-1] + blend * (start - moved[-1])])
+        pieces.append(piece)
+        count += len(piece)
+    pieces.append(np.repeat(start[None], rest, axis=0))
+    q = np.vstack(pieces)
+    return np.arange(len(q)) * dt, q, begins
+
+
+def test_returns_to_the_start_are_no_demonstrations_and_take_no_tau(task, tmp_path, capsys):
+    """A person's session: demonstration, the arm brought back, demonstration, ... The
+    returns are said and skipped (no tau consumed, nothing refused); taus from a file pair
+    with the demonstrations in order; instances announced exactly when a motion begins (as
+    psl stamps an episode) are found for it (`motion_start`: the speed over a centred window
+    may cross the threshold before the motion begins, the span's first sample then with
+    it)."""
+    from psl_cli.main import main
+    policy = TaskPolicy(task)
+    taus = [np.array([0.5, 0.2]), np.array([0.6, 0.3]), np.array([0.45, 0.15])]
+    t, q, begins = with_returns(task, [policy.default_theta] * 3, taus)
+    recording = teaching.Recording(t=t, q=q)
+    shown, returns = teaching.split_returns(task, recording, teaching.rest_to_rest(recording))
+    assert len(shown) == 3 and len(returns) == 3
+    for span, begin in zip(shown, begins):     # not before the movement, and close to it
+        assert begin <= teaching.motion_start(recording, span) <= begin + 0.1
+    # instances stamped at the motions' very beginnings
+    bag = tmp_path / 'session'
+    write_bag(bag, t, q, joint_names_of(task), list(zip(begins, taus)))
+    found = [teaching.instance_at(teaching.read_instances(bag, '/perception'),
+                                  teaching.motion_start(recording, span)) for span in shown]
+    for got, tau in zip(found, taus):
+        np.testing.assert_array_equal(got, tau)
+    tau_file = tmp_path / 'taus.txt'
+    tau_file.write_text(''.join(' '.join(f'{x:g}' for x in tau) + '\n' for tau in taus))
+    for given in (['--tau-file', str(tau_file)], ['--tau-topic', '/perception']):
+        out_file = tmp_path / f'{given[0][2:]}.npz'
+        assert main(['teach', '--task', TASK, str(bag), *given, '-o', str(out_file)]) == 0
+        out = capsys.readouterr().out
+        assert out.count('accepted') == 3 and 'refused' not in out, out
+        assert out.count('brought back to the start posture') == 3, out
+        taught = SkillMemory.read(out_file).get(task.name)
+        np.testing.assert_array_equal(taught.taus, np.array(taus))
