@@ -41,9 +41,16 @@ def graph_task():
 
 
 @pytest.fixture(scope='module')
-def graph(tmp_path_factory, graph_task):
+def graph_options(tmp_path_factory):
+    """More keyword arguments of the module's `Graph` (none); a module overrides this fixture
+    to start the graph with them (e.g. the view node)."""
+    return {}
+
+
+@pytest.fixture(scope='module')
+def graph(tmp_path_factory, graph_task, graph_options):
     """The robot loop in lockstep, one process per node; ended by PID whatever happens."""
-    g = Graph(task=graph_task, log_dir=tmp_path_factory.mktemp('graph_logs'))
+    g = Graph(task=graph_task, log_dir=tmp_path_factory.mktemp('graph_logs'), **graph_options)
     try:
         g.start()
         g.wait_ready(timeout=60)

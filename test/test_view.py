@@ -20,8 +20,7 @@ from psl_bench.foxglove_client import SUBPROTOCOLS, FoxgloveClient
 from psl_ros import names
 from psl_ros.bag_recorder import import_message_class
 from psl_ros.foxglove_layout import layout_json
-from psl_ros.graph import Graph, find_executable, pid_alive
-from psl_ros.client import RosClient
+from psl_ros.graph import find_executable
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED_LAYOUT = ROOT / 'docs' / 'foxglove' / 'psl.layout.json'
@@ -35,30 +34,16 @@ WAIT = 30.0                 # s, for a process, a port or a delivery
 
 
 @pytest.fixture(scope='module')
-def graph(tmp_path_factory):
+def graph_options(tmp_path_factory):
+    """The graph with the view node on a free port, the memory and sessions in a folder."""
     root = tmp_path_factory.mktemp('view_memory')
-    g = Graph(task=TASK, log_dir=tmp_path_factory.mktemp('view_logs'), view_port=0,
-              extra_params={'skill_memory': {'memory_dir': str(root)},
-                            'learner': {'output_root': str(root / 'runs')}})
-    try:
-        g.start()
-        g.wait_ready(timeout=60)
-        yield g
-    finally:
-        g.stop()
-        left = [p.name for p in g.processes if pid_alive(p.pid)]
-        assert not left, f'processes left behind: {left}'
+    return {'view_port': 0, 'extra_params': {'skill_memory': {'memory_dir': str(root)},
+                                             'learner': {'output_root': str(root / 'runs')}}}
 
 
 @pytest.fixture(scope='module')
 def url(graph):
     return graph.view_url(WAIT)
-
-
-@pytest.fixture(scope='module')
-def client(graph):
-    with RosClient() as c:
-        yield c
 
 
 class Published:

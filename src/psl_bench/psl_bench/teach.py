@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import tempfile
+import time
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -33,7 +34,22 @@ from psl_task import DEFAULT_TASK
 COUNTS = (0, 3, 5, 10)
 TASKS = (DEFAULT_TASK, 'planar_10dof_reach')
 NOISE = 'position=0.0002'
+THROUGH = ('batch', 'graph')    # how the demonstrations are shown and recorded
+SPARE = 4                   # instances shown through the graph beyond those to teach (refusals)
 LATE = 20                   # rollouts per task are averaged over the tasks after this many
+
+
+def demonstrator(task, count: int, seed: int, folder: Path):
+    """The instances a person knows how to solve: the fulfilled samples of a scratch session
+    (seed 1000 + seed) over max(3 count, 10) instances (the skill of its memory)."""
+    from psl_optimizer.batch_rollout import BatchRollouts
+    from psl_optimizer.learning import Learner, LearnSettings
+
+    settings = LearnSettings(strategy='scratch', num_tasks=max(3 * count, 10),
+                             seed=1000 + seed, num_test=1)
+    source = Learner(task, settings, folder / 'demonstrator', rollouts=BatchRollouts(task))
+    source.run()
+    return source.skill.memory.get(task.name)
 
 
 def demonstrations(task_name: str, count: int, seed: int, noise: str, folder: Path
@@ -43,17 +59,12 @@ def demonstrations(task_name: str, count: int, seed: int, noise: str, folder: Pa
     from psl_controller.policy import TaskPolicy
     from psl_optimizer import teaching
     from psl_optimizer.batch_rollout import BatchRollouts, MeasurementNoise
-    from psl_optimizer.learning import Learner, LearnSettings
     from psl_task.arm_model import ArmModel
     from psl_task.safety_check import SafetyCheck
     from psl_task.task import load_task
 
     task = load_task(task_name)
-    settings = LearnSettings(strategy='scratch', num_tasks=max(3 * count, 10),
-                             seed=1000 + seed, num_test=1)
-    source = Learner(task, settings, folder / 'demonstrator', rollouts=BatchRollouts(task))
-    source.run()
-    memory = source.skill.memory.get(task.name)
+    memory = demonstrator(task, count, seed, folder)
     robot = BatchRollouts(task, measurement_noise=MeasurementNoise.parse(
         f'{noise},seed={seed}'))
     policy, safety = TaskPolicy(task), SafetyCheck(ArmModel(task))
@@ -72,6 +83,84 @@ def demonstrations(task_name: str, count: int, seed: int, noise: str, folder: Pa
         raise ValueError(f'{task_name}: {len(shown)} of {count} demonstrations accepted '
                          f'({refused} refused): solve more instances')
     return shown, refused
+
+
+def demonstrations_through_graph(task_name: str, count: int, seed: int, noise: str,
+                                 folder: Path, robot: str = 'standard') -> tuple[list, int]:
+    """(accepted outcomes, refused) of `count` demonstrations shown through the graph on the
+    standard robot and recorded (module docstring); the first `count` + SPARE solutions of
+    the demonstrator are shown. ``robot='sim'``: on psl's lockstep simulator instead (drive
+    resets too, no noise: it measures exactly)."""
+    import threading
+
+    from psl_optimizer import teaching
+    from psl_optimizer.batch_rollout import MeasurementNoise
+    from psl_ros import names
+    from psl_ros.bag_recorder import make_typestore, record
+    from psl_ros.client import RosClient
+    from psl_ros.graph import Graph
+    from psl_task.arm_model import joint_names_of
+    from psl_task.task import load_task, task_id
+
+    task = load_task(task_name)
+    memory = demonstrator(task, count + SPARE, seed, folder)
+    shown = list(zip(memory.taus, memory.thetas))[:count + SPARE]
+    sigma = MeasurementNoise.parse(noise).position
+    bag = folder / 'guided'
+    loop = ((('sim', 'psl_sim', 'sim'),) if robot == 'sim' else ()) + (
+        ('pd_controller', 'psl_controller', 'pd_controller'),
+        ('dmp_executor', 'psl_controller', 'dmp_executor'),
+        ('reward_evaluator', 'psl_optimizer', 'reward_evaluator'))
+    graph = Graph(task=task_id(task), robot=robot, reset='drive', nodes=loop,
+                  log_dir=folder / 'graph_logs',
+                  extra_params={'robot': {'position_noise': sigma, 'seed': seed}})
+    counts: dict = {}
+    stop = threading.Event()
+    recorder = threading.Thread(target=record, args=(bag, ['/' + names.JOINT_STATES,
+                                                           '/' + names.TASK_INSTANCE]),
+                                kwargs={'stop': stop, 'discovery_timeout': 10.0,
+                                        'progress': lambda r: counts.update(r.counts)})
+    with graph, RosClient() as client:
+        recorder.start()
+        try:
+            states = '/' + names.JOINT_STATES
+            deadline = time.monotonic() + 60.0
+            while states not in counts:                        # the recorder subscribed
+                if time.monotonic() > deadline or not recorder.is_alive():
+                    raise RuntimeError('the recorder did not subscribe to the joint states')
+                stop.wait(0.05)
+            client.wait_for_subscribers([names.JOINT_STATES])  # ... and is matched
+            for tau, theta in shown:
+                result = client.rollout(task_id(task), tau, theta, timeout=120.0)
+                if not result.success:
+                    raise RuntimeError(f'showing tau {list(tau)}: {result.message}')
+            # the last states in the bag: a robot streams on (the arm at rest after the last
+            # motion: 0.5 s of it); the lockstep simulator is paused after the episode
+            mark, last, quiet = counts.get(states, 0), -1, time.monotonic()
+            while (counts.get(states, 0) < mark + 250 if robot == 'standard'
+                   else time.monotonic() - quiet < 0.5):
+                if not recorder.is_alive():
+                    raise RuntimeError('the recorder ended early')
+                if counts.get(states, 0) != last:
+                    last, quiet = counts.get(states, 0), time.monotonic()
+                stop.wait(0.05)
+        finally:
+            stop.set()
+            recorder.join()
+    recording = teaching.read_joint_states(bag, '/' + names.JOINT_STATES, joint_names_of(task))
+    spans, _ = teaching.split_returns(task, recording, teaching.rest_to_rest(recording))
+    instances = teaching.read_instances(bag, '/' + names.TASK_INSTANCE, make_typestore())
+    taus = [teaching.instance_at(instances, teaching.motion_start(recording, span))
+            for span in spans]
+    from psl_memory.skill_memory import SkillMemory
+    from psl_optimizer.learning import LearnSettings
+    outcomes = teaching.teach(task, recording, spans, taus, SkillMemory(LearnSettings().skill))
+    accepted = [o for o in outcomes if o.accepted][:count]
+    refused = sum(not o.accepted for o in outcomes)
+    if len(accepted) < count:
+        raise ValueError(f'{task_name}: {len(accepted)} of {count} demonstrations accepted '
+                         f'({refused} refused) of {len(shown)} shown: show more')
+    return accepted, refused
 
 
 def session(task_name: str, taught: list, seed: int, num_tasks: int, num_test: int,
@@ -109,8 +198,18 @@ def session(task_name: str, taught: list, seed: int, num_tasks: int, num_test: i
 def run(tasks: Sequence[str] = TASKS, counts: Sequence[int] = COUNTS,
         seeds: Sequence[int] = (0, 1, 2), num_tasks: int = 30, num_test: int = 20,
         budget: int = 300, noise: str = NOISE, out: str | Path | None = None,
-        progress: Callable[[str], None] | None = None) -> dict:
+        progress: Callable[[str], None] | None = None, through: str = 'batch',
+        robot: str = 'standard') -> dict:
     """Every task x count x seed (module docstring); the report of `format_table`."""
+    if through not in THROUGH:
+        raise ValueError(f'through must be one of {", ".join(THROUGH)}, got {through!r}')
+    if robot not in ('standard', 'sim'):
+        raise ValueError(f"robot must be 'standard' or 'sim', got {robot!r}")
+
+    def show(task, count, seed, noise, folder):
+        if through == 'batch':
+            return demonstrations(task, count, seed, noise, folder)
+        return demonstrations_through_graph(task, count, seed, noise, folder, robot)
     if not counts or min(counts) < 0 or len(set(counts)) != len(counts):
         raise ValueError(f'counts must be distinct and >= 0, got {list(counts)}')
     if num_tasks <= LATE:
@@ -122,8 +221,8 @@ def run(tasks: Sequence[str] = TASKS, counts: Sequence[int] = COUNTS,
         for task in tasks:
             for seed in seeds:
                 folder = base / f'{Path(task).stem}-seed{seed}'
-                taught, refused = demonstrations(task, max(counts), seed, noise,
-                                                 folder) if max(counts) else ([], 0)
+                taught, refused = show(task, max(counts), seed, noise,
+                                       folder) if max(counts) else ([], 0)
                 for count in counts:
                     row = session(task, taught[:count], seed, num_tasks, num_test, budget,
                                   folder / f'taught{count}')
@@ -134,14 +233,17 @@ def run(tasks: Sequence[str] = TASKS, counts: Sequence[int] = COUNTS,
                                  f"{row['total_rollouts']} rollouts, zero-shot "
                                  f"{100 * row['zero_shot_success']:.0f} %")
     return {'tasks': list(tasks), 'counts': list(counts), 'seeds': list(seeds),
-            'num_tasks': num_tasks, 'num_test': num_test, 'budget': budget, 'noise': noise,
+            'num_tasks': num_tasks, 'num_test': num_test, 'budget': budget,
+            'noise': noise if through == 'batch' or robot == 'standard' else 'none',
+            'through': through if through == 'batch' else f'graph ({robot} robot)',
             'rows': rows}
 
 
 def format_table(report: dict) -> str:
     """Markdown: per task and count the mean ± SD over seeds."""
     lines = [f"{report['num_tasks']} bootstrap tasks (budget {report['budget']}) from a skill "
-             f"taught with N demonstrations (noise {report['noise']}) or none (the YAML "
+             f"taught with N demonstrations (shown {report.get('through', 'batch')}, noise "
+             f"{report['noise']}) or none (the YAML "
              f"demonstration only), seeds {report['seeds']}, zero-shot on "
              f"{report['num_test']} held-out instances", '',
              f'| task | taught | total rollouts | per task after {LATE} | zero-shot |',

@@ -184,6 +184,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument('--budget', type=positive_int, default=300, help='rollouts per task at most')
     p.add_argument('--noise', default=TEACH_NOISE,
                    help='measurement noise of the demonstrations (position=RAD,velocity=RAD_S)')
+    p.add_argument('--through', choices=('batch', 'graph'), default='batch',
+                   help='how the demonstrations are shown and recorded: batch rollouts with '
+                   "noise (default), or through the node graph on psl's standard robot "
+                   '(noise, the wall clock, driven back between two) into a bag that psl '
+                   "teach's steps read")
+    p.add_argument('--robot', choices=('standard', 'sim'), default='standard',
+                   help="with --through graph: psl's standard robot on the wall clock "
+                   "(default) or psl's lockstep simulator (exact measurements, no noise)")
     options.add_out(p, RUN_FOLDERS)
     p = bench('false-successes', 'a noisy robot (measurement noise): samples added on a lucky '
               'rollout, with and without confirming a success (k of n)', task=None)
@@ -332,7 +340,8 @@ def _teach(args) -> tuple[dict, str]:
     report = teach.run(tasks=args.tasks, counts=args.counts, seeds=args.seeds,
                        num_tasks=args.tasks_per_session, num_test=args.test_tasks,
                        budget=args.budget, noise=args.noise, out=_folder(args.out),
-                       progress=_progress)
+                       progress=_progress, through=args.through,
+                       robot=args.robot)
     return report, teach.format_table(report)
 
 
