@@ -1,7 +1,8 @@
 """psl teach from a bag psl record wrote of rollouts through the graph (as a person's guided
 demonstrations would be recorded: the robot's joint states and the episodes psl announced):
 planar_10dof_reach, three movements of known theta on known instances; psl teach --episodes
-takes each episode with its tau, and the skill's samples reproduce the movements."""
+takes each episode with its tau, and the skill's samples reproduce the movements; cut from
+rest to rest, the drives back to the start are skipped and each motion gets its instance."""
 import threading
 import time
 
@@ -21,6 +22,13 @@ TOL_TAUGHT = 0.05           # rad, the taught movement against the commanded one
 @pytest.fixture(scope='module')
 def graph_task():
     return str(EMBEDDED_TASKS / 'planar_10dof_reach.yaml')
+
+
+@pytest.fixture(scope='module')
+def graph_options():
+    """Drive resets: the arm is driven back to the start between two episodes (homing
+    episodes, announced as such), as a person brings it back between two demonstrations."""
+    return {'reset': 'drive'}
 
 
 def test_rollouts_recorded_from_the_graph_teach_the_skill(client, graph_task, tmp_path,
@@ -60,6 +68,18 @@ def test_rollouts_recorded_from_the_graph_teach_the_skill(client, graph_task, tm
                  '--tau-topic', '/' + names.TASK_INSTANCE, '-o', str(memory)]) == 0
     out = capsys.readouterr().out
     assert out.count('accepted') == 3, out
+    # cut from rest to rest instead: the drives back to the start are no demonstrations, each
+    # motion's instance is the one psl announced for it
+    by_motion = tmp_path / 'by_motion.npz'
+    assert main(['teach', '--task', graph_task, str(bag), '--tau-topic',
+                 '/' + names.TASK_INSTANCE, '-o', str(by_motion)]) == 0
+    out = capsys.readouterr().out
+    assert out.count('accepted') == 3 and 'refused' not in out, out
+    # three drives to the start: from where the simulator starts the arm, and after each of
+    # the first two episodes
+    assert out.count('brought back to the start posture') == 3, out
+    np.testing.assert_array_equal(SkillMemory.read(by_motion).get(task.name).taus,
+                                  np.array([t.tolist() for t in taus]))
     skill = SkillMemory.read(memory).get(task.name)
     assert skill.num_samples == 3
     taught = sorted(zip(skill.taus.tolist(), skill.thetas), key=lambda s: s[0])

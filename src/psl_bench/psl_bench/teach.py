@@ -35,7 +35,7 @@ COUNTS = (0, 3, 5, 10)
 TASKS = (DEFAULT_TASK, 'planar_10dof_reach')
 NOISE = 'position=0.0002'
 THROUGH = ('batch', 'graph')    # how the demonstrations are shown and recorded
-SPARE = 4                   # instances shown through the graph beyond those to teach (refusals)
+SHOWN = 3                   # instances shown through the graph per one to teach (refusals)
 LATE = 20                   # rollouts per task are averaged over the tasks after this many
 
 
@@ -88,8 +88,8 @@ def demonstrations(task_name: str, count: int, seed: int, noise: str, folder: Pa
 def demonstrations_through_graph(task_name: str, count: int, seed: int, noise: str,
                                  folder: Path, robot: str = 'standard') -> tuple[list, int]:
     """(accepted outcomes, refused) of `count` demonstrations shown through the graph on the
-    standard robot and recorded (module docstring); the first `count` + SPARE solutions of
-    the demonstrator are shown. ``robot='sim'``: on psl's lockstep simulator instead (drive
+    standard robot and recorded (module docstring); the first SHOWN x `count` solutions of
+    the demonstrator are shown (psl teach refuses some: on planar_10dof_reach 9 of 14). ``robot='sim'``: on psl's lockstep simulator instead (drive
     resets too, no noise: it measures exactly)."""
     import threading
 
@@ -103,8 +103,8 @@ def demonstrations_through_graph(task_name: str, count: int, seed: int, noise: s
     from psl_task.task import load_task, task_id
 
     task = load_task(task_name)
-    memory = demonstrator(task, count + SPARE, seed, folder)
-    shown = list(zip(memory.taus, memory.thetas))[:count + SPARE]
+    memory = demonstrator(task, count, seed, folder)
+    shown = list(zip(memory.taus, memory.thetas))[:SHOWN * count]
     sigma = MeasurementNoise.parse(noise).position
     bag = folder / 'guided'
     loop = ((('sim', 'psl_sim', 'sim'),) if robot == 'sim' else ()) + (
@@ -129,7 +129,13 @@ def demonstrations_through_graph(task_name: str, count: int, seed: int, noise: s
                 if time.monotonic() > deadline or not recorder.is_alive():
                     raise RuntimeError('the recorder did not subscribe to the joint states')
                 stop.wait(0.05)
-            client.wait_for_subscribers([names.JOINT_STATES])  # ... and is matched
+            if robot == 'standard':       # ... and takes what the robot streams
+                while counts.get(states, 0) < 100:
+                    if time.monotonic() > deadline or not recorder.is_alive():
+                        raise RuntimeError('the recorder got no joint states from the robot')
+                    stop.wait(0.05)
+            else:                         # ... and is matched (the simulator's report)
+                client.wait_for_subscribers([names.JOINT_STATES])
             for tau, theta in shown:
                 result = client.rollout(task_id(task), tau, theta, timeout=120.0)
                 if not result.success:
