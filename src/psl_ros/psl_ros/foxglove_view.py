@@ -91,7 +91,6 @@ class FoxgloveView:
         self._burst = max(1.0, parameters.max_rate)        # a second's worth
         self._changed = node.create_guard_condition(self._apply)
         self._loop = HotPath(node, 'view_take', pause=TAKE_PAUSE)
-        self._loop.start()
         try:
             self.server = foxglove.start_server(name=SERVER_NAME, host=parameters.host,
                                                 port=parameters.port, server_listener=self,
@@ -100,6 +99,7 @@ class FoxgloveView:
             raise RuntimeError(f'cannot serve Foxglove on {parameters.host}:'
                                f'{parameters.port}: {exc}') from None
         self.port = self.server.port
+        self._loop.start()
         self.discover()
         self._timer = node.create_timer(DISCOVERY_PERIOD, self.discover)
 
