@@ -137,7 +137,7 @@ def demonstrations_through_graph(task_name: str, count: int, seed: int, noise: s
             else:                         # ... and is matched (the simulator's report)
                 client.wait_for_subscribers([names.JOINT_STATES])
             for tau, theta in shown:
-                result = client.rollout(task_id(task), tau, theta, timeout=120.0)
+                result = client.rollout(task_id(task), tau, theta)
                 if not result.success:
                     raise RuntimeError(f'showing tau {list(tau)}: {result.message}')
             # the last states in the bag: a robot streams on (the arm at rest after the last
