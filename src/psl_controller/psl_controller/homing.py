@@ -12,6 +12,13 @@ s = t / T, d = q1 - q0, then holds q1 for the settle time. From rest its peak ve
 keeps every joint within ``max_velocity`` and ``max_acceleration`` (and at least
 ``min_duration``), checked on the sampled path with the moving start too.
 
+An arm that still moves is first braked to rest: the same quintic from (q0, qd0) to
+qb = q0 + qd0 Tb / 2, whose velocity qd0 (1 - 3 s^2 + 2 s^3) falls to zero without reversing
+and whose deceleration peaks at 1.5 |qd0| / Tb, so Tb = 1.5 max|qd0| / ``max_acceleration``
+(braking distance 0.75 qd0^2 / max_acceleration); then the quintic from rest at qb to q1.
+(Carrying qd0 through the whole homing instead moves a joint about 0.19 qd0 T beyond its
+start: 34 rad for an oscillating arm homed over 4.5 s, which the safety check refused.)
+
 Its feed-forward is the model's inverse dynamics along the quintic when one is given
 (``feed_forward(q, qd, qdd)``, e.g. `psl_task.arm_model.ArmModel.inverse_dynamics` with the
 instance applied): the torque that carries the arm and holds it against gravity at the start
@@ -70,14 +77,30 @@ def homing_duration(q0: np.ndarray, qd0: np.ndarray, q1: np.ndarray,
 FeedForward = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 
+def braking_duration(qd0: np.ndarray, spec: HomingSpec, dt: float) -> float:
+    """The shortest whole number of control periods in which the braking quintic (module
+    doc) stops every joint within ``max_acceleration``; 0 for an arm at rest."""
+    peak = np.abs(np.asarray(qd0, dtype=float)).max(initial=0.0)
+    return 0.0 if peak == 0.0 else float(dt * np.ceil(1.5 * peak / spec.max_acceleration
+                                                       / dt - 1e-9))
+
+
 def homing_reference(q0: np.ndarray, qd0: np.ndarray, q1: np.ndarray, spec: HomingSpec,
                      dt: float, feed_forward: FeedForward | None = None) -> Reference:
-    """The homing motion sampled every control period dt: the quintic, then ``settle_time``
-    held at q1; feed-forward ``feed_forward(q, qd, qdd)`` on those samples (T, n), else zero."""
+    """The homing motion sampled every control period dt: a moving arm braked to rest, the
+    quintic from rest to q1, then ``settle_time`` held at q1 (module doc); feed-forward
+    ``feed_forward(q, qd, qdd)`` on those samples (T, n), else zero."""
     q0, qd0, q1 = (np.asarray(a, dtype=float) for a in (q0, qd0, q1))
-    T = homing_duration(q0, qd0, q1, spec, dt)
-    t = np.arange(int(round((T + spec.settle_time) / dt)) + 1) * dt
-    q, qd, qdd = quintic(q0, qd0, q1, T, t)
+    Tb = braking_duration(qd0, spec, dt)
+    qb = q0 + 0.5 * qd0 * Tb                    # where braking brings the arm to rest
+    rest = np.zeros_like(q0)
+    T = homing_duration(qb, rest, q1, spec, dt)
+    t = np.arange(int(round((Tb + T + spec.settle_time) / dt)) + 1) * dt
+    braking = t < Tb - 0.5 * dt
+    parts = [quintic(qb, rest, q1, T, t[~braking] - Tb)]
+    if braking.any():
+        parts.insert(0, quintic(q0, qd0, qb, Tb, t[braking]))
+    q, qd, qdd = (np.concatenate([part[k] for part in parts]) for k in range(3))
     u = np.zeros_like(q) if feed_forward is None else np.asarray(feed_forward(q, qd, qdd),
                                                                   dtype=float)
     return Reference(t=t, q=q, qd=qd, u_ffwd=u)

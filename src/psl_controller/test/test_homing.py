@@ -9,7 +9,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from psl_controller.homing import (corrected_hold, hold_stiffness, homing_duration,
+from psl_controller.homing import (braking_duration, corrected_hold, hold_stiffness,
+                                   homing_duration,
                                    homing_reference, quintic)
 from psl_controller.pd_law import law_for
 from psl_task.arm_model import ArmModel
@@ -67,8 +68,8 @@ def test_the_held_feed_forward_is_the_gravity_torque_at_the_start(task):
     gravity = (arm.data.qfrc_bias - arm.data.qfrc_passive)[arm.dof_adr]
     assert np.abs(gravity).min() > 0.1, 'the test needs an arm that gravity pulls'
     np.testing.assert_allclose(reference.u_ffwd[-1], gravity, rtol=1e-9, atol=1e-12)
-    # the held samples: the same torque
-    held = reference.qd.any(axis=1) == 0
+    # the held samples (at rest at the start posture): the same torque
+    held = (reference.qd.any(axis=1) == 0) & np.all(reference.q == task.start_posture, axis=1)
     np.testing.assert_allclose(reference.u_ffwd[held], np.broadcast_to(gravity, (
         held.sum(), len(gravity))), rtol=1e-9, atol=1e-12)
 
@@ -161,3 +162,49 @@ def test_the_hold_stiffness_is_kp_plus_the_gravity_jacobian(task):
                                 for j in range(n)])
     np.testing.assert_allclose(K - np.diag(task.controller.kp), jacobian, rtol=1e-3,
                                atol=1e-3 * np.abs(jacobian).max())
+
+
+def test_a_moving_arm_is_braked_to_rest_before_it_is_homed(task):
+    """From an arm still moving fast (an oscillating robot after its episode): the reference
+    starts where the arm is with its velocity, each joint's velocity falls to zero without
+    reversing, the deceleration stays within max_acceleration, the arm comes to rest within
+    the braking distance (closed form 0.75 qd0^2 / a, rounded up to a control period), and
+    the homing then ends at the start posture at rest; the single quintic carrying qd0
+    through the homing goes further (about 0.19 qd0 T: the longer the homing, the further)."""
+    spec, dt = task.homing, task.control_period
+    qd0 = np.array([3.0, -1.5])
+    reference = homing_reference(Q0, qd0, task.start_posture, spec, dt)
+    np.testing.assert_allclose(reference.q[0], Q0, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(reference.qd[0], qd0, rtol=0, atol=1e-15)
+    Tb = braking_duration(qd0, spec, dt)
+    assert 1.5 * 3.0 / spec.max_acceleration <= Tb < 1.5 * 3.0 / spec.max_acceleration + dt
+    braking = reference.t <= Tb + 1e-12
+    v = reference.qd[braking]
+    assert np.all(v * np.sign(qd0) >= -1e-12)                   # no reversal
+    assert np.all(np.diff(np.abs(v), axis=0) <= 1e-12)          # slowing down all along
+    np.testing.assert_allclose(v[-1], 0.0, atol=1e-12)
+    qdd = np.diff(reference.qd, axis=0) / dt                    # what the samples do
+    assert np.abs(qdd).max() <= spec.max_acceleration * (1 + 1e-6)
+    stopped = reference.q[braking][-1]
+    np.testing.assert_allclose(stopped, Q0 + 0.5 * qd0 * Tb, rtol=0, atol=1e-12)
+    fastest = np.argmax(np.abs(qd0))       # it sets the braking time; the others follow it
+    assert abs(stopped - Q0)[fastest] <= (0.75 * qd0[fastest]**2 / spec.max_acceleration
+                                          + abs(qd0[fastest]) * dt)
+    np.testing.assert_allclose(reference.q[-1], task.start_posture, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(reference.qd[-1], 0.0, rtol=0, atol=1e-12)
+    T = homing_duration(Q0, qd0, task.start_posture, spec, dt)
+    carried, _, _ = quintic(Q0, qd0, task.start_posture, T, np.arange(0, T + dt, dt))
+    low = np.minimum(Q0, task.start_posture)
+    high = np.maximum(Q0, task.start_posture)
+    beyond = lambda q: np.maximum(low - q, q - high).max()         # noqa: E731
+    assert beyond(reference.q) <= 0.5 * np.abs(qd0).max() * Tb + 1e-12    # the braking only
+    assert beyond(carried) > beyond(reference.q)     # and it grows with the homing's length
+
+
+def test_an_arm_at_rest_is_homed_by_the_one_quintic(task):
+    spec, dt = task.homing, task.control_period
+    reference = homing_reference(Q0, np.zeros(2), task.start_posture, spec, dt)
+    T = homing_duration(Q0, np.zeros(2), task.start_posture, spec, dt)
+    q, qd, _ = quintic(Q0, np.zeros(2), task.start_posture, T, reference.t)
+    np.testing.assert_array_equal(reference.q, q)
+    np.testing.assert_array_equal(reference.qd, qd)
