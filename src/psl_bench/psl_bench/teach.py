@@ -89,12 +89,15 @@ def demonstrations_through_graph(task_name: str, count: int, seed: int, noise: s
                                  folder: Path, robot: str = 'standard') -> tuple[list, int]:
     """(accepted outcomes, refused) of `count` demonstrations shown through the graph on the
     standard robot and recorded (module docstring); the first SHOWN x `count` solutions of
-    the demonstrator are shown (psl teach refuses some: on planar_10dof_reach 9 of 14). ``robot='sim'``: on psl's lockstep simulator instead (drive
-    resets too, no noise: it measures exactly)."""
+    the demonstrator are shown (psl teach refuses some: on planar_10dof_reach 9 of 14).
+    ``robot='sim'``: on psl's lockstep simulator instead (drive resets too, no noise: it
+    measures exactly)."""
     import threading
 
+    from psl_memory.skill_memory import SkillMemory
     from psl_optimizer import teaching
     from psl_optimizer.batch_rollout import MeasurementNoise
+    from psl_optimizer.learning import LearnSettings
     from psl_ros import names
     from psl_ros.bag_recorder import make_typestore, record
     from psl_ros.client import RosClient
@@ -155,11 +158,8 @@ def demonstrations_through_graph(task_name: str, count: int, seed: int, noise: s
             recorder.join()
     recording = teaching.read_joint_states(bag, '/' + names.JOINT_STATES, joint_names_of(task))
     spans, _ = teaching.split_returns(task, recording, teaching.rest_to_rest(recording))
-    instances = teaching.read_instances(bag, '/' + names.TASK_INSTANCE, make_typestore())
-    taus = [teaching.instance_at(instances, teaching.motion_start(recording, span))
-            for span in spans]
-    from psl_memory.skill_memory import SkillMemory
-    from psl_optimizer.learning import LearnSettings
+    taus = teaching.taus_from_topic(bag, '/' + names.TASK_INSTANCE, recording, spans,
+                                    make_typestore())
     outcomes = teaching.teach(task, recording, spans, taus, SkillMemory(LearnSettings().skill))
     accepted = [o for o in outcomes if o.accepted][:count]
     refused = sum(not o.accepted for o in outcomes)

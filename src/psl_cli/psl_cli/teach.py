@@ -61,10 +61,8 @@ def _taus(args, spans, recording, bag: Path) -> list:
 
     if args.tau_topic:
         from psl_ros.bag_recorder import make_typestore
-        instances = teaching.read_instances(bag, args.tau_topic, make_typestore())
-        return [teaching.instance_at(instances, recording.t[span[0]] if args.window
-                                     else teaching.motion_start(recording, span))
-                for span in spans]
+        return teaching.taus_from_topic(bag, args.tau_topic, recording, spans, make_typestore(),
+                                        motions=not args.window)
     if args.tau_file:
         rows = [line.split() for line in Path(args.tau_file).read_text().splitlines()
                 if line.strip() and not line.lstrip().startswith('#')]

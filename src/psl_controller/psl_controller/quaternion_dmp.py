@@ -390,8 +390,9 @@ class QuaternionDMP(GatedAttractor):
     def _rollout(self, dt: float, phi: np.ndarray, weights: np.ndarray,
                  goals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """q (P, N+1, 4), omega and omega_dot (P, N+1, 3) for weights (P, 3, K) and goals
-        (P, 4), or (P, N+1, 4) a goal per grid point: one loop over time per row, in Python floats (a step is a few dozen scalar
-        operations: numpy's per-call overhead on arrays of 3 and 4 would be ten times that),
+        (P, 4), or (P, N+1, 4) a goal per grid point: one loop over time per row, in Python
+        floats (a step is a few dozen scalar operations: numpy's per-call overhead on arrays
+        of 3 and 4 would be ten times that),
         and the steps of a row do not depend on the other rows (only the forcing's matrix
         product is one for the population: BLAS may sum it in another order for another
         population size)."""

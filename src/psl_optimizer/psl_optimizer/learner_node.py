@@ -12,9 +12,10 @@ checkpoint (the memory node's memory saved there + the progress as JSON), at the
 ``metrics.json``. Sending the same goal again, after a cancel, an abort or a crash of this
 node, resumes from the checkpoint: the memory node is loaded from it, no finished task is
 lost. Feedback comes after every batch of rollouts, and one psl_msgs/LearningProgress per
-rollout on ``learning_progress`` (the learning curve; `psl_optimizer.session_progress`). A bad goal (unknown task or strategy, zero
-tasks, a skill of the task's name but other sizes in the memory) ends with success=false and
-the reason; a skill the memory does not hold is created from the task.
+rollout on ``learning_progress`` (the learning curve: `psl_optimizer.progress_topic`). A bad
+goal (unknown task or strategy, zero tasks, a skill of the task's name but other sizes in the
+memory) ends with success=false and the reason; a skill the memory does not hold is created
+from the task.
 """
 from __future__ import annotations
 

@@ -245,6 +245,16 @@ def windows(recording: Recording, spans: list[tuple[float, float]]) -> list[tupl
     return out
 
 
+def taus_from_topic(bag: str | Path, topic: str, recording: Recording,
+                    spans: list[tuple[int, int]], typestore=None, motions: bool = True) -> list:
+    """Each span's instance from `topic` of the bag (`read_instances`, `instance_at`): the last
+    announced before the arm starts to move (`motion_start`: spans of `rest_to_rest`), or with
+    ``motions=False`` before the span starts (time windows given)."""
+    instances = read_instances(bag, topic, typestore)
+    return [instance_at(instances, motion_start(recording, span) if motions
+                        else float(recording.t[span[0]])) for span in spans]
+
+
 def instance_at(instances: list[tuple[float, np.ndarray]], start: float) -> np.ndarray | None:
     """The tau of the last instance announced at or before `start` (None: none was)."""
     before = [tau for t, tau in instances if t <= start + 1e-9]

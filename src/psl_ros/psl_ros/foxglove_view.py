@@ -79,7 +79,7 @@ class FoxgloveView:
     """
 
     def __init__(self, node: Node, parameters: ViewParameters):
-        self.node, self.parameters = node, parameters
+        self.node = node
         self.typestore = make_typestore()
         self.context = foxglove.Context()
         self._lock = threading.Lock()

@@ -199,10 +199,9 @@ class Graph:
 
     def params(self, name: str) -> dict:
         """The -p parameters of a node: the task for the simulator and the controller (none:
-        their default, psl_task.DEFAULT_TASK), the mode for the simulator, the reset for the executor, the workers for the learner, the
-        memory folder
-        (``PSL_MEMORY_DIR``, if set) for the skill memory, the port for the view, then
-        `extra_params`."""
+        their default, psl_task.DEFAULT_TASK), the mode for the simulator, the reset for the
+        executor, the workers for the learner, the memory folder (``PSL_MEMORY_DIR``, if set)
+        for the skill memory, the port for the view, then `extra_params`."""
         params = ({'task': self.task} if self.task and name in ('sim', 'robot', 'pd_controller')
                   else {})
         if name == 'sim':

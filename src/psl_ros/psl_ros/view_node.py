@@ -22,8 +22,8 @@ class ViewNode(Node):
             self.view = FoxgloveView(self, self.parameters)
         except RuntimeError as exc:      # the port is taken: the configuration's fault
             raise ValueError(str(exc)) from None
-        self.url = f'ws://{self.parameters.host}:{self.view.port}'
-        self.get_logger().info(SERVING.format(url=self.url))
+        self.get_logger().info(SERVING.format(
+            url=f'ws://{self.parameters.host}:{self.view.port}'))
 
     def destroy_node(self):
         self.view.close()
