@@ -143,7 +143,8 @@ def test_a_viewer_sees_the_session_as_the_graph_published_it(url, client, graph,
         for record in metrics['tasks']:
             mine = [p for p in points if p.task_index == record['index']]
             assert len(mine) == record['rollouts']
-            assert mine[-1].best_reward == record['best_reward']
+            assert record['best_reward'] in [p.reward for p in mine]   # the answer's rollout
+            assert mine[-1].best_reward >= record['best_reward']
             assert bool(mine[-1].task_fulfilled) == record['fulfilled']
             assert [list(p.tau) for p in mine] == [record['tau']] * len(mine)
         assert all(p.task == TASK and p.header.stamp.sec > 0 for p in points)

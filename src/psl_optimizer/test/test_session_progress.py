@@ -1,6 +1,6 @@
 """The learning curve of a session (`SessionProgress`) against the session's own records:
-one point per training rollout, counters without gaps, per task the record's rollouts, best
-reward and fulfilment, and the skill's variance at each instance as a replay of the memory's
+one point per training rollout, counters without gaps, per task the record's rollouts, its
+answer's reward among the rollouts' and fulfilment, and the skill's variance at each instance as a replay of the memory's
 samples in their order gives it."""
 import math
 
@@ -57,7 +57,10 @@ def test_one_point_per_training_rollout_with_counters_without_gaps(session):
         mine = [p for p in points if p.task_index == record.index]
         assert [p.rollouts_on_task for p in mine] == list(range(1, record.rollouts + 1))
         assert all(p.tau == tuple(record.tau) for p in mine)
-        assert mine[-1].best_reward == pytest.approx(record.best_reward, rel=0, abs=0)
+        # the task's answer is one of its rollouts (the search's settling success, which a
+        # draw before it may have beaten: the best on the task is at least the answer's)
+        assert record.best_reward in [p.reward for p in mine]
+        assert mine[-1].best_reward >= record.best_reward
         assert mine[-1].task_fulfilled == record.fulfilled
         assert [p.best_reward for p in mine] == list(np.maximum.accumulate(
             [p.reward for p in mine]))
