@@ -4,11 +4,26 @@ if [ ! -f "$_psl_root/install/setup.bash" ]; then
   echo "psl is not set up yet: run $_psl_root/scripts/setup (or make setup)" >&2
   return 1 2>/dev/null || exit 1
 fi
+# colcon's setup scripts expect these to be set when run with 'set -u'
+export COLCON_TRACE="${COLCON_TRACE:-}" AMENT_TRACE_SETUP_FILES="${AMENT_TRACE_SETUP_FILES:-}"
+# psl set up with the control_msgs of a ROS installation (scripts/setup): that installation
+# stays after the venv when sourced already, as at set-up; else it is sourced here, first
+_psl_cm="$(cat "$_psl_root/.venv/.psl/control_msgs" 2>/dev/null || true)"
+if [ -n "$_psl_cm" ]; then
+  case ":${AMENT_PREFIX_PATH:-}:" in
+    *":$_psl_cm:"*) ;;
+    *) if [ -f "$_psl_cm/setup.bash" ]; then
+         # shellcheck disable=SC1091
+         source "$_psl_cm/setup.bash"
+       else
+         echo "psl was set up with control_msgs from $_psl_cm, which has gone: run scripts/setup" >&2
+       fi ;;
+  esac
+fi
+unset _psl_cm
 # shellcheck disable=SC1091
 source "$_psl_root/.venv/bin/activate"
 export AMENT_PREFIX_PATH="$_psl_root/.venv${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
-# colcon's setup scripts expect these to be set when run with 'set -u'
-export COLCON_TRACE="${COLCON_TRACE:-}" AMENT_TRACE_SETUP_FILES="${AMENT_TRACE_SETUP_FILES:-}"
 # shellcheck disable=SC1091
 source "$_psl_root/install/setup.bash"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST

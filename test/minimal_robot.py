@@ -6,12 +6,15 @@ wall-clock stamps, 1 mrad of noise, effort = the torque applied) and takes
 std_msgs/Float64MultiArray torques on /effort_controller/commands (its own order). Its masses
 are 30 % above the model's, its joints have damping (+0.3 N m s/rad) and friction (0.05 N m)
 the model lacks, a command acts one period after it came, and it applies zero torque when
-commands stop for 5 periods. Its brakes hold the arm until the first command. It offers no
-service (no parameter services either). SIGUSR1 makes its joint states stop for ``--silence`` seconds (a cable pulled).
+commands stop for 5 periods. Its brakes hold the arm until the first command. Its loop runs
+with real-time scheduling where the machine allows it. It offers no service (no parameter
+services either). SIGUSR1 makes its joint states stop for ``--silence`` seconds (a cable
+pulled).
 
     python minimal_robot.py --model M.xml --joints j3 j2 j1 --start 0.1 0.2 0.3
 """
 import argparse
+import os
 import signal
 import threading
 import time
@@ -61,6 +64,10 @@ node.create_subscription(Float64MultiArray, '/effort_controller/commands', on_co
 silent_until = [0.0]
 signal.signal(signal.SIGUSR1, lambda *_: silent_until.__setitem__(
     0, time.monotonic() + a.silence))
+try:        # as a robot's loop: real-time scheduling where allowed (the spin thread inherits it)
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
+except PermissionError:
+    pass
 threading.Thread(target=rclpy.spin, args=(node,), daemon=True).start()
 
 applied = np.zeros(n)

@@ -152,14 +152,16 @@ def test_a_load_during_a_graph_mode_session_is_refused_and_the_skill_holds_its_s
 # -- a live goal change: the safety check, and times outside the episode --------------------------
 def live_update(client, task, goal, time_from_start):
     """A rollout of the default theta, with a goal update sent as soon as its episode is
-    announced; (result, the references the controller published during it)."""
+    announced; (result, the references the controller tracked during it: its
+    controller_state)."""
+    from control_msgs.msg import JointTrajectoryControllerState
     from psl_msgs.msg import TaskInstance
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     references, episodes, announced = [], [], threading.Event()
-    sub = client.node.create_subscription(JointState, names.REFERENCE,
-                                          lambda m: references.append(list(m.position)),
-                                          QoSProfile(depth=10000,
-                                                     reliability=ReliabilityPolicy.RELIABLE))
+    sub = client.node.create_subscription(
+        JointTrajectoryControllerState, names.PSL_CONTROLLER_STATE,
+        lambda m: references.append(list(m.reference.positions)),
+        QoSProfile(depth=10000, reliability=ReliabilityPolicy.RELIABLE))
     # the simulator's time now: the rollout's episode is the first announced at or after it
     # (the latched announcement of an earlier episode, if any, is older)
     now = call(client, ResetTask, names.RESET, task=TASK, mode='probe',
@@ -175,7 +177,7 @@ def live_update(client, task, goal, time_from_start):
         QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                    durability=DurabilityPolicy.TRANSIENT_LOCAL))
     try:
-        client.wait_for_subscribers([names.REFERENCE, names.TASK_INSTANCE],
+        client.wait_for_subscribers([names.PSL_CONTROLLER_STATE, names.TASK_INSTANCE],
                                     subscriptions=[sub, task_sub])
         references.clear()
         results = []

@@ -48,10 +48,13 @@ def stamp_ns(stamp) -> int:
 
 
 class Recorder:
-    """joint_states and reference of the rollouts, by stamp [ns]; task_instance as it comes."""
+    """joint_states and the controller's reference (its controller_state) of the rollouts, by
+    stamp [ns]; task_instance as it comes."""
 
     def __init__(self, client, wait_until):
+        from control_msgs.msg import JointTrajectoryControllerState
         from psl_msgs.msg import TaskInstance
+        from psl_ros.names import PSL_CONTROLLER_STATE
         from sensor_msgs.msg import JointState
 
         self.client, self.wait_until = client, wait_until
@@ -59,15 +62,20 @@ class Recorder:
         self.episodes: list[int] = []
         self.new_episode = threading.Event()
         qos = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
+        states, references = self.streams['joint_states'], self.streams['reference']
         self.subscriptions = [
             client.node.create_subscription(
-                JointState, topic, lambda m, s=stream: s.__setitem__(stamp_ns(m.header.stamp), m),
-                qos) for topic, stream in self.streams.items()]
+                JointState, 'joint_states',
+                lambda m: states.__setitem__(stamp_ns(m.header.stamp), m.position), qos),
+            client.node.create_subscription(
+                JointTrajectoryControllerState, PSL_CONTROLLER_STATE,
+                lambda m: references.__setitem__(stamp_ns(m.header.stamp),
+                                                 m.reference.positions), qos)]
         self.subscriptions.append(client.node.create_subscription(
             TaskInstance, 'task_instance', self.on_task,
             QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)))
-        client.wait_for_subscribers(['joint_states', 'reference', 'task_instance'],
+        client.wait_for_subscribers(['joint_states', PSL_CONTROLLER_STATE, 'task_instance'],
                                     subscriptions=self.subscriptions)
 
     def on_task(self, msg) -> None:
@@ -80,7 +88,7 @@ class Recorder:
         times = [t0 + k * task.control_period_ns for k in range(evaluation.num_steps + 1)]
         assert self.wait_until(lambda: all(t in s for s in self.streams.values() for t in times),
                                DELIVERY_TIMEOUT)
-        return tuple(np.array([self.streams[name][t].position for t in times])
+        return tuple(np.array([self.streams[name][t] for t in times])
                      for name in ('joint_states', 'reference'))
 
     def close(self) -> None:
@@ -236,30 +244,32 @@ def test_a_live_goal_update_moves_the_goal_of_the_running_rollout(long_task, tmp
 
 def test_a_jumping_replacement_and_an_update_without_a_rollout_change_nothing(
         client, graph, task, wait_until):
-    """A trajectory stamped with the start of the episode the controller ran, that leaves the
-    reference it served last, is refused by the controller; a goal update while no rollout
-    runs is ignored by the executor; the next rollout is as before."""
-    from trajectory_msgs.msg import JointTrajectory
+    """A FollowJointTrajectory goal stamped with the start of the episode the controller ran,
+    that leaves the reference it served last, is not run (OLD_HEADER_TIMESTAMP: the start has
+    passed and it would jump); a goal update while no rollout runs is ignored by the
+    executor; the next rollout is as before."""
+    from control_msgs.action import FollowJointTrajectory
 
-    from psl_controller.dmp_executor_node import trajectory_msg
-    from psl_ros.qos import RELIABLE
-    from psl_ros.stamps import time_msg
+    from psl_controller.robot_link import trajectory_msg
+    from psl_ros.action_client import ActionClient
+    from psl_ros.client import send_goal, wait_for_result
 
     theta = policy_for(task).default_theta
     first = client.rollout(TASK, task.tau_default, theta)
     assert first.success, first.message
     reference = policy_for(task).reference_with_new_goal(theta, None, SWITCH, NEW_GOAL)
-    jump = trajectory_msg(joint_names_of(task), reference)     # ends elsewhere: a jump now
-    jump.header.stamp = time_msg(stamp_ns(first.evaluation.stamp))
-    publisher = client.node.create_publisher(JointTrajectory, 'joint_trajectory', RELIABLE)
-    logs = {p.name: p.log_path for p in graph.processes}
+    goal = FollowJointTrajectory.Goal(trajectory=trajectory_msg(     # ends elsewhere: a jump
+        joint_names_of(task), reference, stamp_ns(first.evaluation.stamp), effort=True))
+    action = ActionClient(client.node, FollowJointTrajectory,
+                          'pd_controller/follow_joint_trajectory')
     try:
-        assert wait_until(lambda: publisher.get_subscription_count() > 0, DELIVERY_TIMEOUT)
-        publisher.publish(jump)
-        assert wait_until(lambda: 'refused a replacement trajectory'
-                          in logs['pd_controller'].read_text(), DELIVERY_TIMEOUT)
+        handle = send_goal(action, goal, 10.0, 'pd_controller')
+        answer = wait_for_result(action, handle, 10.0, 'pd_controller')
     finally:
-        client.node.destroy_publisher(publisher)
+        action.destroy()
+    assert answer.error_code == FollowJointTrajectory.Result.OLD_HEADER_TIMESTAMP, \
+        answer.error_string
+    logs = {p.name: p.log_path for p in graph.processes}
     ignored = 'goal update ignored: no rollout runs'
     before = logs['dmp_executor'].read_text().count(ignored)
     client.update_goal(NEW_GOAL, SWITCH)
@@ -270,30 +280,27 @@ def test_a_jumping_replacement_and_an_update_without_a_rollout_change_nothing(
     assert list(again.evaluation.component_values) == list(first.evaluation.component_values)
 
 
-def test_a_change_the_controller_did_not_track_is_not_scored(client, graph, task, wait_until):
-    """The evaluator applies an announced change only if the controller's last reference is
-    the changed trajectory's: here it is not (as for a live change that came too late)."""
-    from psl_msgs.msg import GoalUpdate
-    from psl_msgs.srv import GoalChange
-    from psl_ros.names import GOAL_CHANGE
+def test_an_evaluation_of_a_trajectory_of_other_joints_is_refused_at_once(client, task):
+    """The evaluator scores the episode against the trajectory the executor says ran: one
+    of other joints gets the reason, and the graph serves on."""
+    from psl_msgs.msg import TaskInstance
+    from psl_msgs.srv import EvaluateEpisode
+    from psl_ros.names import EVALUATE
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-    service = client.node.create_client(GoalChange, GOAL_CHANGE)
+    service = client.node.create_client(EvaluateEpisode, EVALUATE)
     try:
         assert service.wait_for_service(timeout_sec=10.0)
-        answer = client.wait(service.call_async(GoalChange.Request(change=GoalUpdate(
-            time_from_start=SWITCH, goal=NEW_GOAL.tolist(), last_reference=[9.0, 9.0, 9.0]))),
-            10.0, 'goal_change')
-        assert answer.success, answer.message
+        answer = client.wait(service.call_async(EvaluateEpisode.Request(
+            episode=TaskInstance(task=TASK, tau=task.tau_default.tolist(), num_steps=1,
+                                 control_period=task.control_period),
+            trajectory=JointTrajectory(joint_names=['a', 'b', 'c'], points=[
+                JointTrajectoryPoint(positions=[0.0, 0.0, 0.0])]))), 10.0, 'evaluate')
     finally:
         client.node.destroy_client(service)
+    assert not answer.success and "does not fit the task's" in answer.message, answer.message
     result = client.rollout(TASK, task.tau_default, policy_for(task).default_theta)
-    assert result.success, result.message
-    assert result.evaluation.goal_change_time == -1.0
-    np.testing.assert_allclose(result.evaluation.goal_position, hand(task, task.goal_posture),
-                               atol=FK_TOLERANCE)
-    log = next(p for p in graph.processes if p.name == 'reward_evaluator').log_path
-    assert wait_until(lambda: 'did not reach the controller in time' in log.read_text(),
-                      DELIVERY_TIMEOUT)
+    assert result.success and result.evaluation.goal_change_time == -1.0, result.message
 
 
 def test_psl_rollout_changes_the_goal_through_the_action(graph, task):

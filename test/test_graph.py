@@ -143,11 +143,9 @@ def count_messages(node, topics, counts):
     from psl_msgs.msg import RolloutEvaluation, TaskInstance
     from rclpy.qos import DurabilityPolicy
     from sensor_msgs.msg import JointState
-    from trajectory_msgs.msg import JointTrajectory
 
-    types = {'/joint_states': JointState, '/reference': JointState,
-             '/effort_command': Float64MultiArray, '/task_instance': TaskInstance,
-             '/rollout_evaluation': RolloutEvaluation, '/joint_trajectory': JointTrajectory}
+    types = {'/joint_states': JointState, '/effort_command': Float64MultiArray,
+             '/task_instance': TaskInstance, '/rollout_evaluation': RolloutEvaluation}
     subscriptions = []
     for topic in topics:
         counts[topic] = 0
@@ -164,12 +162,11 @@ def count_messages(node, topics, counts):
 
 def test_recorded_bag_reads_back(client, task, theta, tmp_path, reference_result, wait_until):
     bag = tmp_path / 'rollout_bag'
-    topics = ['joint_states', 'reference', 'effort_command', 'task_instance',
-              'rollout_evaluation', 'joint_trajectory']
-    n = task.num_steps + 1       # states 0..N, each answered by one command and reference
+    topics = ['joint_states', 'effort_command', 'task_instance', 'rollout_evaluation']
+    n = task.num_steps + 1       # states 0..N, each answered by one command
     # task_instance is latched: the recorder also receives the previous episode's announcement
-    expected = {'/joint_states': n, '/reference': n, '/effort_command': n,
-                '/task_instance': 2, '/rollout_evaluation': 1, '/joint_trajectory': 1}
+    expected = {'/joint_states': n, '/effort_command': n, '/task_instance': 2,
+                '/rollout_evaluation': 1}
     stop = threading.Event()
     recordings, so_far = [], {}
     recorder = threading.Thread(target=lambda: recordings.append(

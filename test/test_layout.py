@@ -20,8 +20,10 @@ FORBIDDEN = {
                    'psl_cli'},
     'psl_ros': {'psl_task', 'psl_sim', 'psl_controller', 'psl_optimizer', 'psl_memory',
                 'psl_bench', 'psl_cli'},
-    'psl_sim': {'psl_controller', 'psl_optimizer', 'psl_memory', 'psl_bench', 'psl_cli'},
-    'psl_controller': {'psl_optimizer', 'psl_memory', 'psl_bench', 'psl_cli'},
+    # the controller is a library the robots run (psl's standard robot runs its trajectory
+    # controller in its own loop); it knows no simulator
+    'psl_controller': {'psl_sim', 'psl_optimizer', 'psl_memory', 'psl_bench', 'psl_cli'},
+    'psl_sim': {'psl_optimizer', 'psl_memory', 'psl_bench', 'psl_cli'},
     'psl_optimizer': {'psl_bench', 'psl_cli'},
     'psl_bench': {'psl_cli'},
 }

@@ -12,7 +12,7 @@ import yaml
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
 
-from psl_cli.node_parameters import node_parameters, parameter_file
+from psl_cli.node_parameters import node_parameters, parameter_file, reported_parameters
 from psl_ros.client import RosClient
 from psl_ros.futures import ask, wait_for
 from psl_ros.graph import NODES, Graph
@@ -80,7 +80,9 @@ def test_a_running_node_declares_its_dataclasses_fields(running, node):
     graph, client = running
     values, descriptions = _declared(client, node)
     expected = _expected(node)
-    assert set(values) == set(expected), (node, sorted(set(values) ^ set(expected)))
+    reported = reported_parameters().get(node, ())     # what a controller says of itself
+    assert set(values) == set(expected) | set(reported), \
+        (node, sorted(set(values) ^ (set(expected) | set(reported))))
     passed = graph.params(node)                 # what the launcher sets on the command line
     for name, default in expected.items():
         if name not in passed:
@@ -106,16 +108,27 @@ def test_an_update_is_refused_with_the_dataclasses_reason(running):
         assert result.successful
 
 
-@pytest.mark.parametrize('value', [float('nan'), -1.0])
-def test_a_bad_tracking_bound_is_refused_and_the_controller_keeps_serving(running, value):
+@pytest.mark.parametrize('value', [[float('nan'), 1.0, 1.0], [-1.0, 1.0, 1.0], [1.0]])
+def test_bad_gains_are_refused_and_the_controller_keeps_its_own(running, value):
     _, client = running
     with parameter_client(client, 'pd_controller') as parameters:
         (result,) = _asked(lambda: parameters.set_parameters(
-            [Parameter('max_tracking_error', value=value)]), 'set_parameters').results
-        assert not result.successful and 'max_tracking_error must be >= 0' in result.reason
-        (kept,) = _asked(lambda: parameters.get_parameters(['max_tracking_error']),
-                         'get_parameters').values
-        assert kept.double_value == 0.0
+            [Parameter('kp', value=value)]), 'set_parameters').results
+        assert not result.successful and 'kp needs 3 finite values >= 0' in result.reason
+        (kept,) = _asked(lambda: parameters.get_parameters(['kp']), 'get_parameters').values
+        assert list(kept.double_array_value) == [0.0]
+
+
+def test_the_controller_says_what_it_drives(running):
+    """JTC's parameters joints (the task's, its order) and command_interfaces (effort)."""
+    _, client = running
+    from psl_task.arm_model import joint_names_of
+    from psl_task.task import load_task
+    with parameter_client(client, 'pd_controller') as parameters:
+        joints, interfaces = _asked(lambda: parameters.get_parameters(
+            ['joints', 'command_interfaces']), 'get_parameters').values
+    assert list(joints.string_array_value) == joint_names_of(load_task('reach_over_obstacle'))
+    assert list(interfaces.string_array_value) == ['effort']
 
 
 @pytest.mark.parametrize('node', sorted(node_parameters()))

@@ -4,9 +4,10 @@ core kept busy by a spinning process, a bag of the loop's topics (record() in a 
 reader (``mcap`` + ``mcap_ros2``), and the recorder counts no loss.
 
 Per rollout of N control periods the loop publishes states 0..N: N + 1 joint_states, ee_pose
-and /clock messages with the episode's stamps, N + 1 references with the same stamps, N + 1
-effort commands (the controller answers every state, the last one too; the simulator ignores
-that answer) and one trajectory, task announcement and evaluation.
+and /clock messages with the episode's stamps, N + 1 controller states (psl's controller's
+reference and output, while someone subscribes) with the same stamps, N + 1 effort commands
+(the controller answers every state, the last one too; the simulator ignores that answer) and
+one task announcement and evaluation.
 """
 import json
 import threading
@@ -30,10 +31,10 @@ ROLLOUTS = 5
 RECORDER_TIMEOUT = 120.0     # [s] for the recorder to take what the rollouts published
 # stamp of each message of the topics that carry one message per state
 PER_STATE_STAMP = {'/joint_states': lambda m: m.header.stamp,
-                   '/reference': lambda m: m.header.stamp,
+                   '/pd_controller/controller_state': lambda m: m.header.stamp,
                    '/ee_pose': lambda m: m.header.stamp,
                    '/clock': lambda m: m.clock}
-PER_ROLLOUT = ('/task_instance', '/joint_trajectory', '/rollout_evaluation')
+PER_ROLLOUT = ('/task_instance', '/rollout_evaluation')
 TOPICS = [*PER_STATE_STAMP, '/effort_command', *PER_ROLLOUT]
 
 
@@ -131,20 +132,22 @@ def test_a_bag_of_the_loop_holds_every_message_while_a_core_is_busy(graph, clien
         assert [_ns(stamp(m)) for m in messages[topic]] == episode_stamps, topic
     assert [_ns(m.stamp) for m in messages['/rollout_evaluation']] == starts
     assert [_ns(m.stamp) for m in messages['/task_instance']][-ROLLOUTS:] == starts
-    assert len(messages['/joint_trajectory']) == ROLLOUTS
 
     # the k-th effort command answers the k-th state: the controller's law on the state and
-    # the reference the bag holds gives it exactly
+    # the reference the bag holds gives it exactly, and it is the output the controller said
     law = law_for(task)
-    states, references = messages['/joint_states'], messages['/reference']
+    states = messages['/joint_states']
+    references = [m.reference for m in messages['/pd_controller/controller_state']]
     answers = law.torque(np.array([m.position for m in states]),
                          np.array([m.velocity for m in states]),
-                         np.array([m.position for m in references]),
-                         np.array([m.velocity for m in references]),
+                         np.array([m.positions for m in references]),
+                         np.array([m.velocities for m in references]),
                          np.array([m.effort for m in references]))
     commands = np.array([m.data for m in messages['/effort_command']])
     assert commands.shape == answers.shape == (ROLLOUTS * (n + 1), task.n_joints)
     assert np.array_equal(commands, answers)
+    outputs = np.array([m.output.effort for m in messages['/pd_controller/controller_state']])
+    assert np.array_equal(commands, outputs)
 
     info = YAML(typ='safe').load((bag / 'metadata.yaml').read_text())[
         'rosbag2_bagfile_information']

@@ -1,76 +1,94 @@
-"""psl_sim's standard robot as a separate process over DDS, seen as a ros2_control robot is:
-joint_states stamped with the wall clock at the control rate, in its own joint order with an
-extra joint; torques on effort_command in the controller's order come back as effort; a bad
-command leaves it serving; silence brings zero torque after the command timeout; a task
-instance is placed in its world. The process is ended by its process group in a finally."""
+"""psl_sim's standard robot as a separate process over DDS, seen as a ros2_control robot with
+its own JointTrajectoryController is: joint_states in its own joint order with an extra joint,
+stamped with the robot's time (its start plus the periods run: consecutive stamps a whole
+number of control periods apart); FollowJointTrajectory served on the effort interface by the
+controller inside its loop (the torque it applies, reported as effort, is the law on the state
+it reported, with the robot's own gains, JTC's parameters say what it drives); a task instance
+placed in its world; its loop's timing reported on /diagnostics; Ctrl-C ends it quietly. Every
+wait is on an event with a deadline; the process is ended by its process group in a
+finally."""
 import contextlib
 import os
 import signal
-import statistics
 import subprocess
 import threading
-import time
 
+import numpy as np
 import pytest
+from control_msgs.action import FollowJointTrajectory
+from control_msgs.msg import JointTolerance
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from psl_msgs.msg import TaskInstance
 from psl_ros import names
-from psl_ros.client import RosClient
+from psl_ros.action_client import ActionClient
+from psl_ros.client import RosClient, send_goal, wait_for_result
+from psl_ros.futures import ask
 from psl_ros.graph import find_executable
-from psl_ros.qos import LATCHED, RELIABLE
+from psl_ros.qos import LATCHED
+from psl_ros.stamps import duration_msg, time_msg, to_ns
 from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'                     # joint1..joint3 at 500 Hz
-PERIOD = load_task(TASK).control_period
+PERIOD_NS = load_task(TASK).control_period_ns
 JOINT_ORDER = ['joint3', 'joint1', 'joint2']     # the robot's joint_states order
-COMMAND_JOINTS = ['joint2', 'joint3', 'joint1']  # its forward_command_controller's
 EXTRA = 'gripper'
-TIMEOUT = 0.2                                    # s, command_timeout: 100 periods
+KP, KD = [150.0, 100.0, 50.0], [10.0, 6.0, 2.5]  # its controller's gains (not the task's)
 START_TIMEOUT = 30.0      # s, for the process to start and its first states to arrive
-EVENT_TIMEOUT = 10.0      # s, for anything that should happen within periods
-LATE = 0.25               # s a loaded machine's robot loop may answer the timeout late
-STAMP_SKEW = 0.5          # s, a stamp's distance from the receive time on a loaded machine
+EVENT_TIMEOUT = 20.0      # s, for anything that should happen within a second of robot time
+TORQUE_LIMIT = 40.0       # N m, reach_over_obstacle's motors
 
 
 class Robot:
-    """The node's process, a client node that records its joint_states (with their receive
-    time) and publishes commands, and the node's log."""
+    """The node's process, a client node that records its joint_states and its reports, and
+    the node's log."""
 
     def __init__(self, log_path, namespace: str = '/'):
         self.log_path = log_path
-        self.states: list[tuple[float, JointState]] = []
+        self.lock = threading.Lock()
+        self.states: list[JointState] = []
+        self.reports: list[dict] = []
         self._log = open(log_path, 'wb')
         env = dict(os.environ, RCUTILS_LOGGING_BUFFERED_STREAM='0')
         self.process = subprocess.Popen(
             [str(find_executable('psl_sim', 'standard_robot')), '--ros-args',
              '-p', f'task:={TASK}', '-p', f'joint_order:=[{",".join(JOINT_ORDER)}]',
-             '-p', f'extra_joints:=[{EXTRA}]',
-             '-p', f'command_joints:=[{",".join(COMMAND_JOINTS)}]',
-             '-p', f'command_timeout:={TIMEOUT}', '-r', f'__ns:={namespace}'],
+             '-p', f'extra_joints:=[{EXTRA}]', '-p', f'kp:={KP}', '-p', f'kd:={KD}',
+             '-r', f'__ns:={namespace}'],
             stdout=self._log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
         self.client = RosClient(namespace, name='standard_robot_test')
         node = self.client.node
-        self.sub = node.create_subscription(
-            JointState, names.JOINT_STATES,
-            lambda m: self.states.append((time.time(), m)),
-            QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE))
-        self.pub = node.create_publisher(Float64MultiArray, names.EFFORT_COMMAND, RELIABLE)
+        node.create_subscription(JointState, names.JOINT_STATES, self._on_state,
+                                 QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE))
+        node.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self._on_report, 100)
         self.pub_task = node.create_publisher(TaskInstance, names.TASK_INSTANCE, LATCHED)
+        self.action = ActionClient(node, FollowJointTrajectory,
+                                   'standard_robot/follow_joint_trajectory')
+
+    def _on_state(self, msg: JointState) -> None:
+        with self.lock:
+            self.states.append(msg)
+
+    def _on_report(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name.endswith('standard_robot: loop'):
+                with self.lock:
+                    self.reports.append({kv.key: kv.value for kv in status.values})
+
+    def count(self) -> int:
+        with self.lock:
+            return len(self.states)
+
+    def since(self, k: int) -> list[JointState]:
+        with self.lock:
+            return list(self.states[k:])
 
     def log(self) -> str:
         return self.log_path.read_text(errors='replace')
-
-    def command(self, values) -> float:
-        """Publish one command; returns the wall time after the publish call."""
-        self.pub.publish(Float64MultiArray(data=[float(v) for v in values]))
-        return time.time()
-
-    def after(self, t: float) -> list[JointState]:
-        """The states received after wall time t."""
-        return [m for received, m in list(self.states) if received > t]
 
     def stop(self) -> int | None:
         """SIGINT to the process group, then SIGKILL; returns the exit code."""
@@ -95,39 +113,13 @@ class Robot:
             self._log.close()
 
 
-def stamp_s(msg: JointState) -> float:
-    return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
-
-
-class Streamer:
-    """Publishes one command every 5 ms from a thread (a controller at 200 Hz) until stopped;
-    `last` is the wall time after its last publish."""
-
-    def __init__(self, robot: Robot, values):
-        self.robot, self.values, self.last = robot, values, 0.0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self):
-        while not self._stop.is_set():
-            self.last = self.robot.command(self.values)
-            self._stop.wait(0.005)
-
-    def stop(self) -> float:
-        self._stop.set()
-        self._thread.join(timeout=5.0)
-        return self.last
-
-
 @contextlib.contextmanager
 def running_robot(log_path, wait_until, namespace: str = '/'):
     """A standard robot process that has published its first states; ended in the end."""
     r = None
     try:
         r = Robot(log_path, namespace)
-        assert wait_until(lambda: len(r.states) >= 10 and r.pub.get_subscription_count() > 0,
-                          START_TIMEOUT), \
+        assert wait_until(lambda: r.count() >= 10, START_TIMEOUT), \
             f'no joint_states from the standard robot within {START_TIMEOUT} s:\n{r.log()}'
         yield r
     finally:
@@ -144,90 +136,106 @@ def robot(tmp_path_factory, wait_until):
         yield r
 
 
-def wait_for_silence(robot: Robot, wait_until) -> float:
-    """Wait until the robot applies zero torque (an earlier test's commands timed out);
-    returns the wall time from which its states carry zero effort."""
-    def zero_since():
-        states = robot.after(time.time() - 1.0)
-        return bool(states) and all(list(m.effort) == [0.0] * 4 for m in states[-10:])
-    assert wait_until(zero_since, EVENT_TIMEOUT), 'the effort does not go back to zero'
-    return time.time()
+def positions(msg: JointState) -> dict[str, float]:
+    return dict(zip(msg.name, msg.position))
 
 
-def test_joint_states_are_stamped_with_the_wall_clock_at_the_control_rate(robot, wait_until):
-    start = time.time()
-    assert wait_until(lambda: len(robot.after(start)) >= 300, EVENT_TIMEOUT), \
-        f'{len(robot.after(start))} joint_states in {EVENT_TIMEOUT} s'
-    received = [(t, m) for t, m in list(robot.states) if t > start]
-    for t, m in received:
-        # stamped before it was received, and not long before (system time, not sim time)
-        assert -0.01 < t - stamp_s(m) < STAMP_SKEW, (t, stamp_s(m))
-    stamps = [stamp_s(m) for _, m in received]
-    steps = [b - a for a, b in zip(stamps, stamps[1:])]
-    assert all(step > 0 for step in steps)
-    assert statistics.median(steps) == pytest.approx(PERIOD, rel=0.2), \
-        statistics.median(steps)
-    m = received[-1][1]
-    assert list(m.name) == JOINT_ORDER + [EXTRA]
-    assert (m.position[-1], m.velocity[-1], m.effort[-1]) == (0.0, 0.0, 0.0)
-    assert len(m.position) == len(m.velocity) == len(m.effort) == 4
+def test_joint_states_are_stamped_with_the_robots_time_in_its_own_order(robot, wait_until):
+    """Consecutive stamps are a whole number of control periods apart (one unless its loop
+    stalled and skipped periods, which its reports count), in its joint order with the extra
+    joint at 0."""
+    k = robot.count()
+    assert wait_until(lambda: robot.count() >= k + 300, EVENT_TIMEOUT)
+    states = robot.since(k)
+    stamps = np.array([to_ns(m.header.stamp) for m in states])
+    steps = np.diff(stamps)
+    assert np.all(steps > 0) and np.all(steps % PERIOD_NS == 0), set(steps.tolist())
+    assert np.mean(steps == PERIOD_NS) > 0.5            # mostly one period apart
+    assert all(list(m.name) == JOINT_ORDER + [EXTRA] for m in states)
+    assert all((m.position[-1], m.velocity[-1], m.effort[-1]) == (0.0, 0.0, 0.0)
+               for m in states)
 
 
-def test_a_bad_command_is_refused_and_the_robot_serves_on(robot, wait_until):
-    start = wait_for_silence(robot, wait_until)
-    bad = [[1.0], [1.0, 2.0, 3.0, 4.0], [float('nan'), 0.0, 0.0]]
-    # DDS may still be matching the command publisher: send until the node says it refused
-    assert wait_until(lambda: [robot.command(b) for b in bad]
-                      and 'refused effort_command' in robot.log(), EVENT_TIMEOUT, 0.05), \
-        robot.log()
-    after = time.time()
-    assert wait_until(lambda: len(robot.after(after)) >= 50, EVENT_TIMEOUT), \
-        'the robot stopped publishing after a bad command'
-    assert robot.process.poll() is None
-    # none of them changed the torque
-    assert all(list(m.effort) == [0.0] * 4 for m in robot.after(start))
+def test_its_controller_says_what_it_drives(robot):
+    parameters = AsyncParameterClient(robot.client.node, 'standard_robot')
+    assert parameters.wait_for_services(timeout_sec=EVENT_TIMEOUT)
+    values = ask(lambda: parameters.get_parameters(['joints', 'command_interfaces', 'kp']),
+                 10.0, 'standard_robot/get_parameters').values
+    assert list(values[0].string_array_value) == ['joint1', 'joint2', 'joint3']
+    assert list(values[1].string_array_value) == ['effort']
+    assert list(values[2].double_array_value) == KP
 
 
-def test_constant_torques_come_back_as_effort_and_stop_after_the_timeout(robot, wait_until):
-    command = {'joint2': 1.0, 'joint3': 2.0, 'joint1': 3.0}
-    expected = [command[j] for j in JOINT_ORDER] + [0.0]       # the robot's order
-    streamer = Streamer(robot, [command[j] for j in COMMAND_JOINTS])
-    try:
-        start = time.time()
-        assert wait_until(lambda: sum(list(m.effort) == expected
-                                      for m in robot.after(start)) >= 50, EVENT_TIMEOUT), \
-            [list(m.effort) for m in robot.after(start)[-5:]]
-    finally:
-        last = streamer.stop()
-    # silence: zero torque after the timeout, never before it (the robot's clock never runs
-    # ahead of the wall clock), and soon after: within LATE s more, the time a Python loop at
-    # 500 Hz beside the other test worker may answer late (seen: 47 ms past 10 periods); how
-    # late it is under load is a benchmark's business (psl bench graph), not this test's
-
-    def first_zero():
-        zero = [m for m in robot.after(last) if list(m.effort) == [0.0] * 4]
-        return zero[0] if zero else None
-    assert wait_until(lambda: first_zero() is not None, EVENT_TIMEOUT), \
-        [list(m.effort) for m in robot.after(last)[-5:]]
-    silent = stamp_s(first_zero()) - last
-    assert TIMEOUT - PERIOD < silent < TIMEOUT + LATE, silent
-    assert all(list(m.effort) == expected for m in robot.after(last)
-               if stamp_s(m) < last + TIMEOUT - PERIOD)
+def test_a_goal_moves_the_arm_by_the_law_on_the_reported_state(robot, wait_until):
+    """A one-point goal a second ahead: the arm comes to it (SUCCESSFUL at its end: the goal
+    tolerance erased), and every effort the robot reports is the compliant law, with its own
+    gains, on the state it reported one period earlier and the goal's reference (the
+    trajectory's segment from the state at the goal's first sample to the point: between
+    the two, the reference is known only to the controller, so the law is checked where it
+    is the point itself: from the point's time on)."""
+    task = load_task(TASK)
+    target = {j: float(q) + 0.15 for j, q in zip(['joint1', 'joint2', 'joint3'],
+                                                  task.start_posture)}
+    newest = robot.since(robot.count() - 1)[-1]
+    start = to_ns(newest.header.stamp) + 100 * PERIOD_NS          # 0.2 s ahead
+    goal = FollowJointTrajectory.Goal(trajectory=JointTrajectory(
+        joint_names=list(target), points=[JointTrajectoryPoint(
+            positions=list(target.values()), velocities=[0.0] * 3,
+            time_from_start=duration_msg(10**9))]))
+    goal.trajectory.header.stamp = time_msg(start)
+    goal.goal_tolerance = [JointTolerance(name=j, position=-1.0, velocity=-1.0)
+                           for j in target]
+    k = robot.count()
+    handle = send_goal(robot.action, goal, EVENT_TIMEOUT, 'standard_robot')
+    result = wait_for_result(robot.action, handle, EVENT_TIMEOUT, 'standard_robot')
+    assert result.error_code == FollowJointTrajectory.Result.SUCCESSFUL, result.error_string
+    end = start + 10**9
+    assert wait_until(lambda: sum(to_ns(m.header.stamp) >= end for m in robot.since(k))
+                      > 200, EVENT_TIMEOUT)
+    states = robot.since(k)
+    kp, kd = dict(zip(['joint1', 'joint2', 'joint3'], KP)), dict(zip(['joint1', 'joint2',
+                                                                      'joint3'], KD))
+    checked = 0
+    for before, after in zip(states, states[1:]):
+        t = to_ns(before.header.stamp)
+        if t < end or to_ns(after.header.stamp) - t != PERIOD_NS:
+            continue
+        q, qd = positions(before), dict(zip(before.name, before.velocity))
+        applied = dict(zip(after.name, after.effort))       # in the period after `before`
+        for j in target:
+            law = np.clip(kp[j] * (target[j] - q[j]) - kd[j] * qd[j], -TORQUE_LIMIT,
+                          TORQUE_LIMIT)
+            assert applied[j] == pytest.approx(law, rel=1e-9, abs=1e-9), (j, t)
+        checked += 1
+    assert checked > 100
+    final = positions(robot.since(robot.count() - 1)[-1])
+    assert max(abs(final[j] - target[j]) for j in target) < 0.01
 
 
 def test_a_task_instance_is_placed_in_its_world(robot, wait_until):
-    robot.pub_task.publish(TaskInstance(task=TASK, tau=[0.6, 0.2], control_period=PERIOD))
-    assert wait_until(lambda: 'task instance placed: tau = [0.6, 0.2]' in robot.log(),
-                      EVENT_TIMEOUT), robot.log()
+    mark = len(robot.log())
+    robot.pub_task.publish(TaskInstance(task=TASK, tau=[0.7, 0.2]))
+    assert wait_until(lambda: 'task instance placed: tau = [0.7, 0.2]' in robot.log()[mark:],
+                      EVENT_TIMEOUT), robot.log()[mark:]
     robot.pub_task.publish(TaskInstance(task='payload_transport', tau=[1.0]))
-    assert wait_until(lambda: 'task instance not placed' in robot.log(), EVENT_TIMEOUT), \
-        robot.log()
-    after = time.time()
-    assert wait_until(lambda: len(robot.after(after)) >= 50, EVENT_TIMEOUT)
+    assert wait_until(lambda: 'task instance not placed' in robot.log()[mark:],
+                      EVENT_TIMEOUT)
+
+
+def test_its_loop_reports_its_timing(robot, wait_until):
+    """Periods run and deadline misses on /diagnostics, counted by the robot itself."""
+    with robot.lock:
+        seen = len(robot.reports)
+    assert wait_until(lambda: len(robot.reports) >= seen + 2, EVENT_TIMEOUT)
+    first, second = robot.reports[seen], robot.reports[seen + 1]
+    assert int(second['periods']) > int(first['periods']) > 0
+    assert 0 <= int(first['deadline_misses']) <= int(second['deadline_misses'])
+    assert 0 <= int(first['skipped']) <= int(second['skipped'])
+    assert float(second['late_max_us']) >= float(second['late_p99_us'])
 
 
 def test_ctrl_c_ends_it_quietly(tmp_path, wait_until):
-    # a robot of its own (in a namespace of its own), stopped while its loop publishes
-    with running_robot(tmp_path / 'robot.log', wait_until, '/ctrl_c') as robot:
-        assert robot.stop() == 0, robot.log()
-        assert 'Traceback' not in robot.log(), robot.log()
+    with running_robot(tmp_path / 'robot.log', wait_until, '/quiet') as r:
+        code = r.stop()
+    assert code == 0, r.log()
+    assert 'Traceback' not in r.log()

@@ -25,7 +25,7 @@ from psl_ros.graph import find_executable
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED_LAYOUT = ROOT / 'docs' / 'foxglove' / 'psl.layout.json'
 TASK = 'reach_over_obstacle'
-VIEWED = ['/' + t for t in (names.SCENE, names.JOINT_STATES, names.REFERENCE,
+VIEWED = ['/' + t for t in (names.SCENE, names.JOINT_STATES, names.PSL_CONTROLLER_STATE,
                             names.TASK_INSTANCE, names.LEARNING_PROGRESS)]
 LATCHED = {'/' + names.SCENE, '/' + names.TASK_INSTANCE}
 SESSION = dict(task=TASK, strategy='bootstrap', num_tasks=2, max_rollouts_per_task=6, seed=1,
@@ -88,7 +88,7 @@ def test_a_topic_is_subscribed_in_ros_only_while_a_viewer_watches_it(url, client
         assert not any(view_subscribes(client, t) for t in VIEWED)     # nobody watches
         viewer.subscribe(['/' + names.JOINT_STATES])
         assert wait_until(lambda: view_subscribes(client, '/' + names.JOINT_STATES), WAIT)
-        assert not view_subscribes(client, '/' + names.REFERENCE)
+        assert not view_subscribes(client, '/' + names.PSL_CONTROLLER_STATE)
     finally:
         viewer.close()
     assert wait_until(lambda: not view_subscribes(client, '/' + names.JOINT_STATES), WAIT)

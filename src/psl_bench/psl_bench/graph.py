@@ -3,8 +3,8 @@
 Lockstep control steps per second (the simulator's own end-of-episode figures on
 /diagnostics, with the medians of its step phases) beside the bare publish/answer round trip
 between two processes measured in the same run, in chunks between the rollouts
-(`psl_bench.round_trip`), and the deadline misses of the realtime mode over one long
-episode (simulator and controller only). With ``view`` the lockstep rollouts run beside the
+(`psl_bench.round_trip`), and the deadline misses of psl's standard robot on the wall clock
+(its trajectory controller in its own loop: what a robot's real-time loop does). With ``view`` the lockstep rollouts run beside the
 view node (`psl_ros.foxglove_view`): idle (no viewer) or watched (a viewer of the Foxglove
 protocol subscribed to every channel, in this process), with the view's CPU share.
 """
@@ -75,7 +75,7 @@ class Viewer:
 
 def measure(task_name: str = DEFAULT_TASK, rollouts: int = 10,
             round_trips: int = 2000, realtime_seconds: float = 60.0, busy: int = 0,
-            realtime_priority: int = 0, spin_margin: float = 0.0, view: str = 'off') -> dict:
+            view: str = 'off') -> dict:
     """Round trip, lockstep and (realtime_seconds > 0) realtime figures of one run.
 
     Raises:
@@ -102,7 +102,7 @@ def measure(task_name: str = DEFAULT_TASK, rollouts: int = 10,
         graph.wait_ready()
         if view == 'watched':
             viewer = Viewer(graph.view_url(), ['/' + t for t in (
-                names.SCENE, names.JOINT_STATES, names.REFERENCE, names.TASK_INSTANCE,
+                names.SCENE, names.JOINT_STATES, names.PSL_CONTROLLER_STATE, names.TASK_INSTANCE,
                 names.LEARNING_PROGRESS)])
         viewed = next((p for p in graph.processes if p.name == 'view'), None)
         with RosClient() as client:
@@ -153,56 +153,69 @@ def measure(task_name: str = DEFAULT_TASK, rollouts: int = 10,
         statistics.median(rt * rate for rt, rate in zip(chunk_medians, rates))
         if len(rates) == len(chunk_medians) else report['lockstep']['ceiling_ratio'])
     if realtime_seconds > 0:
-        report['realtime'] = _realtime(task, realtime_seconds, busy, realtime_priority,
-                                       spin_margin)
+        report['realtime'] = _realtime(task, realtime_seconds, busy)
     return report
 
 
-def _realtime(task, seconds: float, busy: int = 0, priority: int = 0,
-              spin_margin: float = 0.0) -> dict:
-    """One realtime episode of `seconds` (simulator and controller only), with `busy` cores
-    kept busy and the loop at SCHED_FIFO `priority` (0: normal): deadline misses, and the CPU
-    the two nodes used per second of the episode (the pacing's cost)."""
+class LoopReports:
+    """The standard robot's reports of its loop's timing from /diagnostics."""
+
+    def __init__(self, node):
+        from diagnostic_msgs.msg import DiagnosticArray
+        self.reports: list[dict] = []
+        self.event = threading.Event()
+        node.create_subscription(DiagnosticArray, names.DIAGNOSTICS, self._on, 100)
+
+    def _on(self, msg) -> None:
+        for status in msg.status:
+            if status.name.endswith('standard_robot: loop'):
+                self.reports.append({kv.key: kv.value for kv in status.values})
+                self.event.set()
+
+    def wait(self, count: int, timeout: float) -> dict:
+        """The `count`-th report from now (RuntimeError if none comes within `timeout` s)."""
+        want = len(self.reports) + count
+        deadline = time.monotonic() + timeout
+        while len(self.reports) < want:
+            self.event.clear()
+            if not self.event.wait(max(0.0, deadline - time.monotonic())):
+                raise RuntimeError('the standard robot reported no loop timing')
+        return self.reports[want - 1]
+
+
+def _realtime(task, seconds: float, busy: int = 0) -> dict:
+    """psl's standard robot (the task's model as a ros2_control robot: its trajectory
+    controller inside its loop, stepped with the physics) on the wall clock for `seconds`,
+    holding its posture, with `busy` cores kept busy: its loop's deadline misses (a step that
+    ends after its control period), the lateness of the steps (p99 and max of its reports)
+    and the CPU it used per second."""
     from psl_bench.busy_cores import busy_cores
     from psl_ros.client import RosClient
     from psl_ros.graph import Graph
     from psl_task.task import task_id
 
-    graph = Graph(task=task_id(task), mode='realtime',
-                  nodes=(('sim', 'psl_sim', 'sim'),
-                         ('pd_controller', 'psl_controller', 'pd_controller')),
-                  extra_params={'sim': {'episode_duration': seconds,
-                                        'realtime_priority': priority,
-                                        'spin_margin': spin_margin},
-                                'pd_controller': {'realtime_priority': priority}})
-    with graph, RosClient() as client, busy_cores(busy):
-        stats = EpisodeStats(client.node)
-        if not client.reset_client.wait_for_service(timeout_sec=30):
-            raise RuntimeError('realtime simulator did not come up')
-        deadline = time.monotonic() + 20
-        while client.node.count_subscribers(names.JOINT_STATES) < 1:
-            if time.monotonic() > deadline:
-                raise RuntimeError('controller did not come up')
-            time.sleep(0.1)
-        time.sleep(1.0)
-        cpu_before = {p.name: _cpu_seconds(p.pid) for p in graph.processes}
-        response = client.reset(task_id(task), task.tau_default)
-        if not response.success:
-            raise RuntimeError(response.message)
-        if not stats.event.wait(timeout=seconds * 1.5 + 30):
-            raise RuntimeError('the realtime episode did not end')
-        cpu = {p.name: _cpu_seconds(p.pid) - cpu_before[p.name] for p in graph.processes}
-        scheduling = next((line.split('realtime loop: ', 1)[1] for p in graph.processes
-                           for line in p.tail(50).splitlines() if 'realtime loop: ' in line),
-                          'unknown')
-    done = stats.done[-1]
-    misses, total = int(done['deadline_misses']), int(done['steps'])
-    wall = float(done['wall_time_s'])
-    return {'rate_hz': task.control_rate, 'seconds': seconds, 'steps': total,
-            'deadline_misses': misses, 'miss_fraction': misses / total,
-            'wall_time_s': wall, 'busy_cores': busy, 'scheduling': scheduling,
-            'spin_margin_s': spin_margin,
-            'cpu_share': {name: value / wall for name, value in cpu.items()}}
+    graph = Graph(task=task_id(task), robot='standard', nodes=())
+    with graph, RosClient() as client:
+        reports = LoopReports(client.node)
+        reports.wait(2, 30.0)           # running (and the first report's start-up behind)
+        with busy_cores(busy):
+            first = reports.wait(1, 10.0)
+            cpu_before = {p.name: _cpu_seconds(p.pid) for p in graph.processes}
+            wall_before = time.perf_counter()
+            late = []
+            for _ in range(max(1, round(seconds))):
+                late.append(reports.wait(1, 10.0))
+            wall = time.perf_counter() - wall_before
+            cpu = {p.name: _cpu_seconds(p.pid) - cpu_before[p.name] for p in graph.processes}
+    last = late[-1]
+    periods = int(last['periods']) - int(first['periods'])
+    misses = int(last['deadline_misses']) - int(first['deadline_misses'])
+    return {'rate_hz': task.control_rate, 'seconds': wall, 'steps': periods,
+            'deadline_misses': misses, 'miss_fraction': misses / max(1, periods),
+            'skipped': int(last['skipped']) - int(first['skipped']),
+            'late_p99_us_max': max(float(r['late_p99_us']) for r in late),
+            'late_max_us': max(float(r['late_max_us']) for r in late),
+            'busy_cores': busy, 'cpu_share': {name: value / wall for name, value in cpu.items()}}
 
 
 def _cpu_seconds(pid: int) -> float:
@@ -233,9 +246,11 @@ def format_report(report: dict) -> str:
         r = report['realtime']
         cpu = ', '.join(f'{name} {100 * share:.0f} %' for name, share in
                         r.get('cpu_share', {}).items())
-        lines.append(f"realtime {r['rate_hz']:.0f} Hz over {r['seconds']:.0f} s, "
-                     f"{r.get('busy_cores', 0)} cores kept busy, loop {r.get('scheduling')}, "
-                     f"spin margin {1e3 * r.get('spin_margin_s', 0):.1f} ms: "
-                     f"{r['deadline_misses']} misses of {r['steps']} steps "
-                     f"({100 * r['miss_fraction']:.2f} %); CPU of a core: {cpu}")
+        lines.append(f"standard robot on the wall clock, {r['rate_hz']:.0f} Hz over "
+                     f"{r['seconds']:.0f} s, {r.get('busy_cores', 0)} cores kept busy: "
+                     f"{r['deadline_misses']} deadline misses of {r['steps']} periods "
+                     f"({100 * r['miss_fraction']:.3f} %), {r['skipped']} skipped, step "
+                     "lateness p99 "
+                     f"{r['late_p99_us_max']:.0f} us (worst second), max "
+                     f"{r['late_max_us']:.0f} us; CPU of a core: {cpu}")
     return '\n'.join(lines) + '\n'

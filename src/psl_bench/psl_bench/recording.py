@@ -25,11 +25,10 @@ from psl_ros import names
 from psl_task import DEFAULT_TASK
 
 # topics that carry one message per state of an episode (states 0..N): the state, the
-# controller's answer and reference, the pose and the clock
-PER_STATE = (names.JOINT_STATES, names.EFFORT_COMMAND, names.REFERENCE, names.EE_POSE,
-             names.CLOCK)
+# controller's answer, the pose and the clock
+PER_STATE = (names.JOINT_STATES, names.EFFORT_COMMAND, names.EE_POSE, names.CLOCK)
 # topics that carry one message per rollout
-PER_ROLLOUT = (names.JOINT_TRAJECTORY, names.TASK_INSTANCE, names.ROLLOUT_EVALUATION)
+PER_ROLLOUT = (names.TASK_INSTANCE, names.ROLLOUT_EVALUATION)
 RECORDER_TIMEOUT = 60.0  # [s] for the recorder to take what the last rollout published
 
 

@@ -1,20 +1,27 @@
 """``psl bench sim-to-real``: a skill learned in simulation, continued on a robot whose model is
-wrong (batch mode: the robot is the task's model with a `psl_task.model_error.ModelError`).
+wrong (batch mode: the robot is the task's model with a `psl_task.model_error.ModelError`,
+optionally measurement noise and a controller of its own gains).
 
 Method, per task:
 - ``nominal``: a `Learner` session on the task's own model (seed ``nominal_seed``,
   ``nominal_tasks`` tasks): the simulated skill PS_sim and its memory file;
-- ``before``: PS_sim executed once on each held-out instance of ``seed`` on the robot;
-- ``scratch``: ``num_tasks`` tasks of ``seed`` on the robot from an empty skill;
-- one session per continuation (`psl_optimizer.learning.CONTINUATIONS`): the same tasks on the
-  robot, continuing PS_sim (``continue_from``); 'residual' (the default way) learns the robot's
-  correction on top of PS_sim, 'samples' adds the robot's solutions to PS_sim's samples;
-- a task with feed-forward: the tracking error [rad] on the robot, per held-out instance, of
-  the commanded paths of PS_sim with PD only (``pd_only``), with PS_sim's feed-forward
-  (``simulated``), with the nominal model's inverse dynamics (``oracle``), after
+- the robot: the task's model with ``model_error``, the joint states measured with
+  ``measurement_noise`` (`psl_optimizer.batch_rollout.MeasurementNoise`), and the controller's
+  gains ``robot_gains`` times the task's (a robot whose own controller is tuned otherwise:
+  the robot's task is a copy of the task YAML that differs only in its controller gains,
+  `robot_task`, and a skill of the task continues across, the name and sizes being the same);
+- per robot seed of ``seeds``: ``before``, PS_sim executed once on each held-out instance of
+  the seed on the robot; ``scratch``, ``num_tasks`` tasks of the seed on the robot from an
+  empty skill; one session per continuation (`psl_optimizer.learning.CONTINUATIONS`): the same
+  tasks on the robot, continuing PS_sim (``continue_from``); 'residual' (the default way)
+  learns the robot's correction on top of PS_sim, 'samples' adds the robot's solutions to
+  PS_sim's samples;
+- a task with feed-forward, per seed: the tracking error [rad] on the robot, per held-out
+  instance, of the commanded paths of PS_sim with PD only (``pd_only``), with PS_sim's
+  feed-forward (``simulated``), with the nominal model's inverse dynamics (``oracle``), after
   ``ilc_iterations`` ILC steps on the robot from PS_sim's theta (``ilc``: `ilc_step`, no stop at
   success), and the continued skills' learned feed-forward (zero-shot, `Learner.summary`).
-Every session reads the same training instances (its seed) and the same held-out instances; the
+Every session of a seed reads the same training instances and the same held-out instances; the
 rollouts on the robot of each session are what the table calls "rollouts on the robot".
 Plain Python, no ROS.
 """
@@ -31,6 +38,7 @@ from psl_task import DEFAULT_TASK
 
 # the stand-in "real" robot of the measurements (docs/benchmarks.md)
 REAL_ROBOT = 'mass_scale=1.3,frictionloss=0.05,damping=0.3'
+SEEDS = (11, 12, 13)       # robot seeds: the training and held-out instances on the robot
 TASKS = (DEFAULT_TASK, 'payload_transport')
 TRACKING = ('pd_only', 'simulated', 'oracle', 'ilc')      # PS_sim's path on the robot
 
@@ -53,13 +61,41 @@ def _ilc(rollouts, taus: np.ndarray, thetas: np.ndarray, iterations: int) -> np.
     return np.array(out)
 
 
+def robot_task(task, folder: Path, gains: float) -> Path:
+    """The YAML of the robot's task: `task`'s file with the controller's kp and kd times
+    `gains` (the robot's own controller), written into `folder`; everything else as it is
+    (the model file by its absolute path, the name kept, so a skill of the task continues on
+    it)."""
+    import yaml
+
+    data = yaml.safe_load(task.path.read_text())
+    robot = data.get('robot') or {}
+    if robot.get('model') is not None:
+        robot['model'] = str(task.model_path)
+        if robot.get('package_paths'):
+            robot['package_paths'] = {key: str(value)
+                                      for key, value in task.package_paths.items()}
+    else:
+        data['model'] = str(task.model_path)
+    data['name'] = task.name
+    data['controller'] = {**data['controller'],
+                          **{key: [gains * float(v) for v in data['controller'][key]]
+                             for key in ('kp', 'kd')}}
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f'{task.name}.robot.yaml'
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
 def measure_task(task_name: str, model_error: str = REAL_ROBOT, nominal_seed: int = 3,
-                 nominal_tasks: int = 30, seed: int = 11, num_tasks: int = 10,
+                 nominal_tasks: int = 30, seeds: Sequence[int] = SEEDS, num_tasks: int = 10,
                  num_test: int = 20, budget: int = 200, ilc_iterations: int = 10,
                  continuations: Sequence[str] = ('residual', 'samples'),
+                 measurement_noise: str = '', robot_gains: float = 1.0,
                  out: str | Path | None = None,
                  progress: Callable[[str], None] | None = None) -> dict:
     """The sessions of one task (module docstring); a JSON-able dict."""
+    from psl_optimizer.batch_rollout import MeasurementNoise
     from psl_optimizer.learning import (CONTINUATIONS, InProcessSkill, Learner, LearnSettings,
                                         feedforward_variants)
     from psl_optimizer.policy_search import SearchSettings
@@ -70,6 +106,7 @@ def measure_task(task_name: str, model_error: str = REAL_ROBOT, nominal_seed: in
 
     if ModelError.parse(model_error).is_identity:
         raise ValueError('sim to real needs a model error (the robot is the model otherwise)')
+    MeasurementNoise.parse(measurement_noise)        # ValueError naming what is wrong
     unknown = [c for c in continuations if c not in CONTINUATIONS]
     if unknown or len(set(continuations)) != len(continuations):
         raise ValueError(f'continuations: each of {", ".join(CONTINUATIONS)} at most once, '
@@ -79,12 +116,16 @@ def measure_task(task_name: str, model_error: str = REAL_ROBOT, nominal_seed: in
     temporary = tempfile.TemporaryDirectory(prefix='psl-bench-s2r-') if out is None else None
     root = Path(temporary.name if temporary else out) / task.name
     search = SearchSettings(max_rollouts=budget)
-    nominal, robot = make_rollouts('batch', task), make_rollouts('batch', task,
-                                                                 model_error=model_error)
+    # the robot's task: the task itself, or its copy with the robot controller's gains
+    real = task if robot_gains == 1.0 else load_task(str(robot_task(task, root, robot_gains)))
+    nominal = make_rollouts('batch', task)
+    robot = make_rollouts('batch', real, model_error=model_error,
+                          measurement_noise=measurement_noise)
+    on_robot = {'model_error': model_error, 'measurement_noise': measurement_noise}
 
-    def session(name, rollouts, **changes) -> dict:
+    def session(name, on, rollouts, **changes) -> dict:
         settings = LearnSettings(search=search, num_test=num_test, **changes)
-        learner = Learner(task, settings, root / name, rollouts)
+        learner = Learner(on, settings, root / name, rollouts)
         metrics = learner.run()
         s = metrics.summary
         row = {'rollouts': s.total_rollouts, 'rollouts_per_task': s.rollouts_per_task,
@@ -99,35 +140,39 @@ def measure_task(task_name: str, model_error: str = REAL_ROBOT, nominal_seed: in
         return row
 
     try:
-        report = {'task': task.name, 'model_error': model_error, 'nominal_seed': nominal_seed,
-                  'nominal_tasks': nominal_tasks, 'seed': seed, 'num_tasks': num_tasks,
-                  'num_test': num_test, 'budget': budget, 'ilc_iterations': ilc_iterations,
-                  'sessions': {}}
-        report['nominal'] = session('nominal', nominal, seed=nominal_seed,
+        report = {'task': task.name, 'model_error': model_error,
+                  'measurement_noise': measurement_noise, 'robot_gains': robot_gains,
+                  'nominal_seed': nominal_seed, 'nominal_tasks': nominal_tasks,
+                  'seeds': list(seeds), 'num_tasks': num_tasks, 'num_test': num_test,
+                  'budget': budget, 'ilc_iterations': ilc_iterations, 'runs': {}}
+        report['nominal'] = session('nominal', task, nominal, seed=nominal_seed,
                                     num_tasks=nominal_tasks)
         memory = root / 'nominal' / 'memory.npz'
         sim = InProcessSkill(task, LearnSettings().skill, robot.policy.default_theta, 'samples')
         sim.start(str(memory))
-        test = held_out_tasks(task, num_test, seed)
-        thetas = np.array([sim.query(tau) for tau in test])
-        rewards, fulfilled = robot.evaluate(thetas, test)
-        report['before'] = {'zero_shot_success': float(np.mean(fulfilled)),
-                            'zero_shot_reward': float(np.mean(rewards))}
-        report['sessions']['scratch'] = session('scratch', robot, seed=seed,
-                                                num_tasks=num_tasks, model_error=model_error)
-        for way in continuations:
-            report['sessions'][way] = session(
-                f'continued-{way}', robot, seed=seed, num_tasks=num_tasks,
-                model_error=model_error, continue_from=str(memory), continuation=way)
-        if robot.policy.has_feedforward:
-            variants = feedforward_variants(task, test, thetas)
-            tracking = {'pd_only': _tracking_error(robot, test, variants['pd_only']),
-                        'simulated': _tracking_error(robot, test, variants['learned']),
-                        'oracle': _tracking_error(robot, test, variants['oracle']),
-                        'ilc': _tracking_error(robot, test, _ilc(robot, test, thetas,
-                                                                 ilc_iterations))}
-            report['tracking'] = {name: {'mean': float(np.mean(v)), 'values': v}
-                                  for name, v in tracking.items()}
+        for seed in seeds:
+            run = report['runs'][str(seed)] = {'sessions': {}}
+            test = held_out_tasks(real, num_test, seed)
+            thetas = np.array([sim.query(tau) for tau in test])
+            rewards, fulfilled = robot.evaluate(thetas, test)
+            run['before'] = {'zero_shot_success': float(np.mean(fulfilled)),
+                             'zero_shot_reward': float(np.mean(rewards))}
+            run['sessions']['scratch'] = session(f'seed{seed}/scratch', real, robot,
+                                                 seed=seed, num_tasks=num_tasks, **on_robot)
+            for way in continuations:
+                run['sessions'][way] = session(
+                    f'seed{seed}/continued-{way}', real, robot, seed=seed,
+                    num_tasks=num_tasks, continue_from=str(memory), continuation=way,
+                    **on_robot)
+            if robot.policy.has_feedforward:
+                variants = feedforward_variants(real, test, thetas)
+                tracking = {'pd_only': _tracking_error(robot, test, variants['pd_only']),
+                            'simulated': _tracking_error(robot, test, variants['learned']),
+                            'oracle': _tracking_error(robot, test, variants['oracle']),
+                            'ilc': _tracking_error(robot, test, _ilc(robot, test, thetas,
+                                                                     ilc_iterations))}
+                run['tracking'] = {name: {'mean': float(np.mean(v)), 'values': v}
+                                   for name, v in tracking.items()}
         return report
     finally:
         if temporary is not None:
@@ -135,63 +180,99 @@ def measure_task(task_name: str, model_error: str = REAL_ROBOT, nominal_seed: in
 
 
 def run(tasks: Sequence[str] = TASKS, model_error: str = REAL_ROBOT, nominal_seed: int = 3,
-        nominal_tasks: int = 30, seed: int = 11, num_tasks: int = 10, num_test: int = 20,
-        budget: int = 200, ilc_iterations: int = 10,
-        continuations: Sequence[str] = ('residual', 'samples'),
-        out: str | Path | None = None,
+        nominal_tasks: int = 30, seeds: Sequence[int] = SEEDS, num_tasks: int = 10,
+        num_test: int = 20, budget: int = 200, ilc_iterations: int = 10,
+        continuations: Sequence[str] = ('residual', 'samples'), measurement_noise: str = '',
+        robot_gains: float = 1.0, out: str | Path | None = None,
         progress: Callable[[str], None] | None = None) -> dict:
     """`measure_task` for each task; the report of `format_table`.
 
     Raises:
-        ValueError: no model error, an unknown task or continuation, bad sizes.
+        ValueError: no model error, an unknown task or continuation, bad sizes, seeds, noise
+            or gains.
     """
     if not tasks or len(set(tasks)) != len(tasks):
         raise ValueError('give each task once, at least one')
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise ValueError(f'give each robot seed once, at least one, got {list(seeds)}')
     for name, value in (('nominal_tasks', nominal_tasks), ('num_tasks', num_tasks),
                         ('num_test', num_test), ('budget', budget)):
         if value < 1:
             raise ValueError(f'{name} must be at least 1, got {value}')
     if ilc_iterations < 0:
         raise ValueError(f'ilc_iterations must be >= 0, got {ilc_iterations}')
+    if not (np.isfinite(robot_gains) and robot_gains > 0.0):
+        raise ValueError(f'robot_gains must be a finite share > 0 of the task\'s gains, got '
+                         f'{robot_gains}')
     return {'tasks': {name: measure_task(
-        name, model_error, nominal_seed, nominal_tasks, seed, num_tasks, num_test, budget,
-        ilc_iterations, continuations, out, progress) for name in tasks}}
+        name, model_error, nominal_seed, nominal_tasks, seeds, num_tasks, num_test, budget,
+        ilc_iterations, continuations, measurement_noise, robot_gains, out, progress)
+        for name in tasks}}
+
+
+def _percent(share: float) -> str:
+    return f'{100 * share:.0f} %'
 
 
 def format_table(report: dict) -> str:
-    """Markdown: rollouts and zero-shot success on the robot per task and session, then the
-    tracking errors of the tasks with feed-forward."""
+    """Markdown: per task and robot seed, and over the seeds (rollouts and fulfilled tasks
+    summed, zero-shot success averaged), the rollouts on the robot, the training tasks
+    fulfilled and the zero-shot success of each session; then the tracking errors of the tasks
+    with feed-forward, averaged over the seeds."""
     first = next(iter(report['tasks'].values()))
-    ways = list(first['sessions'])[1:]
-    lines = [f"robot = the task's model with {first['model_error']}; simulated skill: "
-             f"{first['nominal_tasks']} tasks of seed {first['nominal_seed']} on the model; "
-             f"on the robot: {first['num_tasks']} tasks of seed {first['seed']} (budget "
-             f"{first['budget']}), zero-shot on {first['num_test']} held-out instances", '',
-             '| task | rollouts scratch | ' + ' | '.join(f'rollouts {w}' for w in ways)
-             + ' | zero-shot sim skill | zero-shot scratch | '
+    ways = list(next(iter(first['runs'].values()))['sessions'])
+    robot = [f"the task's model with {first['model_error']}"]
+    if first['measurement_noise']:
+        robot.append(f"measurement noise {first['measurement_noise']}")
+    if first['robot_gains'] != 1.0:
+        robot.append(f"controller gains {first['robot_gains']:g} times the task's")
+    lines = [f"robot = {', '.join(robot)}; simulated skill: {first['nominal_tasks']} tasks of "
+             f"seed {first['nominal_seed']} on the model; on the robot, per seed: "
+             f"{first['num_tasks']} tasks (budget {first['budget']}), zero-shot on "
+             f"{first['num_test']} held-out instances", '',
+             '| task | robot seed | ' + ' | '.join(f'rollouts {w}' for w in ways)
+             + f" | tasks fulfilled ({' / '.join(ways)}) | zero-shot sim skill | "
              + ' | '.join(f'zero-shot {w}' for w in ways) + ' |',
-             '|---' * (3 + 2 * len(ways) + 1) + '|']
+             '|---' * (4 + 2 * len(ways)) + '|']
     for name, r in report['tasks'].items():
-        s = r['sessions']
-        lines.append(
-            f"| {name} | {s['scratch']['rollouts']} | "
-            + ' | '.join(str(s[w]['rollouts']) for w in ways)
-            + f" | {100 * r['before']['zero_shot_success']:.0f} % | "
-            f"{100 * s['scratch']['zero_shot_success']:.0f} % | "
-            + ' | '.join(f"{100 * s[w]['zero_shot_success']:.0f} %" for w in ways) + ' |')
-    tracked = {n: r for n, r in report['tasks'].items() if 'tracking' in r}
+        runs = r['runs']
+        for seed, run in runs.items():
+            s = run['sessions']
+            lines.append(
+                f'| {name} | {seed} | ' + ' | '.join(str(s[w]['rollouts']) for w in ways)
+                + ' | ' + ' / '.join(str(s[w]['fulfilled_tasks']) for w in ways)
+                + f" | {_percent(run['before']['zero_shot_success'])} | "
+                + ' | '.join(_percent(s[w]['zero_shot_success']) for w in ways) + ' |')
+        if len(runs) > 1:           # over the seeds: sums, and the mean zero-shot success
+            sessions = [run['sessions'] for run in runs.values()]
+            before = np.mean([run['before']['zero_shot_success'] for run in runs.values()])
+            lines.append(
+                f'| {name} | all {len(runs)} | '
+                + ' | '.join(f"**{sum(s[w]['rollouts'] for s in sessions)}**" for w in ways)
+                + ' | ' + ' / '.join(str(sum(s[w]['fulfilled_tasks'] for s in sessions))
+                                     for w in ways)
+                + f' | {_percent(before)} | '
+                + ' | '.join(_percent(np.mean([s[w]['zero_shot_success'] for s in sessions]))
+                             for w in ways) + ' |')
+    tracked = {n: r for n, r in report['tasks'].items()
+               if all('tracking' in run for run in r['runs'].values())}
     if tracked:
-        lines += ['', 'tracking RMSE on the robot [rad], mean over the held-out instances: '
-                  "the simulated skill's path with PD only, its simulated feed-forward, the "
-                  "model's inverse dynamics, after ILC on the robot; the learned feed-forward "
-                  'of scratch and the continued skills (zero-shot)', '',
-                  '| task | PD only | simulated ff | oracle (model) | ILC on robot | scratch | '
-                  + ' | '.join(ways) + ' |', '|---' * (6 + len(ways)) + '|']
+        lines += ['', 'tracking RMSE on the robot [rad], mean over the held-out instances and '
+                  "seeds: the simulated skill's path with PD only, its simulated feed-forward, "
+                  "the model's inverse dynamics, after ILC on the robot; the learned "
+                  'feed-forward of each session (zero-shot)', '',
+                  '| task | PD only | simulated ff | oracle (model) | ILC on robot | '
+                  + ' | '.join(ways) + ' |', '|---' * (5 + len(ways)) + '|']
         for name, r in tracked.items():
-            t, s = r['tracking'], r['sessions']
-            lines.append(f"| {name} | {t['pd_only']['mean']:.4f} | "
-                         f"{t['simulated']['mean']:.4f} | {t['oracle']['mean']:.4f} | "
-                         f"{t['ilc']['mean']:.4f} ({r['ilc_iterations']} steps) | "
-                         f"{s['scratch']['tracking_learned']:.4f} | "
-                         + ' | '.join(f"{s[w]['tracking_learned']:.4f}" for w in ways) + ' |')
+            runs = list(r['runs'].values())
+
+            def tracking(key):
+                return float(np.mean([run['tracking'][key]['mean'] for run in runs]))
+
+            def learned(way):
+                return float(np.mean([run['sessions'][way]['tracking_learned'] for run in runs]))
+            lines.append(f"| {name} | {tracking('pd_only'):.4f} | {tracking('simulated'):.4f} | "
+                         f"{tracking('oracle'):.4f} | {tracking('ilc'):.4f} "
+                         f"({r['ilc_iterations']} steps) | "
+                         + ' | '.join(f'{learned(w):.4f}' for w in ways) + ' |')
     return '\n'.join(lines) + '\n'

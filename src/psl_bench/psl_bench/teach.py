@@ -101,7 +101,7 @@ def demonstrations_through_graph(task_name: str, count: int, seed: int, noise: s
     from psl_ros import names
     from psl_ros.bag_recorder import make_typestore, record
     from psl_ros.client import RosClient
-    from psl_ros.graph import Graph
+    from psl_ros.graph import ROBOT_KINDS, Graph
     from psl_task.arm_model import joint_names_of
     from psl_task.task import load_task, task_id
 
@@ -110,10 +110,9 @@ def demonstrations_through_graph(task_name: str, count: int, seed: int, noise: s
     shown = list(zip(memory.taus, memory.thetas))[:SHOWN * count]
     sigma = MeasurementNoise.parse(noise).position
     bag = folder / 'guided'
-    loop = ((('sim', 'psl_sim', 'sim'),) if robot == 'sim' else ()) + (
-        ('pd_controller', 'psl_controller', 'pd_controller'),
-        ('dmp_executor', 'psl_controller', 'dmp_executor'),
-        ('reward_evaluator', 'psl_optimizer', 'reward_evaluator'))
+    loop = (('dmp_executor', 'psl_controller', 'dmp_executor'),
+            ('reward_evaluator', 'psl_optimizer', 'reward_evaluator'))
+    streams = ROBOT_KINDS[robot].clock == 'robot'   # a robot streams; the simulator pauses
     graph = Graph(task=task_id(task), robot=robot, reset='drive', nodes=loop,
                   log_dir=folder / 'graph_logs',
                   extra_params={'robot': {'position_noise': sigma, 'seed': seed}})
@@ -132,7 +131,7 @@ def demonstrations_through_graph(task_name: str, count: int, seed: int, noise: s
                 if time.monotonic() > deadline or not recorder.is_alive():
                     raise RuntimeError('the recorder did not subscribe to the joint states')
                 stop.wait(0.05)
-            if robot == 'standard':       # ... and takes what the robot streams
+            if streams:                   # ... and takes what the robot streams
                 while counts.get(states, 0) < 100:
                     if time.monotonic() > deadline or not recorder.is_alive():
                         raise RuntimeError('the recorder got no joint states from the robot')
@@ -146,7 +145,7 @@ def demonstrations_through_graph(task_name: str, count: int, seed: int, noise: s
             # the last states in the bag: a robot streams on (the arm at rest after the last
             # motion: 0.5 s of it); the lockstep simulator is paused after the episode
             mark, last, quiet = counts.get(states, 0), -1, time.monotonic()
-            while (counts.get(states, 0) < mark + 250 if robot == 'standard'
+            while (counts.get(states, 0) < mark + 250 if streams
                    else time.monotonic() - quiet < 0.5):
                 if not recorder.is_alive():
                     raise RuntimeError('the recorder ended early')

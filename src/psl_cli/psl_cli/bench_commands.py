@@ -14,7 +14,8 @@ from pathlib import Path
 from psl_bench.dynamics import OPTIMISERS
 from psl_bench.false_successes import NOISE_LEVELS
 from psl_bench.memories import MEMORIES, STARTS
-from psl_bench.sim_to_real import REAL_ROBOT, TASKS as SIM_TO_REAL_TASKS
+from psl_bench.sim_to_real import (REAL_ROBOT, SEEDS as SIM_TO_REAL_SEEDS,
+                                   TASKS as SIM_TO_REAL_TASKS)
 from psl_bench.teach import COUNTS as TEACH_COUNTS, NOISE as TEACH_NOISE, TASKS as TEACH_TASKS
 from psl_cli import options
 from psl_cli.options import fail, non_negative_int, positive_int
@@ -51,19 +52,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument('--rollouts', type=positive_int, default=10)
     p.add_argument('--round-trips', type=positive_int, default=2000)
     p.add_argument('--realtime-seconds', type=float, default=60.0,
-                   help='length of the realtime episode (0 skips it)')
+                   help="seconds of psl's standard robot on the wall clock (0 skips it)")
     p.add_argument('--busy', type=non_negative_int, default=0,
-                   help='cores kept busy by spinning processes during the realtime episode')
-    p.add_argument('--realtime-priority', type=non_negative_int, default=0,
-                   help='SCHED_FIFO priority of the realtime loop and the controller (0: '
-                   'normal scheduling; applied only where the machine allows it)')
+                   help='cores kept busy by spinning processes while the standard robot runs')
     p.add_argument('--view', choices=('off', 'idle', 'watched'), default='off',
                    help='the lockstep rollouts with the view node (psl up --view): off (none), '
                    'idle (running, no viewer) or watched (a Foxglove viewer subscribed to '
                    'every channel)')
-    p.add_argument('--spin-margin', type=float, default=0.0,
-                   help='the realtime loop sleeps until this long before each deadline, then '
-                   'spins [s]; 0 = sleep only')
     p = bench('rollout', 'batch-mode steps/s beside raw mujoco.rollout')
     p.add_argument('--population', type=positive_int, default=32)
     p.add_argument('--repeats', type=positive_int, default=7)
@@ -157,10 +152,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help='seed of the session on the model')
     p.add_argument('--nominal-tasks', type=positive_int, default=30,
                    help='training tasks on the model')
-    p.add_argument('--seed', type=options.seed, default=11,
-                   help='seed of the training and held-out instances on the robot')
+    p.add_argument('--seeds', type=options.seed, nargs='+', default=list(SIM_TO_REAL_SEEDS),
+                   help='robot seeds: each the training and held-out instances of one set of '
+                   'sessions on the robot')
     p.add_argument('--robot-tasks', type=positive_int, default=10,
-                   help='training tasks on the robot')
+                   help='training tasks on the robot, per seed')
+    p.add_argument('--measurement-noise', default='',
+                   help="the robot's measurement noise: position=RAD,velocity=RAD_S[,seed=N] "
+                   '(default: none)')
+    p.add_argument('--robot-gains', type=float, default=1.0,
+                   help="the robot controller's PD gains as a share of the task's (its own "
+                   'controller; default 1: the same)')
     p.add_argument('--test-tasks', type=positive_int, default=20,
                    help='held-out instances on the robot')
     p.add_argument('--budget', type=positive_int, default=200, help='rollouts per task at most')
@@ -229,8 +231,7 @@ def _file(path: str | None) -> Path | None:
 def _graph(args) -> tuple[dict, str]:
     from psl_bench import graph
     report = graph.measure(args.task, args.rollouts, args.round_trips, args.realtime_seconds,
-                           busy=args.busy, realtime_priority=args.realtime_priority,
-                           spin_margin=args.spin_margin, view=args.view)
+                           busy=args.busy, view=args.view)
     return report, graph.format_report(report)
 
 
@@ -317,10 +318,12 @@ def _sim_to_real(args) -> tuple[dict, str]:
     from psl_bench import sim_to_real
     report = sim_to_real.run(tasks=args.tasks, model_error=args.model_error,
                              nominal_seed=args.nominal_seed, nominal_tasks=args.nominal_tasks,
-                             seed=args.seed, num_tasks=args.robot_tasks,
+                             seeds=args.seeds, num_tasks=args.robot_tasks,
                              num_test=args.test_tasks, budget=args.budget,
                              ilc_iterations=args.ilc_iterations,
-                             continuations=args.continuations, out=_folder(args.out),
+                             continuations=args.continuations,
+                             measurement_noise=args.measurement_noise,
+                             robot_gains=args.robot_gains, out=_folder(args.out),
                              progress=_progress)
     return report, sim_to_real.format_table(report)
 

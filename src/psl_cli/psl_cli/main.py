@@ -38,18 +38,36 @@ def cmd_up(args) -> int:
         return fail('psl up', exc, 2)
     if args.memory_dir is not None:
         os.environ['PSL_MEMORY_DIR'] = os.path.abspath(args.memory_dir)  # the memory node's
+    if args.controller:
+        given = [flag for flag, value in (('--effort-command', args.effort_command),
+                                         ('--command-joints', args.command_joints),
+                                         ('--state-timeout', args.state_timeout)) if value]
+        if given:
+            return fail('psl up', f'{", ".join(given)}: for psl\'s controller on a robot that '
+                        'takes torques; with --controller the robot\'s own controller runs', 2)
     extra = {}
     if args.command_joints:
         extra['pd_controller'] = {'command_joints': '[' + ','.join(args.command_joints) + ']'}
     if args.state_timeout is not None:
         extra.setdefault('pd_controller', {})['state_timeout'] = args.state_timeout
+    if args.command_interface:
+        extra['dmp_executor'] = {'command_interface': args.command_interface}
     if args.robot_param:
         extra['robot'] = dict(args.robot_param)
     topics = {name: topic for name, topic in (('joint_states', args.joint_states),
                                               ('effort_command', args.effort_command)) if topic}
-    graph = Graph(task=args.task, mode=args.mode, namespace=args.namespace,
-                  workers=args.workers, log_dir=log_dir, reset=args.reset, robot=args.robot,
-                  robot_topics=topics, extra_params=extra, view_port=args.view)
+    try:
+        graph = Graph(task=args.task, mode=args.mode, namespace=args.namespace,
+                      workers=args.workers, log_dir=log_dir, reset=args.reset,
+                      robot=args.robot, robot_topics=topics, extra_params=extra,
+                      view_port=args.view, controller=args.controller)
+    except ValueError as exc:           # e.g. a controller given for psl's simulator
+        return fail('psl up', exc, 2)
+    if args.controller:                 # the robot's own: can it run the task?
+        why = controller_misfit(args.task, args.controller, args.command_interface,
+                                args.namespace)
+        if why:
+            return fail('psl up', why, 2)
     names = {name for name, *_ in graph.nodes_spec}
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -120,6 +138,31 @@ def warn_about(command: str, warnings: list[str], task_name: str) -> None:
         print(f'{command}: warning: {warning} (psl check --task {task_name})', file=sys.stderr)
 
 
+def controller_misfit(task_name: str, controller: str, interface: str = '',
+                      namespace: str = '') -> str:
+    """Why a robot's own JointTrajectoryController cannot run the task ('' if it can): asked
+    for its joints and command interface (its parameters; reading them moves nothing), it
+    must drive the task's joints and take effort if the task's policy learns a feed-forward
+    torque. A controller that does not answer is the reason."""
+    from psl_controller.episode import RobotError
+    from psl_controller.policy import policy_for
+    from psl_controller.robot_link import ask_controller, misfit
+    from psl_ros.client import RosClient
+    from psl_task.arm_model import joint_names_of
+    from psl_task.task import load_task
+    from rclpy.parameter_client import AsyncParameterClient
+
+    task = load_task(task_name)
+    with RosClient(namespace) as client:
+        try:
+            info = ask_controller(AsyncParameterClient(client.node, controller), controller,
+                                  interface)
+        except RobotError as exc:
+            return str(exc)
+    return misfit(info, controller, joint_names_of(task), policy_for(task).has_feedforward,
+                  task.name)
+
+
 def create_task_skill(task_name: str, namespace: str = '', timeout: float = 30.0) -> str:
     """Create the task's skill in the graph's skill memory (tau ranges and default policy from
     the task; kept as it is if it exists): the memory knows no tasks. Returns its answer;
@@ -148,7 +191,8 @@ def _robot_param(text: str) -> tuple[str, str]:
 
 
 def _up_options(p: argparse.ArgumentParser) -> None:
-    from psl_ros.graph import LOG_ROOT_VARIABLE, ROBOTS, SIM_MODES, STATE_TIMEOUT
+    from psl_controller.parameters import COMMAND_INTERFACES, STATE_TIMEOUT
+    from psl_ros.graph import LOG_ROOT_VARIABLE, ROBOT_KINDS, ROBOTS, SIM_MODES
     from psl_ros.view_parameters import DEFAULT_PORT
 
     options.add_task(p)
@@ -163,24 +207,28 @@ def _up_options(p: argparse.ArgumentParser) -> None:
                    "quintic within the task's homing limits, then settled); default: the "
                    "task's homing.reset (teleport)")
     p.add_argument('--robot', choices=ROBOTS, default=ROBOTS[0],
-                   help="sim (default): psl's simulator, which starts the episodes; standard: "
-                   "psl's simulator playing a ros2_control robot (joint_states and "
-                   'effort_command only, the wall clock); external: your robot, running '
-                   'already (psl starts none). With standard and external psl runs each '
-                   'episode itself from the joint states (docs/your_robot.md)')
+                   help='; '.join(f'{name}: {kind.doc}' for name, kind in ROBOT_KINDS.items())
+                   + ' (docs/your_robot.md)')
+    p.add_argument('--controller', metavar='NODE', default='',
+                   help="with --robot external: the robot's own JointTrajectoryController, "
+                   'the node that serves NODE/follow_joint_trajectory (e.g. '
+                   '/fr3_arm_controller); psl then starts neither simulator nor controller')
+    p.add_argument('--command-interface', choices=COMMAND_INTERFACES, default='',
+                   help="the controller's command interface, if its parameters do not say "
+                   '(command_interfaces); a position interface runs kinematic tasks only')
     p.add_argument('--joint-states', metavar='TOPIC', default='',
                    help="the robot's JointState topic (e.g. /joint_states); default: "
                    'joint_states in the namespace')
     p.add_argument('--effort-command', metavar='TOPIC', default='',
-                   help="the robot's Float64MultiArray torque topic (e.g. "
-                   '/effort_controller/commands); default: effort_command in the namespace')
+                   help="a robot that takes torques only: its Float64MultiArray torque topic "
+                   "(e.g. /effort_controller/commands), which psl's pd_controller commands; "
+                   'default: effort_command in the namespace')
     p.add_argument('--command-joints', nargs='+', metavar='JOINT',
                    help="the joint order of the robot's torque command (its "
                    "forward_command_controller's joints); default: the task's order")
     p.add_argument('--state-timeout', type=options.positive_float, metavar='S',
-                   help='the controller stops commanding (zero torque) when no joint state '
-                   f'came for S seconds; default with --robot standard/external: '
-                   f'{STATE_TIMEOUT:g}')
+                   help="psl's controller stops commanding (zero torque) when no joint state "
+                   f'came for S seconds; default on a robot: {STATE_TIMEOUT:g}')
     p.add_argument('--robot-param', type=_robot_param, action='append', metavar='NAME:=VALUE',
                    help='a parameter of the standard robot (--robot standard), e.g. '
                    'position_noise:=0.001, latency_periods:=1, '
@@ -712,12 +760,26 @@ def cmd_check(args) -> int:
     except ValueError as exc:                 # TaskError: the cause and the fix
         return fail('psl check', exc, 2)
     print(format_report(report))
+    if args.controller:
+        why = controller_misfit(args.task, args.controller, args.command_interface,
+                                args.namespace)
+        if why:
+            return fail('psl check', why, 1)
+        print(f'controller {args.controller}: runs task {args.task!r}')
     return 1 if report.warnings and args.strict else 0
 
 
 def _check_options(p: argparse.ArgumentParser) -> None:
+    from psl_controller.parameters import COMMAND_INTERFACES
+
     options.add_task(p)
     p.add_argument('--strict', action='store_true', help='exit 1 when there are warnings')
+    p.add_argument('--controller', metavar='NODE', default='',
+                   help="also ask a running robot's JointTrajectoryController (its parameters "
+                   'joints and command_interfaces) whether it can run the task')
+    p.add_argument('--command-interface', choices=COMMAND_INTERFACES, default='',
+                   help="the controller's command interface, if its parameters do not say")
+    p.add_argument('--namespace', default='', help='the namespace to ask from')
 
 
 def cmd_params(args) -> int:

@@ -27,6 +27,14 @@ def node_parameters() -> dict[str, tuple[type, ...]]:
             'standard_robot': (StandardRobotParameters,), 'view': (ViewParameters,)}
 
 
+def reported_parameters() -> dict[str, tuple[str, ...]]:
+    """Node name -> the read-only parameters it declares besides its dataclasses' fields: what a
+    JointTrajectoryController says of itself (its joints and command interfaces, from its
+    task), not settings."""
+    from psl_controller.follow_joint_trajectory import REPORTED
+    return {'pd_controller': REPORTED, 'standard_robot': REPORTED}
+
+
 def parameter_file(node: str) -> str:
     """A ``--params-file`` for `node` with every parameter at its default, each described."""
     lines = [f'# Parameters of the {node} node at their defaults (psl params {node}); '

@@ -11,7 +11,12 @@ from psl_task.schema import RESETS
 
 FROM_TASK = (0.0,)      # a gain or limit parameter left to the task (its YAML, its model)
 STATE_LOSS = ('zero', 'hold')   # what the controller's watchdog commands
-ROBOTS = ('sim', 'external')    # who starts an episode: psl's simulator, or psl itself
+STATE_TIMEOUT = 0.3     # [s] the watchdog's default (0.105 s gaps seen in a Python robot loop on
+                        # a loaded 2-core machine)
+# how an episode's time runs (`psl_controller.robot_link.CLOCKS`): psl's simulator advances it
+# (its sim/reset starts each episode: lockstep or realtime), or the robot's own wall clock
+CLOCKS = ('simulator', 'robot')
+COMMAND_INTERFACES = ('effort', 'position')     # a JointTrajectoryController's (psl's: effort)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,25 +36,17 @@ class ControllerParameters:
     realtime_priority: int = field(default=0, metadata={'doc': (
         'SCHED_FIFO priority of the thread that answers the states (1..99) if the machine '
         'allows it; 0 = normal scheduling')})
-    max_tracking_error: float = field(default=0.0, metadata={'dynamic': True, 'doc': (
-        'rad: a tracking error beyond it aborts the trajectory (the controller holds); 0 = '
-        "the task's safety.max_tracking_error (default: no bound); the executor sets each "
-        "rollout's task's")})
     command_joints: tuple[str, ...] = field(default=('',), metadata={'doc': (
         "the joint order of effort_command (a forward_command_controller's joints); [''] = "
         "the task's command order")})
-    state_timeout: float = field(default=0.0, metadata={'doc': (
-        'watchdog [s]: when no joint state came for this long the controller drops its '
-        'trajectory, reports it on /diagnostics and sends on_state_loss every control '
-        "period until states come again; 0 = off (psl's lockstep simulator pauses between "
-        'episodes)')})
+    state_timeout: float = field(default=STATE_TIMEOUT, metadata={'doc': (
+        'watchdog [s]: when no joint state came for this long the active goal aborts and the '
+        'controller sends on_state_loss every control period until states come again; 0 = '
+        "off (psl's simulator, which pauses between episodes)")})
     on_state_loss: str = field(default='zero', metadata={'dynamic': True, 'doc': (
         'what the watchdog commands: zero (zero torque) | hold (the last torque sent)')})
 
     def __post_init__(self):
-        if not self.max_tracking_error >= 0.0:          # NaN too; inf: no bound
-            raise ValueError(f'max_tracking_error must be >= 0 rad, got '
-                             f'{self.max_tracking_error}')
         if not (self.state_timeout >= 0.0 and math.isfinite(self.state_timeout)):
             raise ValueError(f'state_timeout must be a finite number of seconds >= 0, got '
                              f'{self.state_timeout}')
@@ -60,23 +57,40 @@ class ControllerParameters:
 
 @dataclasses.dataclass(frozen=True)
 class ExecutorParameters:
-    """The DMP executor's: how long it waits for an evaluation, and how episodes begin."""
+    """The DMP executor's: the controller it drives, the clock of its episodes, how they begin
+    and how long it waits."""
 
+    controller: str = field(default='pd_controller', metadata={'doc': (
+        'the JointTrajectoryController that moves the arm: the node whose '
+        'follow_joint_trajectory action (control_msgs/FollowJointTrajectory) and parameters '
+        "(joints, command_interfaces) it offers, e.g. /fr3_arm_controller; relative names are "
+        "in the executor's namespace")})
+    clock: str = field(default=CLOCKS[0], metadata={'doc': (
+        "simulator: psl's simulator runs each episode (its sim/reset: a teleport or a drive "
+        "of the episode's length) | robot: the robot's own wall clock (psl homes the arm from "
+        'its measured states, then the primitive, each stamped ahead of its newest state)')})
+    command_interface: str = field(default='', metadata={'doc': (
+        "the controller's command interface: effort (goals carry the feed-forward torque) | "
+        "position (kinematic tasks only); '' = ask the controller (its command_interfaces "
+        'parameter)')})
     timeout_margin: float = field(default=10.0, metadata={'dynamic': True, 'doc': (
-        'seconds to wait for an evaluation beyond the episode length')})
+        'seconds to wait for an episode beyond its length')})
     reset: str = field(default='', metadata={'dynamic': True, 'doc': (
-        "how an episode begins: teleport | drive ('' = the task's homing.reset)")})
-    robot: str = field(default=ROBOTS[0], metadata={'doc': (
-        "sim: psl's simulator starts each episode (its sim/reset) | external: a robot that "
-        'only publishes joint_states and takes effort_command; psl runs each episode itself '
-        '(homing from the measured posture, the primitive, the wall clock)')})
+        "how an episode begins: teleport (the simulator only) | drive ('' = the task's "
+        'homing.reset; a robot is always driven)')})
 
     def __post_init__(self):
         if not (self.timeout_margin > 0.0 and math.isfinite(self.timeout_margin)):
             raise ValueError(f'timeout_margin must be a finite number of seconds > 0, got '
                              f'{self.timeout_margin}')
-        if self.robot not in ROBOTS:
-            raise ValueError(f'robot must be one of {", ".join(ROBOTS)}, got {self.robot!r}')
+        if self.clock not in CLOCKS:
+            raise ValueError(f'clock must be one of {", ".join(CLOCKS)}, got {self.clock!r}')
+        if self.command_interface and self.command_interface not in COMMAND_INTERFACES:
+            raise ValueError(f'command_interface must be one of '
+                             f'{", ".join(COMMAND_INTERFACES)} or empty, got '
+                             f'{self.command_interface!r}')
+        if not self.controller.strip('/'):
+            raise ValueError('controller must name a node (e.g. pd_controller)')
         if self.reset and self.reset not in RESETS:
             raise ValueError(f'reset must be one of {", ".join(RESETS)} or empty, got '
                              f'{self.reset!r}')

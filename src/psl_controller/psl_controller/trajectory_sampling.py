@@ -1,30 +1,58 @@
-"""Sampling of a joint trajectory in time, in the spirit of ros2_controllers'
-joint_trajectory_controller (JTC), kept apart from the controller. Pure numpy; no ROS.
+"""Sampling of a joint trajectory in time, as ros2_controllers' joint_trajectory_controller (JTC,
+Jazzy: ``joint_trajectory_controller/src/trajectory.cpp``) samples one, kept apart from the
+controller. Pure numpy; no ROS.
 
 Times are integer nanoseconds from the trajectory start (``time_from_start``), so comparisons
-with the points' times are exact. Edge cases, for a query time ``t`` and point times
-``t_0 < t_1 < ... < t_{N-1}``:
+with the points' times are exact. The interpolation between two points follows from the fields
+the trajectory gives, as in JTC:
+
+* positions only: **linear** (the velocity is the segment's slope, the acceleration zero);
+* positions and velocities: **cubic** (position and velocity of both ends met);
+* positions, velocities and accelerations: **quintic** (position, velocity and acceleration of
+  both ends met);
+* effort (the feed-forward torque, added to the PD output: :mod:`pd_law`): linear, always.
+
+Edge cases, for a query time ``t`` and point times ``t_0 < t_1 < ... < t_{N-1}``:
 
 * empty trajectory: rejected at construction (``ValueError``).
-* ``t < t_0`` (before the first point): position of the first point, **zero** velocity and the
-  first point's effort (held as feed-forward). JTC instead interpolates from the state at the
-  trajectory's arrival to the first point; we keep it simple and hold the first point.
-* ``t == t_i`` (exactly on a point): that point's position, velocity and effort, bit for bit.
-* ``t_i < t < t_{i+1}`` (between points): linear interpolation of position, velocity and effort
-  with ``s = (t - t_i) / (t_{i+1} - t_i)``. (JTC uses cubic / quintic splines when velocities /
-  accelerations are given; linear interpolation is our deliberate simplification.)
-* ``t > t_{N-1}`` (past the end): last position, **zero** velocity, last effort.
+* ``t == t_i`` (exactly on a point): that point's values, bit for bit (no arithmetic), so a
+  robot whose states come exactly at the points' times (psl's lockstep simulator) is served
+  the very reference batch mode computes; a positions-only trajectory has no velocities to
+  give: the velocity is the slope of the segment the point starts (zero at the last point).
+* ``t_i < t < t_{i+1}``: the segment's polynomial (above).
+* ``t < t_0`` (before the first point): with a point before the trajectory
+  (`SampledTrajectory.starting_from`: JTC's state when it first sampled the trajectory) at
+  ``t_b <= t``: the segment from that point to the first point, of the first point's degree,
+  effort from zero (JTC); before ``t_b``, or with no such point: the first point's position
+  with zero velocity and acceleration and its effort.
+* ``t > t_{N-1}`` (past the end): the last point as given (JTC holds it; a trajectory a JTC
+  accepts ends at rest).
 * single-point trajectory: the rules above with ``t_0 = t_{N-1}``.
 
-Effort is meant to be added to the PD output as feed-forward (see :mod:`pd_law`).
+Differences from JTC, deliberately: times are integer nanoseconds, not floating seconds; a
+point's fields are all-or-none for the whole trajectory (JTC allows them per point).
 """
+from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
+LINEAR, CUBIC, QUINTIC = 'linear', 'cubic', 'quintic'
 
-def _point_array(value, shape: tuple[int, int], name: str) -> np.ndarray:
+
+class TrajectorySample(NamedTuple):
+    """The reference at one time, each (n,): position, velocity, acceleration, effort."""
+
+    positions: np.ndarray
+    velocities: np.ndarray
+    accelerations: np.ndarray
+    effort: np.ndarray
+
+
+def _point_array(value, shape: tuple[int, int], name: str) -> np.ndarray | None:
     if value is None:
-        return np.zeros(shape)
+        return None
     array = np.asarray(value, dtype=float)
     if array.shape != shape:
         raise ValueError(f'{name} must have shape {shape}, got {array.shape}')
@@ -40,17 +68,19 @@ class SampledTrajectory:
         times_ns: time from the trajectory start of each point, integer dtype, shape (N,),
             strictly increasing, first >= 0.
         positions: shape (N, n).
-        velocities: shape (N, n), or None for zeros.
+        velocities: shape (N, n), or None (linear interpolation).
         efforts: shape (N, n), or None for zeros.
+        accelerations: shape (N, n), or None (at most cubic); needs velocities.
 
     Raises:
         ValueError: empty trajectory, non-integer or non-increasing or negative times,
-            mismatched shapes, non-finite values.
+            mismatched shapes, non-finite values, accelerations without velocities.
     """
 
     def __init__(self, times_ns: np.ndarray, positions: np.ndarray,
                  velocities: np.ndarray | None = None,
-                 efforts: np.ndarray | None = None) -> None:
+                 efforts: np.ndarray | None = None,
+                 accelerations: np.ndarray | None = None) -> None:
         times_ns = np.asarray(times_ns)
         if times_ns.ndim != 1:
             raise ValueError(f'times_ns must have shape (N,), got {times_ns.shape}')
@@ -68,10 +98,38 @@ class SampledTrajectory:
             raise ValueError(f'positions must have shape ({times_ns.size}, n), '
                              f'got {positions.shape}')
         shape = positions.shape
-        self._times_ns = times_ns  # (N,)
-        self._positions = _point_array(positions, shape, 'positions')  # (N, n)
-        self._velocities = _point_array(velocities, shape, 'velocities')  # (N, n)
-        self._efforts = _point_array(efforts, shape, 'efforts')  # (N, n)
+        if accelerations is not None and velocities is None:
+            raise ValueError('accelerations need velocities (quintic interpolation)')
+        self._times_ns = times_ns                                           # (N,)
+        self._positions = _point_array(positions, shape, 'positions')       # (N, n)
+        velocities = _point_array(velocities, shape, 'velocities')
+        accelerations = _point_array(accelerations, shape, 'accelerations')
+        self.interpolation = (LINEAR if velocities is None else
+                              CUBIC if accelerations is None else QUINTIC)
+        zeros = np.zeros(shape)
+        self._velocities = zeros if velocities is None else velocities      # (N, n)
+        self._accelerations = zeros if accelerations is None else accelerations
+        efforts = _point_array(efforts, shape, 'efforts')
+        self._efforts = zeros if efforts is None else efforts               # (N, n)
+        self.has_effort = efforts is not None
+        self._before: tuple[int, np.ndarray, np.ndarray] | None = None     # (t_b, q, qd)
+
+    def starting_from(self, t_ns: int, positions: np.ndarray,
+                      velocities: np.ndarray) -> 'SampledTrajectory':
+        """This trajectory with a point before it (JTC's state when it first sampled the
+        trajectory): at `t_ns` (from the trajectory start) the arm was at `positions` with
+        `velocities`; between then and the first point the reference is the segment between
+        the two (module docstring). No effect when `t_ns` is at or past the first point."""
+        t_ns = _as_int_ns(t_ns)
+        copy = object.__new__(SampledTrajectory)
+        copy.__dict__.update(self.__dict__)
+        copy._before = None
+        if t_ns < self._times_ns[0]:
+            q, qd = (np.asarray(v, dtype=float).reshape(self.n_joints)
+                     for v in (positions, velocities))
+            copy._before = (t_ns, q.copy(), qd.copy() if self.interpolation != LINEAR
+                            else np.zeros(self.n_joints))
+        return copy
 
     @property
     def n_points(self) -> int:
@@ -86,15 +144,16 @@ class SampledTrajectory:
         """Time of the last point from the trajectory start, in ns."""
         return int(self._times_ns[-1])
 
+    def last_point(self) -> TrajectorySample:
+        """The last point (what JTC holds once a goal has succeeded)."""
+        return self._point(-1)
+
     def is_finished(self, t_ns: int) -> bool:
         """True once ``t_ns`` has reached the last point's time (``t_ns >= duration_ns``)."""
         return _as_int_ns(t_ns) >= self.duration_ns
 
-    def sample(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Reference at ``t_ns`` nanoseconds from the trajectory start (module docstring rules).
-
-        Returns:
-            (q, qd, u_ffwd), each a new array of shape (n,).
+    def sample(self, t_ns: int) -> TrajectorySample:
+        """Reference at ``t_ns`` nanoseconds from the trajectory start (module docstring).
 
         Raises:
             TypeError: ``t_ns`` is not an integer.
@@ -102,22 +161,68 @@ class SampledTrajectory:
         t_ns = _as_int_ns(t_ns)
         times = self._times_ns
         if t_ns < times[0]:
-            return self._positions[0].copy(), np.zeros(self.n_joints), self._efforts[0].copy()
-        if t_ns > times[-1]:
-            return self._positions[-1].copy(), np.zeros(self.n_joints), self._efforts[-1].copy()
+            before = self._before
+            if before is None or t_ns < before[0]:
+                zeros = np.zeros(self.n_joints)
+                return TrajectorySample(self._positions[0].copy(), zeros, zeros.copy(),
+                                        self._efforts[0].copy())
+            t_b, q_b, qd_b = before
+            zeros = np.zeros(self.n_joints)
+            return _segment(self.interpolation, t_ns - t_b, int(times[0]) - t_b,
+                            (q_b, qd_b, zeros, zeros), self._values(0))
+        if t_ns >= times[-1]:
+            return self._point(-1)
         # times[i - 1] < t_ns <= times[i]
         i = int(np.searchsorted(times, t_ns, side='left'))
         if times[i] == t_ns:
-            return self._positions[i].copy(), self._velocities[i].copy(), self._efforts[i].copy()
-        t_prev, t_next = int(times[i - 1]), int(times[i])
-        s = (t_ns - t_prev) / (t_next - t_prev)  # in (0, 1)
-        return (_lerp(self._positions[i - 1], self._positions[i], s),
-                _lerp(self._velocities[i - 1], self._velocities[i], s),
-                _lerp(self._efforts[i - 1], self._efforts[i], s))
+            return self._point(i)
+        t_prev = int(times[i - 1])
+        return _segment(self.interpolation, t_ns - t_prev, int(times[i]) - t_prev,
+                        self._values(i - 1), self._values(i))
+
+    def _values(self, i: int) -> tuple[np.ndarray, ...]:
+        return (self._positions[i], self._velocities[i], self._accelerations[i],
+                self._efforts[i])
+
+    def _point(self, i: int) -> TrajectorySample:
+        """Point i's values; of a positions-only trajectory, whose points carry no velocity,
+        the velocity is that of the segment the point starts (JTC samples a point as the
+        start of its segment), zero at the last."""
+        q, qd, qdd, effort = (v.copy() for v in self._values(i))
+        if self.interpolation == LINEAR and i % self.n_points != self.n_points - 1:
+            qd = (self._positions[i + 1] - q) / ((self._times_ns[i + 1] - self._times_ns[i])
+                                                 * 1e-9)
+        return TrajectorySample(q, qd, qdd, effort)
 
 
-def _lerp(a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
-    return a + s * (b - a)
+def _segment(kind: str, t_ns: int, length_ns: int, a: tuple, b: tuple) -> TrajectorySample:
+    """The segment from point a to point b (each (q, qd, qdd, effort)) of length `length_ns`,
+    at `t_ns` from a: JTC's `interpolate_between_points` (its coefficients), 0 < t < length."""
+    t, big_t = t_ns * 1e-9, length_ns * 1e-9
+    q0, v0, a0, e0 = a
+    q1, v1, a1, e1 = b
+    effort = e0 + (e1 - e0) / big_t * t
+    if kind == LINEAR:
+        slope = (q1 - q0) / big_t
+        return TrajectorySample(q0 + slope * t, slope, np.zeros_like(q0), effort)
+    if kind == CUBIC:
+        c2 = (-3.0 * q0 + 3.0 * q1 - 2.0 * v0 * big_t - v1 * big_t) / big_t ** 2
+        c3 = (2.0 * q0 - 2.0 * q1 + v0 * big_t + v1 * big_t) / big_t ** 3
+        return TrajectorySample(q0 + v0 * t + c2 * t ** 2 + c3 * t ** 3,
+                                v0 + 2.0 * c2 * t + 3.0 * c3 * t ** 2,
+                                2.0 * c2 + 6.0 * c3 * t, effort)
+    t2, t3, t4, t5 = (big_t ** k for k in (2, 3, 4, 5))
+    c2 = 0.5 * a0
+    c3 = (-20.0 * q0 + 20.0 * q1 - 3.0 * a0 * t2 + a1 * t2 - 12.0 * v0 * big_t
+          - 8.0 * v1 * big_t) / (2.0 * t3)
+    c4 = (30.0 * q0 - 30.0 * q1 + 3.0 * a0 * t2 - 2.0 * a1 * t2 + 16.0 * v0 * big_t
+          + 14.0 * v1 * big_t) / (2.0 * t4)
+    c5 = (-12.0 * q0 + 12.0 * q1 - a0 * t2 + a1 * t2 - 6.0 * v0 * big_t
+          - 6.0 * v1 * big_t) / (2.0 * t5)
+    return TrajectorySample(
+        q0 + v0 * t + c2 * t ** 2 + c3 * t ** 3 + c4 * t ** 4 + c5 * t ** 5,
+        v0 + 2.0 * c2 * t + 3.0 * c3 * t ** 2 + 4.0 * c4 * t ** 3 + 5.0 * c5 * t ** 4,
+        2.0 * c2 + 6.0 * c3 * t + 12.0 * c4 * t ** 2 + 20.0 * c5 * t ** 3, effort)
 
 
 def _as_int_ns(t_ns) -> int:

@@ -14,50 +14,38 @@ Dynamics modality (a task with ``policy.feedforward: true``): the search covers 
 theta = [theta_K, theta_D], with theta_D in its own CMA-ES units (`search_normalisation`); each
 instance first gets ILC of theta_D from the search's start (`psl_optimizer.ilc`, far fewer
 rollouts than CMA-ES: docs/benchmarks.md, ``psl bench dynamics``; it needs rollouts that carry
-their measured trajectories), and CMA-ES goes on from ILC's best if that falls short. The summary then adds the held-out tracking errors of the
-learned feed-forward beside PD only and the inverse-dynamics oracle (`tracking_comparison`).
+their measured trajectories), and CMA-ES goes on from ILC's best if that falls short. The
+summary then adds the held-out tracking errors of the learned feed-forward beside PD only and
+the inverse-dynamics oracle (`tracking_comparison`).
 
 Sim to real (`LearnSettings.continue_from` with `LearnSettings.continuation`): a skill learned
 on the task's model is continued on a robot whose dynamics differ (batch mode: rollouts with a
-`psl_task.model_error.ModelError`, recorded as `LearnSettings.model_error`). The robot's
-solutions contradict the simulated ones (the same tau, another feed-forward), so adding them to
-the simulated skill's samples ('samples', the old way) makes a skill that averages both and is
-wrong for either. The default, 'residual', keeps the simulated skill as it is and learns the
-robot's correction on top of it: ``PS(tau) = PS_sim(tau) + C(tau)``, C learned from the robot's
-solutions minus PS_sim (`ResidualComposition`: in this process and in the memory node alike).
-Measured (``psl bench sim-to-real``: the skill learned on the nominal model with seed 3, 30
-tasks; then 10 tasks of seed 11 on a robot with masses +30 %, joint friction 0.05 N m, damping
-+0.3 N m s/rad; zero-shot on 20 held-out instances on that robot):
+`psl_task.model_error.ModelError`, recorded as `LearnSettings.model_error`; a robot whose own
+controller has other gains: a copy of the task YAML with those gains, the skill of the same
+name continued on it). The robot's solutions contradict the simulated ones (the same tau,
+another feed-forward), so adding them to the simulated skill's samples ('samples', the old way)
+makes a skill that averages both and is wrong for either. The default, 'residual', keeps the
+simulated skill as it is and learns the robot's correction on top of it: ``PS(tau) =
+PS_sim(tau) + C(tau)``, C learned from the robot's solutions minus PS_sim
+(`ResidualComposition`: in this process and in the memory node alike).
 
-=====================  ========  ==========  ========  ===============
-payload_transport      rollouts  zero-shot   tracking  (learned ff, rad)
-=====================  ========  ==========  ========  ===============
-scratch                23        70 %        0.0043
-samples (old way)      50        0 %         0.0167
-residual (default)     14        90 %        0.0035
-=====================  ========  ==========  ========  ===============
-
-reach_over_obstacle (kinematic): 80 rollouts from scratch, 10 continued either way (every
-instance solved by its first rollout), zero-shot 90 % vs 100 %. Also measured and dropped:
-RLS with forgetting (eq. 2.5-2.6, the simulated samples refitted, then the robot's):
-lambda 0.7 / 0.9 / 0.97 needed 33 / 43 / 48 rollouts, zero-shot 10 / 5 / 0 %: forgetting
-needs many robot samples to outweigh 30 simulated ones, and winds up P meanwhile; the
-simulated samples weighted down in the Bayesian readout's statistics by 0.01 / 0.1 / 0.3:
-29 / 38 / 47 rollouts, 60 / 10 / 0 %.
+Where PS_sim + C misses an instance, the search does not pay a CMA-ES generation and its mean
+(popsize + 1 rollouts) before it has tried the continued skill's other guesses, one rollout each
+(`ResidualComposition.alternatives`, `psl_optimizer.policy_search.try_guesses`): PS_sim alone
+(C generalises each robot solution over the whole task space, and a correction found at one
+instance can spoil instances PS_sim solved) and the answer of a skill without samples (what a
+session from scratch tries first: on a robot where the simulated skill is worse than none);
+CMA-ES then starts from the best of the guesses. A session that continues nothing has no other
+guess, and its search is what it was. A task with feed-forward starts ILC from PS_sim + C (ILC
+pays one rollout per step already). Measured: docs/benchmarks.md, ``psl bench sim-to-real``.
 
 A noisy robot (`LearnSettings.measurement_noise`): a candidate whose rollout fulfils its
 instance may have been lucky. With `LearnSettings.confirm` = (k, n) the search's successful
 theta is rolled out n - 1 more times and its sample enters the skill only if at least k of the
 n rollouts fulfil the instance (the extra rollouts count; `TaskRecord.unconfirmed` marks a
-success that did not confirm). Measured (``psl bench false-successes``, 20 tasks of seed 21;
-a false success is an added sample whose theta fails most of 10 fresh noisy rollouts):
-reach_over_obstacle at 0.23 mrad / 0.02 rad/s: without confirmation all 20 added samples are
-false (zero-shot 0 %: each success was luck); 2 of 3 lets 2 of them in (both false) and 3 of 3
-none; payload_transport at 0.3 rad/s velocity noise: 9 of 20 added samples false without
-confirmation (zero-shot 50 %), 3 of 13 with 2 of 3, 0 of 11 with 3 of 3 (70 %, 109 rollouts
-instead of 70).
-At 1 mrad / 0.01 rad/s nothing is learned on either task: the reward's smoothness term,
-computed on the measured angles, is then dominated by the noise (docs/benchmarks.md).
+success that did not confirm). Measured: docs/benchmarks.md, ``psl bench false-successes``
+(with the reward's smoothness of the measured angles, 1 mrad of noise spoils every reward;
+``reward: {smoothness_of: reference}`` scores the commanded motion instead).
 """
 from __future__ import annotations
 
@@ -217,6 +205,16 @@ class ResidualComposition:
         if self._c0 is None:
             return theta
         return theta + (self._query(self.correction, tau)[0] - self._c0)
+
+    def alternatives(self, tau: np.ndarray) -> list[np.ndarray]:
+        """The skill's other guesses at tau than `query`, in the order a search tries them
+        when that one fails (`psl_optimizer.policy_search.try_guesses`): of a residual
+        continuation, the loaded skill without the robot's correction, PS_sim(tau), and the
+        answer of a skill without samples, c0 (a session from scratch's first guess); of a
+        skill alone, none."""
+        if self._c0 is None:
+            return []
+        return [self._query(self.name, tau)[0], self._c0.copy()]
 
     def variance(self, tau: np.ndarray) -> np.ndarray | None:
         """Predictive variance of PS(tau) per theta dimension (None without a Bayesian
@@ -590,9 +588,10 @@ class Learner:
             return self.rollouts.evaluate(thetas, np.tile(tau, (len(thetas), 1)))
         seed = s.seed * 100_003 + index
         if not (self.policy.has_feedforward and s.ilc.iterations):
+            alternatives = getattr(self.skill, 'alternatives', lambda _: [])
             return search(s.strategy, objective, tau, self.default_theta, self.skill.query,
                           centre, scale, self.task.tau_low, self.task.tau_high, s.search,
-                          seed=seed)
+                          seed=seed, alternatives=alternatives(tau))
         start = self.default_theta if s.strategy == 'scratch' else self.skill.query(tau)
         ilc = ilc_search(self.rollouts, tau, start, s.ilc)
         # CMA-ES (any strategy) goes on from ILC's best theta: it is the start and the estimate

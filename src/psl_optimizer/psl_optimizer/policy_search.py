@@ -12,21 +12,26 @@ Strategies (Queißer et al. 2016; reference chapter section 2.2.1):
   one fine step of PS(tau) around tau (a young skill: with no sample PS is constant), and it
   ends once `hybrid_patience` generations in a row raise the best reward by no more than
   `hybrid_min_gain` of its magnitude (see `hybrid_search`).
-Every search stops as soon as its estimate of the solution fulfils the task instance or the
-rollout budget is spent; every rollout is counted. CMA-ES's estimate is the mean of its search
-distribution, rolled out after every generation (`cma_search`): a draw that fulfils the
-instance ends the search only if the budget ends before a mean does. CMA-ES works in
-normalised coordinates (theta = centre + scale * z) so one step size fits every task. Imports
-no ROS.
+A skill may offer other guesses than its estimate (a continued skill: the simulated skill
+without the robot's correction, an empty skill's answer; `psl_optimizer.learning
+.ResidualComposition.alternatives`): when the start misses, each is rolled out once before the
+search pays a CMA-ES generation, and the search goes on from the best of them (`try_guesses`;
+'scratch' uses none). Every search stops as soon as its estimate of the solution fulfils the
+task instance or the rollout budget is spent; every rollout is counted. CMA-ES's estimate is
+the mean of its search distribution, rolled out after every generation (`cma_search`): a draw
+that fulfils the instance ends the search only if the budget ends before a mean does. CMA-ES
+works in normalised coordinates (theta = centre + scale * z) so one step size fits every task.
+Imports no ROS.
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
 STRATEGIES = ('scratch', 'bootstrap', 'bootstrap_cost', 'hybrid')
+SAME_GUESS = 1e-9      # normalised theta units: guesses this close are one policy (`try_guesses`)
 
 # The objective of one task instance: objective(thetas (B, F)) -> (rewards (B,), fulfilled (B,))
 # (the learner binds its rollouts to the instance: `Rollouts.evaluate(thetas, tau)`)
@@ -203,10 +208,30 @@ def hybrid_search(budget: _Budget, tau: np.ndarray, skill_estimate, to_theta, to
                    settings.popsize, seed + 7, budget.left)
 
 
+def try_guesses(budget: _Budget, guesses: Sequence[np.ndarray],
+                to_z: Callable[[np.ndarray], np.ndarray]) -> None:
+    """Roll out guesses of the solution (each (F,)) one at a time, in order, until one
+    fulfils the instance (each settles the search, `_Budget`) or none is left; a guess within
+    `SAME_GUESS` (normalised units, every coordinate) of one rolled out before is the same
+    policy and skipped. One rollout per guess: a wrong first guess followed by CMA-ES costs a
+    whole generation and its mean (popsize + 1 rollouts), so a second guess that fulfils saves
+    at least popsize rollouts, and one that does not costs one."""
+    tried: list[np.ndarray] = []
+    for theta in guesses:
+        if budget.done:
+            return
+        z = to_z(theta)
+        if any(np.max(np.abs(z - other)) <= SAME_GUESS for other in tried):
+            continue
+        budget(np.asarray(theta, dtype=float)[None])
+        tried.append(z)
+
+
 def search(strategy: str, objective: Objective, tau: np.ndarray, default_theta: np.ndarray,
            skill_estimate: Callable[[np.ndarray], np.ndarray], theta_centre: np.ndarray,
            theta_scale: np.ndarray, tau_low: np.ndarray, tau_high: np.ndarray,
-           settings: SearchSettings = SearchSettings(), seed: int = 0) -> SearchResult:
+           settings: SearchSettings = SearchSettings(), seed: int = 0,
+           alternatives: Sequence[np.ndarray] = ()) -> SearchResult:
     """Search theta for task instance tau with the given strategy (see the module docstring).
 
     Args:
@@ -214,6 +239,8 @@ def search(strategy: str, objective: Objective, tau: np.ndarray, default_theta: 
             (B,).
         skill_estimate: tau (E,) -> PS(tau) (F,), the current skill.
         theta_centre, theta_scale: normalisation theta = centre + scale * z.
+        alternatives: other guesses of the skill (each (F,)) than its estimate, tried in
+            order after the start fails (`try_guesses`); 'scratch' does not use the skill.
     """
     if strategy not in STRATEGIES:
         raise ValueError(f'unknown strategy {strategy!r}; known: {", ".join(STRATEGIES)}')
@@ -232,15 +259,14 @@ def search(strategy: str, objective: Objective, tau: np.ndarray, default_theta: 
     if strategy == 'bootstrap_cost':
         def penalty(z):
             return settings.cost_weight * float(np.sum((z - z_start) ** 2))
-    if strategy == 'hybrid':
-        budget(start[None])     # the start is the first coarse candidate: theta = PS(tau)
+    # the start is a candidate too (zero-shot success counts), then the skill's other guesses
+    try_guesses(budget, [start, *(() if strategy == 'scratch' else alternatives)], to_z)
+    if strategy == 'hybrid':    # the start is the first coarse candidate: theta = PS(tau)
         hybrid_search(budget, tau, skill_estimate, to_theta, to_z, theta_scale, tau_low,
                       tau_high, settings, seed)
-    else:
-        budget(start[None])       # the start is a candidate too: zero-shot success counts
-        if not budget.done:
-            cma_search(budget, z_start, to_theta, settings.sigma0, settings.popsize, seed,
-                       budget.left, penalty)
+    elif not budget.done:       # from the best guess (the start when it was the only one)
+        cma_search(budget, to_z(budget.best_theta), to_theta, settings.sigma0,
+                   settings.popsize, seed, budget.left, penalty)
     return SearchResult(theta=budget.best_theta, reward=budget.best_reward,
                         fulfilled=budget.fulfilled, rollouts=len(budget.rewards),
                         start_theta=start, rewards=budget.rewards)

@@ -154,3 +154,44 @@ def test_hybrid_stops_the_task_space_phase_without_progress(patience):
 def test_unknown_strategy():
     with pytest.raises(ValueError, match='unknown strategy'):
         run('magic', Recorder())
+
+
+@pytest.mark.parametrize('strategy', ['bootstrap', 'bootstrap_cost', 'hybrid'])
+def test_a_failed_start_tries_the_skills_other_guesses_before_cma_es(strategy):
+    """The start misses; of the two other guesses the second fulfils: three rollouts, one per
+    guess, in order (without them a missed start costs a CMA-ES generation and its mean)."""
+    guesses = [skill(TAU) + 3.0, skill(TAU) - 3.0]
+    recorder = Recorder(target=guesses[1] + 0.05, tol=0.5)
+    result = search(strategy, recorder, TAU, DEFAULT, skill, np.zeros(F), np.ones(F), LOW, HIGH,
+                    SearchSettings(max_rollouts=60, popsize=6), alternatives=guesses)
+    assert result.fulfilled and result.rollouts == 3
+    np.testing.assert_array_equal(np.array(recorder.thetas), [skill(TAU), *guesses])
+    np.testing.assert_array_equal(result.theta, guesses[1])
+
+
+def test_guesses_the_search_rolled_out_already_are_not_repeated_and_scratch_has_none():
+    """A guess equal to the start (a continued skill without a correction yet) is not rolled
+    out again, and 'scratch' does not use the skill's guesses: both searches are the search
+    without guesses, rollout for rollout."""
+    cases = [('bootstrap', [skill(TAU).copy(), skill(TAU) + 1e-12]),
+             ('scratch', [TARGET.copy()])]
+    for strategy, guesses in cases:
+        plain, guessed = Recorder(), Recorder()
+        a = run(strategy, plain)
+        b = search(strategy, guessed, TAU, DEFAULT, skill, np.zeros(F), np.ones(F), LOW, HIGH,
+                   SearchSettings(max_rollouts=60, popsize=6), alternatives=guesses)
+        np.testing.assert_array_equal(np.array(plain.thetas), np.array(guessed.thetas))
+        assert (a.reward, a.rollouts) == (b.reward, b.rollouts)
+
+
+def test_when_every_guess_misses_cma_es_starts_from_the_best():
+    """No guess fulfils: the first generation is drawn around the best of them (the search
+    goes on from what the robot said was closest), not around the skill's estimate."""
+    best = TARGET + 0.2
+    guesses = [skill(TAU) + 2.0, best]
+    recorder = Recorder()                                  # nothing fulfils
+    search('bootstrap', recorder, TAU, DEFAULT, skill, np.zeros(F), np.ones(F), LOW, HIGH,
+           SearchSettings(max_rollouts=30, popsize=6), alternatives=guesses)
+    first_generation = np.mean(recorder.thetas[3:9], axis=0)
+    assert (np.linalg.norm(first_generation - best)
+            < 0.25 * np.linalg.norm(skill(TAU) - best))

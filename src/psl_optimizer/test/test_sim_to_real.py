@@ -5,8 +5,12 @@ import pytest
 
 from psl_controller.policy import policy_for
 from psl_optimizer.batch_rollout import BatchRollouts
-from psl_optimizer.learning import (CORRECTION_SUFFIX, InProcessSkill, Learner, LearnSettings)
+from psl_optimizer.learning import (CORRECTION_SUFFIX, InProcessSkill, Learner, LearnSettings,
+                                    search_normalisation)
+from psl_optimizer.policy_search import SearchSettings
+from psl_optimizer.reward import RewardResult
 from psl_optimizer.rollout_modes import make_rollouts
+from psl_optimizer.rollouts import RolloutResult, Rollouts
 from psl_memory.skill_config import SkillConfig
 from psl_task.model_error import ModelError
 from psl_task.task import load_task
@@ -144,3 +148,72 @@ def test_a_skill_slot_that_cannot_continue_residually_refuses_to(tmp_path):
         Learner(task, LearnSettings(continuation='residual'), tmp_path, rollouts,
                 skill=SamplesOnly())
     Learner(task, LearnSettings(), tmp_path, rollouts, skill=SamplesOnly())   # its own way
+
+
+def test_a_residual_continuation_guesses_the_simulated_skill_then_an_empty_skills_answer(
+        tmp_path):
+    """Besides PS_sim + C, a residual continuation offers the guesses a search tries when that
+    one misses: PS_sim alone (which the robot's correction does not move) and c0, the answer of
+    a skill without samples (a session from scratch's first guess). A skill alone offers
+    none."""
+    task, first = reach_skill('samples')
+    rng = np.random.default_rng(2)
+    taus = task.tau_low + (task.tau_high - task.tau_low) * rng.random((3, len(task.tau_low)))
+    for tau in taus:
+        first.add(tau, first.default_theta + 0.05 * rng.standard_normal(
+            first.default_theta.shape))
+    first.save(tmp_path / 'sim.npz')
+    _, empty = reach_skill('residual')
+    _, residual = reach_skill('residual')
+    residual.start(str(tmp_path / 'sim.npz'))
+    probe = taus[0] + 0.01
+    assert empty.alternatives(probe) == [] and first.alternatives(probe) == []
+    sim_alone, without_samples = residual.alternatives(probe)
+    np.testing.assert_array_equal(sim_alone, first.query(probe))
+    np.testing.assert_array_equal(without_samples, empty.query(probe))
+    residual.add(taus[1], first.query(taus[1]) + 0.1)
+    assert not np.array_equal(residual.query(probe), first.query(probe))
+    np.testing.assert_array_equal(residual.alternatives(probe)[0], first.query(probe))
+
+
+class DefaultRobot(Rollouts):
+    """A stand-in robot on which only policies near the task's default theta fulfil an
+    instance (reward: minus their RMS distance to it in CMA-ES units; fulfilled within `tol`):
+    a skill learned in simulation away from the default is wrong on it everywhere, a skill
+    without samples is right."""
+
+    def __init__(self, task, tol: float):
+        super().__init__(task)
+        self.target, self.tol = self.policy.default_theta, tol
+        self.scale = search_normalisation(task, self.target)[1]
+
+    def run(self, thetas, taus):
+        thetas, taus = self._inputs(thetas, taus)
+        distance = np.sqrt(np.mean(((thetas - self.target) / self.scale) ** 2, axis=1))
+        return self._count([RolloutResult(evaluation=RewardResult(
+            reward=-float(d), fulfilled=bool(d <= self.tol), components={}))
+            for d in distance])
+
+
+def test_a_wrong_simulated_skill_costs_a_continued_session_its_guesses_not_a_search(tmp_path):
+    """On a robot where the simulated skill misses everywhere and the default policy is right,
+    each task of a residual continuation costs at most its three guesses (PS_sim + C, PS_sim,
+    c0) and is solved; a session from scratch pays one rollout per task. Without the guesses
+    the first task alone would need CMA-ES to walk 0.3 units back to the default (more than
+    the budget)."""
+    task, sim = reach_skill('samples')
+    robot = DefaultRobot(task, tol=0.01)
+    rng = np.random.default_rng(3)
+    away = sim.default_theta + 0.3 * robot.scale * np.sign(
+        rng.standard_normal(sim.default_theta.shape))
+    for tau in task.tau_low + (task.tau_high - task.tau_low) * rng.random((5, 2)):
+        sim.add(tau, away)
+    sim.save(tmp_path / 'sim.npz')
+    settings = dict(num_tasks=4, num_test=2, seed=5, search=SearchSettings(max_rollouts=30))
+    scratch = Learner(task, LearnSettings(**settings), tmp_path / 'scratch', robot).run()
+    continued = Learner(task, LearnSettings(**settings, continue_from=str(tmp_path / 'sim.npz')),
+                        tmp_path / 'continued', robot).run()
+    assert scratch.summary.rollouts_per_task == [1, 1, 1, 1]
+    assert continued.summary.fulfilled_tasks == 4
+    assert all(n <= 3 for n in continued.summary.rollouts_per_task)
+    assert continued.summary.total_rollouts <= 3 * scratch.summary.total_rollouts

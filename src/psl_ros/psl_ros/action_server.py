@@ -33,7 +33,15 @@ RETRY_PAUSE = 0.05            # s between attempts (each attempt itself waits 10
 
 
 class ActionServer(_RclpyActionServer):
-    """Drop-in replacement for ``rclpy.action.ActionServer``."""
+    """Drop-in replacement for ``rclpy.action.ActionServer``, with one more keyword:
+    ``before_answer(goal_handle)``, called for an accepted goal before the client hears it
+    was accepted (a controller takes the goal then: a client that starts the robot's clock on
+    the answer finds it in place); undone by ``dropped(goal_handle)`` if the answer is given
+    up."""
+
+    def __init__(self, *args, before_answer=None, dropped=None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._before_answer, self._dropped = before_answer, dropped
 
     def _send_goal_answer(self, request_header, response) -> bool:
         """Whether the answer was sent (or dropped by rmw for a client that has gone)."""
@@ -88,10 +96,14 @@ class ActionServer(_RclpyActionServer):
                 self._goal_handles[bytes(goal_uuid.uuid)] = goal_handle
                 self._result_futures[bytes(goal_uuid.uuid)] = Future()
                 self.add_future(self._result_futures[bytes(goal_uuid.uuid)])
+                if self._before_answer is not None:
+                    self._before_answer(goal_handle)
         response_msg = self._action_type.Impl.SendGoalService.Response()
         response_msg.accepted = accepted
         response_msg.stamp = goal_info.stamp
         if not self._send_goal_answer(request_header, response_msg):
+            if goal_handle is not None and self._dropped is not None:
+                self._dropped(goal_handle)
             if goal_handle is not None:
                 key = bytes(goal_uuid.uuid)   # as rclpy's _execute_expire_goals
                 goal_handle.destroy()

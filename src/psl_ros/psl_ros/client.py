@@ -26,12 +26,13 @@ import numpy as np
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter_client import AsyncParameterClient
 from std_srvs.srv import Trigger
 
 from psl_msgs.action import ExecuteRollout, LearnSkill
 from psl_msgs.msg import GoalUpdate, RolloutEvaluation
-from psl_msgs.srv import (AddSample, ClaimSkill, CompletePattern, CreateSkill, LoadMemory,
-                          QuerySkill, ResetTask, SaveMemory)
+from psl_msgs.srv import (AddSample, ClaimSkill, CompletePattern, CreateSkill,
+                          EvaluateEpisode, LoadMemory, QuerySkill, ResetTask, SaveMemory)
 from psl_ros import names
 from psl_ros.action_server import GOAL_ANSWER_PATIENCE
 from psl_ros.timeouts import GOAL_TIMEOUT, ROLLOUT_TIMEOUT, SERVICE_TIMEOUT
@@ -212,7 +213,13 @@ class RolloutClient:
         self.reset_client = node.create_client(ResetTask, names.under(worker, names.RESET),
                                                callback_group=callback_group,
                                                qos_profile=SERVICES)
+        self.evaluate_client = node.create_client(EvaluateEpisode,
+                                                  names.under(worker, names.EVALUATE),
+                                                  callback_group=callback_group,
+                                                  qos_profile=SERVICES)
         self._callback_group = callback_group
+        self._executor_parameters: AsyncParameterClient | None = None
+        self._clock = ''
         self._matched: MatchedEndpoints | None = None
         self._ready = False      # the loop was seen complete once
         self._goal_publisher = None
@@ -241,34 +248,56 @@ class RolloutClient:
                     + ', '.join(f'{node} {n}' for node, n in short.items()) + ')')
         return ''
 
-    def external(self) -> bool:
-        """True when the worker's executor runs the episodes itself (``robot: external``: it
-        announces them on task_instance; a robot psl does not simulate, no sim/reset)."""
-        reports = self.matched.counts(PUBLISHER, self.topic(names.TASK_INSTANCE))
-        return any(node.endswith('/dmp_executor') for node in reports)
+    def clock(self) -> str:
+        """The worker's executor's ``clock`` parameter (``simulator``: psl's simulator runs
+        its episodes; ``robot``: a robot's own clock), asked once; '' while it does not
+        answer."""
+        if self._clock:
+            return self._clock
+        if self._executor_parameters is None:
+            self._executor_parameters = AsyncParameterClient(
+                self.node, names.under(self.worker, 'dmp_executor'),
+                callback_group=self._callback_group)
+        if not self._executor_parameters.services_are_ready():
+            return ''
+        try:
+            response = wait_for(self._executor_parameters.get_parameters(['clock']), 2.0,
+                                'the dmp_executor\'s parameters')
+        except TimeoutError:
+            return ''
+        self._clock = response.values[0].string_value
+        return self._clock
 
     def missing_endpoints(self) -> str:
         """What the worker's loop still lacks, as text ('' when complete): the action server,
-        the reset service, and for every topic of the loop its endpoints discovered and
-        matched on both sides (each publisher has matched every subscriber of the loop, each
-        subscription every publisher). With an external robot (`external`): the action
-        server and psl's own topics (the robot's are the executor's to check, each rollout)."""
+        the evaluator's service, with psl's simulator its reset service, and for every topic
+        of the loop its endpoints discovered and matched on both sides (each publisher has
+        matched every subscriber of the loop, each subscription every publisher). On a
+        robot's own clock its joint states are the robot's: only psl's subscriptions to them
+        are checked (the controller is the executor's to check, each rollout)."""
         missing = []
         if not self.rollout_client.server_is_ready():
             missing.append(f'{self.node.resolve_service_name(self.name)} action server')
-        external = self.external()
-        if not external and not self.reset_client.service_is_ready():
+        clock = self.clock()
+        if not clock:
+            return ', '.join(missing + ['the dmp_executor\'s parameters'])
+        simulated = clock == 'simulator'
+        if simulated and not self.reset_client.service_is_ready():
             missing.append(f'{self.node.resolve_service_name(self.reset_client.srv_name)} '
                            'service')
-        for topic, (pubs, subs) in names.LOOP_TOPICS.items():
-            if external and topic in names.ROBOT_TOPICS:
-                continue
+        if not self.evaluate_client.service_is_ready():
+            missing.append(f'{self.node.resolve_service_name(self.evaluate_client.srv_name)} '
+                           'service')
+        for topic, (pubs, subs) in (names.LOOP_TOPICS if simulated
+                                    else names.ROBOT_LOOP_TOPICS).items():
             topic = self.topic(topic)
             p, s = self.node.count_publishers(topic), self.node.count_subscribers(topic)
             if p < pubs or s < subs:
                 missing.append(f'{topic} ({p}/{pubs} publishers, {s}/{subs} subscribers)')
                 continue
-            missing.append(self.unmatched(topic, subs, pubs))
+            robots = not simulated and topic == self.topic(names.JOINT_STATES)
+            if not robots:          # a robot's publisher reports nothing
+                missing.append(self.unmatched(topic, subs, pubs))
             readers = self.matched.counts(SUBSCRIPTION, topic)
             if len(readers) < subs or any(n < pubs for n in readers.values()):
                 missing.append(f'{topic} ({len(readers)}/{subs} subscriptions matched {pubs} '
@@ -276,14 +305,13 @@ class RolloutClient:
         return ', '.join(filter(None, missing))
 
     def ready(self, timeout: float) -> bool:
-        """True when the action server, the reset service and every topic of the loop are
-        matched (`missing_endpoints`; waits up to about `timeout` s)."""
+        """True when the action server, the services and every topic of the loop are matched
+        (`missing_endpoints`; waits up to about `timeout` s)."""
         deadline = time.monotonic() + timeout
 
         def left() -> float:
             return max(0.0, deadline - time.monotonic())
         return (wait_for_server(self.rollout_client, timeout)
-                and (self.external() or wait_for_service(self.reset_client, left()))
                 and wait_until(lambda: not self.missing_endpoints(), left(),
                                self.node.context))
 

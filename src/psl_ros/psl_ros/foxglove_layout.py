@@ -43,11 +43,12 @@ def psl_layout(namespace: str = '') -> fl.Layout:
             visible=True)}))
     joints = fl.PlotPanel(title='joints: measured and reference [rad]', config=fl.PlotConfig(
         x_axis_val='timestamp', paths=[
-            fl.PlotSeries(value=f'{_topic(namespace, topic)}.position[{k}]',
+            fl.PlotSeries(value=f'{_topic(namespace, topic)}{field}[{k}]',
                           label=f'{label} {k}', timestamp_method='receiveTime')
             for k in range(JOINTS_PLOTTED)
-            for topic, label in ((names.JOINT_STATES, 'measured'),
-                                 (names.REFERENCE, 'reference'))]))
+            for topic, field, label in (
+                (names.JOINT_STATES, '.position', 'measured'),
+                (names.PSL_CONTROLLER_STATE, '.reference.positions', 'reference'))]))
     instance = fl.RawMessagesPanel(title='task instance', config=fl.RawMessagesConfig(
         topic_path=_topic(namespace, names.TASK_INSTANCE), expansion='all'))
     plots = fl.SplitContainer(direction='column', items=[

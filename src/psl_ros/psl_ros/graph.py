@@ -28,7 +28,7 @@ from psl_ros.shared_memory import remove_stale
 LOG_ROOT_VARIABLE = 'PSL_LOG_DIR'       # environment: where the graphs' log folders go
 DEFAULT_LOG_ROOT = Path('log') / 'graph'  # ... when unset: relative to the working directory
 SIM_MODES = ('lockstep', 'realtime')     # how the simulator advances (psl_sim/sim_node.py)
-NODES = (  # (name, package, executable)
+NODES = (  # (name, package, executable); the first two are the 'sim' robot's
     ('sim', 'psl_sim', 'sim'),
     ('pd_controller', 'psl_controller', 'pd_controller'),
     ('dmp_executor', 'psl_controller', 'dmp_executor'),
@@ -38,14 +38,45 @@ NODES = (  # (name, package, executable)
 )
 # the nodes of one rollout worker: with Graph(workers=N) each worker runs under <ns>/worker<k>
 WORKER_NODES = ('sim', 'robot', 'pd_controller', 'dmp_executor', 'reward_evaluator')
-# what the loop runs on: psl's simulator (it starts the episodes); psl's simulator playing a
-# standard ros2_control robot (joint_states and effort_command only); or a robot of the user's,
-# running already (psl starts no robot). With the last two psl runs the episodes itself.
-ROBOTS = ('sim', 'standard', 'external')
+SIM, PD_CONTROLLER = NODES[0], NODES[1]
 STANDARD_ROBOT = ('robot', 'psl_sim', 'standard_robot')
 VIEW = ('view', 'psl_ros', 'view')     # the graph live in Foxglove (psl up --view)
-STATE_TIMEOUT = 0.3     # [s] the controller's watchdog on a robot psl does not simulate (0.105 s
-                        # gaps seen in a Python robot loop on a loaded 2-core machine)
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotKind:
+    """What a graph's loop runs on: the robot-side nodes psl starts, the controller the
+    executor drives (a JointTrajectoryController's node, relative to the worker's namespace)
+    and the clock of its episodes (the executor's ``clock``)."""
+
+    name: str
+    doc: str
+    nodes: tuple[tuple[str, str, str], ...]
+    controller: str
+    clock: str
+    node_params: tuple[tuple[str, dict], ...] = ()      # (node, parameters) of psl's nodes
+    own_controller: bool = False    # the robot may bring its own controller (given by name)
+
+    def robot_nodes(self, controller: str) -> tuple[tuple[str, str, str], ...]:
+        """The nodes psl starts for the robot; a controller given by the user (a robot's own
+        JointTrajectoryController) replaces psl's pd_controller."""
+        return tuple(n for n in self.nodes if not (controller and n is PD_CONTROLLER))
+
+
+ROBOT_KINDS = {kind.name: kind for kind in (
+    RobotKind('sim', "psl's simulator (MuJoCo; lockstep or realtime) and psl's controller; the "
+              'simulator runs each episode (teleport or drive)', (SIM, PD_CONTROLLER),
+              'pd_controller', 'simulator', (('pd_controller', {'state_timeout': 0.0}),)),
+    RobotKind('standard', "psl's simulator playing a ros2_control robot on the wall clock: "
+              'joint_states and its own JointTrajectoryController (the PD + feed-forward '
+              'law in its loop; noise, latency, model error)', (STANDARD_ROBOT,),
+              'standard_robot', 'robot'),
+    RobotKind('external', 'your robot, running already: its JointTrajectoryController '
+              "(--controller), or for a robot that takes torques only psl's pd_controller "
+              'on its effort topic (watchdog on)', (PD_CONTROLLER,), 'pd_controller',
+              'robot', own_controller=True),
+)}
+ROBOTS = tuple(ROBOT_KINDS)
 
 
 def pid_alive(pid: int) -> bool:
@@ -170,17 +201,22 @@ class Graph:
                  workers: int = 0, reset: str = '',
                  launch_prefix: dict[str, list[str]] | None = None,
                  robot: str = ROBOTS[0], robot_topics: dict[str, str] | None = None,
-                 view_port: int | None = None):
+                 view_port: int | None = None, controller: str = ''):
         if mode not in SIM_MODES:
             raise ValueError(f'mode must be one of {SIM_MODES}, got {mode!r}')
-        if robot not in ROBOTS:
+        if robot not in ROBOT_KINDS:
             raise ValueError(f'robot must be one of {", ".join(ROBOTS)}, got {robot!r}')
+        self.kind = kind = ROBOT_KINDS[robot]
+        if controller and not kind.own_controller:
+            raise ValueError(f'robot {robot!r} runs its controller itself; a controller of '
+                             f'your robot is given with robot '
+                             f'{next(k for k in ROBOT_KINDS.values() if k.own_controller).name}')
         # the robot's topics, by psl's name (joint_states, effort_command): remaps of the loop
         self.robot, self.robot_topics = robot, dict(robot_topics or {})
-        if robot != 'sim':
-            nodes = tuple(n for n in nodes if n[0] != 'sim')
-            if robot == 'standard':
-                nodes = (STANDARD_ROBOT,) + nodes
+        self.controller = controller or kind.controller
+        # the robot kind's nodes, first, in place of any robot-side node of `nodes`
+        robot_side = {SIM, PD_CONTROLLER, STANDARD_ROBOT}
+        nodes = kind.robot_nodes(controller) + tuple(n for n in nodes if n not in robot_side)
         if view_port is not None:       # the view node, serving Foxglove on this port
             nodes = nodes + (VIEW,)
         self.view_port = view_port
@@ -198,20 +234,21 @@ class Graph:
         self.processes: list[NodeProcess] = []
 
     def params(self, name: str) -> dict:
-        """The -p parameters of a node: the task for the simulator and the controller (none:
-        their default, psl_task.DEFAULT_TASK), the mode for the simulator, the reset for the
+        """The -p parameters of a node: the task for the simulator, the robot and the
+        controller (none: their default, psl_task.DEFAULT_TASK), the mode for the simulator,
+        the robot kind's (the controller's watchdog), the controller, clock and reset for the
         executor, the workers for the learner, the memory folder (``PSL_MEMORY_DIR``, if set)
         for the skill memory, the port for the view, then `extra_params`."""
         params = ({'task': self.task} if self.task and name in ('sim', 'robot', 'pd_controller')
                   else {})
         if name == 'sim':
             params['mode'] = self.mode
-        if self.robot != 'sim' and name == 'dmp_executor':
-            params['robot'] = 'external'
-        if self.robot != 'sim' and name == 'pd_controller':
-            params['state_timeout'] = STATE_TIMEOUT
-        if name == 'dmp_executor' and self.reset:
-            params['reset'] = self.reset          # teleport | drive ('' = the task's)
+        params.update(dict(self.kind.node_params).get(name, {}))
+        if name == 'dmp_executor':
+            params['controller'] = self.controller
+            params['clock'] = self.kind.clock
+            if self.reset:
+                params['reset'] = self.reset          # teleport | drive ('' = the task's)
         if name == 'learner' and self.workers:
             params['workers'] = '[' + ','.join(self.worker_namespaces(relative=True)) + ']'
         if name == 'view' and self.view_port is not None:
@@ -302,7 +339,7 @@ class Graph:
 
         deadline = time.monotonic() + timeout
         names = {name for name, *_ in self.nodes_spec}
-        loops = self.worker_namespaces() if set(WORKER_NODES) <= names else []
+        loops = self.worker_namespaces() if 'dmp_executor' in names else []
         for namespace in loops:
             with RosClient(namespace) as client:
                 while time.monotonic() < deadline and not (stop is not None

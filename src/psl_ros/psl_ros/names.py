@@ -8,10 +8,9 @@ from __future__ import annotations
 
 # the robot loop's topics
 JOINT_STATES = 'joint_states'           # sensor_msgs/JointState, the simulator (or robot)
-EFFORT_COMMAND = 'effort_command'       # std_msgs/Float64MultiArray, the controller
-REFERENCE = 'reference'                 # sensor_msgs/JointState: q_ref, qd_ref, u_ffwd
-JOINT_TRAJECTORY = 'joint_trajectory'   # trajectory_msgs/JointTrajectory, the executor
-TASK_INSTANCE = 'task_instance'         # psl_msgs/TaskInstance (latched), the simulator
+EFFORT_COMMAND = 'effort_command'       # std_msgs/Float64MultiArray, psl's controller to psl's
+                                        # simulator (or a robot's forward_command_controller)
+TASK_INSTANCE = 'task_instance'         # psl_msgs/TaskInstance (latched), the executor
 ROLLOUT_EVALUATION = 'rollout_evaluation'   # psl_msgs/RolloutEvaluation, the evaluator
 EE_POSE = 'ee_pose'                     # geometry_msgs/PoseStamped, the simulator
 SCENE = 'scene'                         # visualization_msgs/MarkerArray (latched), the simulator
@@ -26,23 +25,26 @@ WORLD_FRAME = 'world'                   # frame_id of ee_pose and of the scene's
 # services and actions
 RESET = 'sim/reset'                     # psl_msgs/ResetTask, the simulator's ~/reset
 EXECUTE_ROLLOUT = 'execute_rollout'     # psl_msgs/ExecuteRollout, the executor
-GOAL_CHANGE = 'reward_evaluator/goal_change'   # psl_msgs/GoalChange: the executor tells the
-                                               # evaluator of a changed goal (its ~/goal_change)
+EVALUATE = 'reward_evaluator/evaluate'  # psl_msgs/EvaluateEpisode: the executor has an episode
+                                        # scored (the evaluator's ~/evaluate)
+FOLLOW_JOINT_TRAJECTORY = 'follow_joint_trajectory'     # control_msgs/FollowJointTrajectory,
+                                        # under a JointTrajectoryController's node
+CONTROLLER_STATE = 'controller_state'   # control_msgs/JointTrajectoryControllerState, ditto
+PSL_CONTROLLER_STATE = 'pd_controller/' + CONTROLLER_STATE      # psl's controller's
 LEARN_SKILL = 'learn_skill'             # psl_msgs/LearnSkill, the learner
 SKILL_MEMORY = 'skill_memory'           # the memory node: services skill_memory/<service>
 
-# topic -> (publishers, subscribers) one rollout worker's loop has before its first episode
-LOOP_TOPICS = {JOINT_STATES: (1, 2), EFFORT_COMMAND: (1, 1), REFERENCE: (1, 1),
-               TASK_INSTANCE: (1, 1), JOINT_TRAJECTORY: (1, 1), ROLLOUT_EVALUATION: (1, 1)}
-# the loop's topics a robot offers (a robot psl does not simulate: its joint_state_broadcaster
-# and effort forward_command_controller, remapped)
-ROBOT_TOPICS = (JOINT_STATES, EFFORT_COMMAND)
-# topic -> subscribers a rollout worker's own nodes have on it, beyond LOOP_TOPICS (the
-# executor reads /diagnostics)
-OWN_SUBSCRIBERS = {**{topic: subs for topic, (_, subs) in LOOP_TOPICS.items()}, DIAGNOSTICS: 1}
+# topic -> (publishers, subscribers) one rollout worker's loop on psl's simulator has before
+# its first episode (joint_states: the controller, the executor's link, the evaluator)
+LOOP_TOPICS = {JOINT_STATES: (1, 2), EFFORT_COMMAND: (1, 1), TASK_INSTANCE: (1, 1)}
+# the loop's topics on a robot's own clock: the robot's joint states (the executor and the
+# evaluator read them) and the episodes the executor announces
+ROBOT_LOOP_TOPICS = {JOINT_STATES: (1, 2), TASK_INSTANCE: (1, 1)}
+# topic -> subscribers a rollout worker's own nodes have on it
+OWN_SUBSCRIBERS = {JOINT_STATES: 2, EFFORT_COMMAND: 1, TASK_INSTANCE: 1}
 # what a recording of the loop holds (psl demo)
-RECORDED_TOPICS = (JOINT_STATES, EE_POSE, EFFORT_COMMAND, REFERENCE, JOINT_TRAJECTORY,
-                   TASK_INSTANCE, ROLLOUT_EVALUATION, CLOCK, SCENE)
+RECORDED_TOPICS = (JOINT_STATES, EE_POSE, EFFORT_COMMAND, TASK_INSTANCE, ROLLOUT_EVALUATION,
+                   CLOCK, SCENE)
 
 
 def under(namespace: str, name: str) -> str:

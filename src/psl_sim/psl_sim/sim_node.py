@@ -1,16 +1,17 @@
 """The simulator node: a task's MuJoCo model behind standard robot topics.
 
-Publishes ``joint_states`` (sensor_msgs/JointState, effort = torque applied in the step that
-led to the state), ``ee_pose`` (geometry_msgs/PoseStamped), ``/clock``, ``scene``
-(visualization_msgs/MarkerArray, latched: see below) and, on every reset, ``task_instance``
-(psl_msgs/TaskInstance, latched). Applies ``effort_command``
-(std_msgs/Float64MultiArray, the forward_command_controller convention) clipped to the
-model's torque limits. ``~/reset`` (psl_msgs/ResetTask) starts an episode of the task's
-length; between episodes the simulation is paused. A reset may name another task of the same
-robot (the same actuated joints); one of another robot is refused, since the controller and
-every other node of the graph are set up for the joints of the robot the simulator started with.
-``task_instance`` names the task so that any node can load it: by name, or by its YAML's
-absolute path when the name does not find it (`psl_task.task.task_id`).
+A robot with extras (DESIGN.md 3b): it publishes ``joint_states`` (sensor_msgs/JointState,
+effort = torque applied in the step that led to the state), ``ee_pose``
+(geometry_msgs/PoseStamped), ``/clock`` and ``scene`` (visualization_msgs/MarkerArray, latched:
+see below), and applies ``effort_command`` (std_msgs/Float64MultiArray, the
+forward_command_controller convention) clipped to the model's torque limits; its controller is
+psl's ``pd_controller``. The extras are ``~/reset`` (psl_msgs/ResetTask): teleport the arm to the
+start posture (or leave it where it is: ``drive``), place the task instance, and run an episode
+of a given length (``probe``: say the state, run nothing); between episodes the simulation is
+paused. A reset may name another task of the same robot (the same actuated joints); one of
+another robot is refused, since the controller and every other node of the graph are set up
+for the joints of the robot the simulator started with. The simulator announces nothing: the
+executor owns the episode and announces it (``task_instance``).
 
 ``scene``: the model's visible geoms at their current poses (`psl_sim.scene`: the arm, the
 obstacles, the static geoms; a capsule is a cylinder and two spheres) and the end-effector path
@@ -44,7 +45,6 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from visualization_msgs.msg import Marker, MarkerArray
 
-from psl_msgs.msg import TaskInstance
 from psl_msgs.srv import ResetTask
 from psl_task.arm_model import ArmModel
 from psl_sim.sim_parameters import SimParameters
@@ -59,7 +59,7 @@ from psl_ros.qos import LATCHED, RELIABLE
 from psl_ros.service import create_service
 from psl_ros.stamps import NS_PER_S, time_msg
 from psl_ros.step_timing import StepTiming
-from psl_task.task import TaskError, load_task, task_id
+from psl_task.task import TaskError, load_task
 
 RESET_MODES = ('teleport', 'drive', 'probe')     # ResetTask.mode
 CONTROLLER = 'pd_controller'     # the node whose effort_command an episode takes
@@ -143,7 +143,6 @@ class SimNode(Node):
         self._joint_state = JointState()
         self.pub_pose = self.matches.create_publisher(PoseStamped, names.EE_POSE, RELIABLE)
         self.pub_clock = self.matches.create_publisher(Clock, names.CLOCK, RELIABLE)
-        self.pub_task = self.matches.create_publisher(TaskInstance, names.TASK_INSTANCE, LATCHED)
         self.pub_diag = self.matches.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self.pub_scene = self.matches.create_publisher(MarkerArray, names.SCENE, LATCHED)
         self.hot_path = HotPath(self)
@@ -271,10 +270,6 @@ class SimNode(Node):
             self.episode = {'t0': self.t_ns, 'misses': 0, 'start': time.perf_counter(),
                             'steps': num_steps}
             self.timing.clear()
-            self.pub_task.publish(TaskInstance(
-                stamp=time_msg(self.t_ns), task=task_id(arm.task), tau=tau.tolist(),
-                num_steps=num_steps, control_period=arm.task.control_period,
-                homing=request.homing))
             self._publish_state()
             self._episode_wall_ns = self._state_wall_ns
             self._ee_path = []

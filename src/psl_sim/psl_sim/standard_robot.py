@@ -1,46 +1,38 @@
-"""A standard ros2_control robot played by a task's MuJoCo model: the physics, without ROS.
+"""A standard ros2_control robot played by a task's MuJoCo model: the physics and the robot's own
+JointTrajectoryController, without ROS.
 
-What a real arm behind ``joint_state_broadcaster`` and an effort ``forward_command_controller``
-is to its controller: it measures its joints in its own order (with noise, and perhaps joints
-the task does not drive), takes torques in its controller's joint order, applies them a number
-of control periods late, falls back to zero torque when the commands stop (a safety layer, not
-the forward_command_controller's hold-the-last), and is not the model (`ModelError`: masses,
-friction, damping). `psl_sim.standard_robot_node` runs it on the wall clock.
+What a real arm behind ``joint_state_broadcaster`` and a JointTrajectoryController (JTC) on the
+effort interface is to psl: it measures its joints in its own order (with noise, and perhaps
+joints the task does not drive), runs its trajectory controller inside its own loop, stepped
+with the physics (`psl_controller.trajectory_controller.TrajectoryController`: the compliant
+law ``u = Kp (q_ref - q) + Kd (qd_ref - qd) + u_ffwd`` on the *measured* state, the robot's own
+gains), applies the torque a number of control periods late, and is not the model
+(`ModelError`: masses, friction, damping). `psl_sim.standard_robot_node` runs it on the wall
+clock and serves the controller as control_msgs/FollowJointTrajectory, as
+mujoco_ros2_control and a real driver do. No DDS inside its control loop.
 
-One control period (the node calls these at each tick, in this order):
-1. `measure`: the state now (robot time ``periods * period``), in ``names`` order, noise added,
-   effort = the torque applied during the period that led to it;
-2. `advance`: the torque due now is applied over the task's substeps (`ArmModel.step`).
-Commands (`receive`) arriving between two ticks belong to the period between them; with
-``latency_periods`` n, the command latest at a tick is applied n ticks later. The command
-timeout is counted on the robot's `clock`: a tick at which the latest command is
-``command_timeout`` old or older sends zero torque into the latency pipeline. The default clock
-is robot time (deterministic: a command received after k advances is then in force at the
-advances k .. k + timeout periods - 1); the node gives the wall clock (`time.monotonic`), as a
-robot's safety layer counts, so a loop that falls behind does not stretch the timeout.
+One control period (`step`, at robot time ``t_ns``):
+1. measure: the state now, in ``names`` order, noise added, effort = the torque applied during
+   the period that led to it;
+2. control: the controller's torque for the measured state (task order);
+3. advance: the torque due now (the one computed ``latency_periods`` periods ago; zero before)
+   applied over the task's substeps (`ArmModel.step`).
 Imports no ROS.
 """
 from __future__ import annotations
 
 import collections
 import dataclasses
-from typing import Callable
 
 import mujoco
 import numpy as np
 
-from psl_sim.standard_robot_parameters import (DEFAULT_TIMEOUT_PERIODS, FROM_TASK, NOT_GIVEN,
-                                               StandardRobotParameters)
+from psl_controller.pd_law import PDLaw, law_for
+from psl_controller.trajectory_controller import Result, TrajectoryController
+from psl_sim.standard_robot_parameters import FROM_TASK, NOT_GIVEN, StandardRobotParameters
 from psl_task.arm_model import ArmModel
 from psl_task.model_error import ModelError
 from psl_task.task import load_task
-
-
-TIME_TOLERANCE = 1e-9      # s
-
-
-class CommandRefused(ValueError):
-    """A command the robot does not take (wrong length, NaN or inf); the torque stays."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,32 +47,30 @@ class Measurement:
 
 
 class StandardRobot:
-    """A task's arm as a standard robot (see the module doc).
+    """A task's arm as a standard robot with its own trajectory controller (module doc).
 
     Raises:
         ValueError: parameters that do not fit the task (joints, initial posture outside the
-            joint ranges), a task that does not load (TaskError), a bad model error.
+            joint ranges, gains), a task that does not load (TaskError), a bad model error.
     """
 
     def __init__(self, parameters: StandardRobotParameters,
-                 rng: np.random.Generator | None = None,
-                 clock: Callable[[], float] | None = None):
+                 rng: np.random.Generator | None = None):
         self.parameters = p = parameters
         task = load_task(p.task)
         self.arm = arm = ArmModel(task)
         driven = list(arm.joint_names)
         p.check_against(driven)
         self.period = task.control_period
+        self.period_ns = task.control_period_ns
         # the robot is not the model: changed before anything runs (ModelError.apply)
         self.model_error = ModelError.parse(p.model_error)
         self.model_error.apply(arm.model, arm.joint_ids)
-        # orders: index into the task's order of each joint of joint_order / command_joints
+        # its controller: the task's law with the robot's own gains, if given
+        self.controller = TrajectoryController(driven, self._law(law_for(task)))
+        # orders: index into the task's order of each joint of joint_order
         self.joint_order = driven if p.joint_order == NOT_GIVEN else list(p.joint_order)
-        command_joints = (self.joint_order if p.command_joints == NOT_GIVEN
-                          else list(p.command_joints))
-        self.command_joints = command_joints
         self._state_index = np.array([driven.index(j) for j in self.joint_order])
-        self._command_index = np.array([driven.index(j) for j in command_joints])
         self.names = self.joint_order + list(p.extras)
         self._n_extra = len(p.extras)
         # the start: the task's default instance around the arm at rest in initial_posture
@@ -91,16 +81,25 @@ class StandardRobot:
         arm.data.qpos[arm.qpos_adr] = posture
         mujoco.mj_forward(arm.model, arm.data)
         self.rng = rng if rng is not None else np.random.default_rng(p.seed)
-        self.command_timeout = p.command_timeout or DEFAULT_TIMEOUT_PERIODS * self.period
-        # [s] what the timeout is counted on (`clock()`): robot time unless given
-        self.clock = clock if clock is not None else lambda: self.periods * self.period
         n = len(driven)
         self.periods = 0                     # advances done: robot time = periods * period
         self.applied = np.zeros(n)           # task order: the torque of the last advance
-        self._command: np.ndarray | None = None      # task order, clipped: the latest command
-        self._command_time = 0.0             # clock() when it arrived
-        # torques sampled at the last latency_periods ticks, not yet applied (zero at start)
+        # torques computed at the last latency_periods ticks, not yet applied (zero at start)
         self._pipeline = collections.deque(np.zeros(n) for _ in range(p.latency_periods))
+
+    def _law(self, task_law: PDLaw) -> PDLaw:
+        p, n = self.parameters, task_law.n_joints
+        gains = []
+        for name, default in (('kp', task_law.kp), ('kd', task_law.kd)):
+            value = np.asarray(getattr(p, name), dtype=float)
+            if tuple(value) == FROM_TASK:
+                gains.append(default)
+            elif value.shape != (n,):
+                raise ValueError(f'{name} needs one gain per driven joint ({n}), got '
+                                 f'{value.tolist()}')
+            else:
+                gains.append(value)
+        return PDLaw(gains[0], gains[1], task_law.torque_low, task_law.torque_high)
 
     def _check_posture(self, posture: np.ndarray) -> None:
         arm = self.arm
@@ -111,33 +110,6 @@ class StandardRobot:
             j = int(np.flatnonzero(outside)[0])
             raise ValueError(f'initial_posture puts joint {arm.joint_names[j]!r} at '
                              f'{posture[j]:g}, outside its range [{low[j]:g}, {high[j]:g}]')
-
-    # -- commands -----------------------------------------------------------------------
-    def receive(self, data) -> np.ndarray:
-        """A forward_command_controller command: torques in `command_joints` order. Clipped
-        to the torque limits, it becomes the latest command (arrived in the current period);
-        returns it in the task's order. CommandRefused (the torque unchanged) for a wrong
-        length or a value that is not finite."""
-        command = np.asarray(data, dtype=float).reshape(-1)
-        if command.shape != self._command_index.shape:
-            raise CommandRefused(f'expected {len(self._command_index)} torques '
-                                 f'({", ".join(self.command_joints)}), got {command.size}')
-        if not np.isfinite(command).all():
-            raise CommandRefused('a torque is NaN or infinite')
-        torque = np.empty_like(command)
-        torque[self._command_index] = command
-        self._command = self.arm.clip_torque(torque)
-        self._command_time = self.clock()
-        return self._command
-
-    def due(self) -> np.ndarray:
-        """The latest command if it is younger than the command timeout, else zero (task
-        order): what this tick sends into the latency pipeline."""
-        # (a rounding tolerance: on robot time the age is a whole number of periods)
-        age = self.clock() - self._command_time
-        if self._command is None or age >= self.command_timeout - TIME_TOLERANCE:
-            return np.zeros_like(self.applied)
-        return self._command
 
     # -- the control period -------------------------------------------------------------
     def measure(self) -> Measurement:
@@ -156,13 +128,19 @@ class StandardRobot:
             velocity[:n] += self.rng.normal(0.0, p.velocity_noise, n)
         return Measurement(self.periods * self.period, self.names, position, velocity, effort)
 
-    def advance(self) -> np.ndarray:
-        """One control period: the torque due (latency, timeout) over the task's substeps.
-        Returns it (task order)."""
-        self._pipeline.append(self.due())
+    def step(self, t_ns: int | None = None) -> tuple[Measurement, list[Result]]:
+        """One control period (module doc) at robot time `t_ns` (default: periods * period):
+        the state measured at its start and the controller's goals that ended."""
+        state = self.measure()
+        n = len(self._state_index)
+        q, qd = np.empty(n), np.empty(n)
+        q[self._state_index], qd[self._state_index] = state.position[:n], state.velocity[:n]
+        torque, results = self.controller.update(
+            self.periods * self.period_ns if t_ns is None else t_ns, q, qd)
+        self._pipeline.append(torque)
         self.applied = self.arm.step(self._pipeline.popleft())
         self.periods += 1
-        return self.applied
+        return state, results
 
     # -- the world ----------------------------------------------------------------------
     def place(self, tau) -> np.ndarray:

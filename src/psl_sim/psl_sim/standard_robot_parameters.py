@@ -11,14 +11,13 @@ from psl_task import DEFAULT_TASK
 from psl_task.model_error import ModelError
 
 NOT_GIVEN = ('',)           # a string list left to the task (or empty)
-FROM_TASK = (0.0,)          # initial_posture: the task's start posture
-DEFAULT_TIMEOUT_PERIODS = 5     # command_timeout 0: this many control periods
+FROM_TASK = (0.0,)          # initial_posture, kp, kd: the task's
 
 
 @dataclasses.dataclass(frozen=True)
 class StandardRobotParameters:
     """A ros2_control robot played by the task's MuJoCo model: its joint order, its extra
-    joints, its command order, and how it differs from the model (noise, latency, model
+    joints, its controller's gains, and how it differs from the model (noise, latency, model
     error). The joint lists are checked against the task's driven joints."""
 
     task: str = field(default=DEFAULT_TASK, metadata={'doc': (
@@ -29,21 +28,21 @@ class StandardRobotParameters:
     extra_joints: tuple[str, ...] = field(default=NOT_GIVEN, metadata={'doc': (
         'joints reported after those in joint_states that the task does not drive (e.g. a '
         "gripper finger), always at position 0, velocity 0, effort 0; [''] = none")})
-    command_joints: tuple[str, ...] = field(default=NOT_GIVEN, metadata={'doc': (
-        'the joint order of the effort_command torques (the forward_command_controller\'s '
-        "joints parameter, a permutation of the task's driven joints); [''] = joint_order")})
     position_noise: float = field(default=0.0, metadata={'doc': (
         'standard deviation of the Gaussian noise on each measured position [rad or m]')})
     velocity_noise: float = field(default=0.0, metadata={'doc': (
         'standard deviation of the Gaussian noise on each measured velocity [rad/s or m/s]')})
     latency_periods: int = field(default=0, metadata={'doc': (
-        'a command is applied this many control periods after the period it arrived in')})
+        "the controller's torque is applied this many control periods after the state it "
+        'answers was measured')})
+    kp: tuple[float, ...] = field(default=FROM_TASK, metadata={'doc': (
+        "its trajectory controller's proportional gains [N m/rad], one per driven joint in "
+        "the task's order; [0.0] = the task's controller.kp")})
+    kd: tuple[float, ...] = field(default=FROM_TASK, metadata={'doc': (
+        "its trajectory controller's derivative gains [N m s/rad]; [0.0] = the task's")})
     model_error: str = field(default='', metadata={'doc': (
         "how the robot differs from the task's model, e.g. "
         "'mass_scale=1.3,frictionloss=0.05,damping=0.3' (psl_task.model_error); '' = none")})
-    command_timeout: float = field(default=0.0, metadata={'doc': (
-        'after this long without a command the robot applies zero torque [s] (wall clock); '
-        f'0 = {DEFAULT_TIMEOUT_PERIODS} control periods')})
     seed: int = field(default=0, metadata={'doc': 'seed of the measurement noise'})
     initial_posture: tuple[float, ...] = field(default=FROM_TASK, metadata={'doc': (
         "joint positions at start, in the task's joint order (its start_posture's); "
@@ -59,11 +58,11 @@ class StandardRobotParameters:
                 or self.latency_periods < 0:
             raise ValueError(f'latency_periods must be a whole number >= 0, got '
                              f'{self.latency_periods!r}')
-        if not (isinstance(self.command_timeout, (int, float))
-                and math.isfinite(self.command_timeout) and self.command_timeout >= 0.0):
-            raise ValueError(f'command_timeout must be a finite number of seconds >= 0 (0: '
-                             f'{DEFAULT_TIMEOUT_PERIODS} control periods), got '
-                             f'{self.command_timeout!r}')
+        for name in ('kp', 'kd'):
+            value = getattr(self, name)
+            if not all(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0.0
+                       for v in value):
+                raise ValueError(f'{name} must be finite gains >= 0, got {list(value)}')
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f'seed must be a whole number >= 0, got {self.seed!r}')
         ModelError.parse(self.model_error)      # ValueError naming what is wrong
@@ -71,8 +70,8 @@ class StandardRobotParameters:
                    for v in self.initial_posture):
             raise ValueError(f'initial_posture must be finite numbers, got '
                              f'{list(self.initial_posture)}')
-        if (self.joint_order, self.extra_joints, self.command_joints,
-                self.initial_posture) != (NOT_GIVEN, NOT_GIVEN, NOT_GIVEN, FROM_TASK):
+        if (self.joint_order, self.extra_joints, self.initial_posture, self.kp,
+                self.kd) != (NOT_GIVEN, NOT_GIVEN, FROM_TASK, FROM_TASK, FROM_TASK):
             self.check_against(self.driven_joints())
 
     def driven_joints(self) -> list[str]:
@@ -84,7 +83,7 @@ class StandardRobotParameters:
 
     def check_against(self, driven: list[str]) -> None:
         """ValueError unless the joint lists fit the task's driven joints `driven`."""
-        for name in ('joint_order', 'command_joints'):
+        for name in ('joint_order',):
             order = getattr(self, name)
             if order != NOT_GIVEN and sorted(order) != sorted(driven):
                 missing = sorted(set(driven) - set(order))
@@ -98,9 +97,11 @@ class StandardRobotParameters:
         if '' in extra or len(set(extra)) != len(extra) or set(extra) & set(driven):
             raise ValueError(f'extra_joints must be distinct non-empty names of joints the '
                              f'task does not drive ({driven}), got {list(self.extra_joints)}')
-        if self.initial_posture != FROM_TASK and len(self.initial_posture) != len(driven):
-            raise ValueError(f'initial_posture must have one entry per driven joint '
-                             f'({len(driven)}: {driven}), got {list(self.initial_posture)}')
+        for name in ('initial_posture', 'kp', 'kd'):
+            value = getattr(self, name)
+            if value != FROM_TASK and len(value) != len(driven):
+                raise ValueError(f'{name} must have one entry per driven joint '
+                                 f'({len(driven)}: {driven}), got {list(value)}')
 
     @property
     def extras(self) -> tuple[str, ...]:

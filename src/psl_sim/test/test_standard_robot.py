@@ -1,14 +1,15 @@
-"""The standard robot's physics without ROS (`psl_sim.standard_robot`): latency, noise, command
-timeout, model error, joint and command orders, clipping, refusals, placing a task instance,
-and the parameters' checks. References are computed here from the MuJoCo model by joint name,
-not through the robot's own index tables."""
+"""The standard robot without ROS (`psl_sim.standard_robot`): its trajectory controller on the
+measured state, latency, noise, model error, joint order, its own gains, placing a task
+instance, and the parameters' checks. References are computed here from the MuJoCo model by
+joint name, not through the robot's own index tables, and the law from the task's gains."""
 import dataclasses
 
 import numpy as np
 import pytest
 from scipy import stats
 
-from psl_sim.standard_robot import CommandRefused, StandardRobot
+from psl_controller.trajectory_controller import Goal, Tolerances, hold_at
+from psl_sim.standard_robot import StandardRobot
 from psl_sim.standard_robot_parameters import StandardRobotParameters
 from psl_task.arm_model import ArmModel
 from psl_task.task import load_task
@@ -37,59 +38,52 @@ def by_name(r: StandardRobot, what: str) -> dict[str, float]:
     return out
 
 
+def hold(r: StandardRobot, q) -> None:
+    """A goal for the robot's controller: hold the position q (task order) from now on."""
+    r.controller.submit(Goal('hold', hold_at(np.asarray(q, dtype=float)), 0,
+                             Tolerances.none(len(q))))
+
+
 @pytest.mark.parametrize('latency', [0, 1, 3])
-def test_a_torque_step_is_applied_exactly_latency_periods_later(latency):
-    r = robot(latency_periods=latency, command_timeout=1.0)
-    step = np.array([1.0, -2.0, 3.0])
-    applied = [r.advance() for _ in range(4)]       # zero before any command
-    r.receive(step)                                 # arrives in the period after 4 advances
-    applied += [r.advance() for _ in range(latency + 5)]
+def test_the_controllers_torque_is_applied_exactly_latency_periods_later(latency):
+    r = robot(latency_periods=latency)
+    start = load_task(TASK).start_posture
+    hold(r, start + [0.1, -0.2, 0.05])              # away from where the arm is: a torque
+    computed, applied = [], []
+    for _ in range(latency + 6):
+        state, _ = r.step()
+        computed.append(r.controller.last.torque.copy())
+        applied.append(r.applied.copy())
     for k, torque in enumerate(applied):
-        expected = step if k >= 4 + latency else np.zeros(3)
-        np.testing.assert_array_equal(torque, expected, err_msg=f'advance {k}')
+        expected = computed[k - latency] if k >= latency else np.zeros(3)
+        np.testing.assert_array_equal(torque, expected, err_msg=f'step {k}')
+    assert np.any(computed[0])
 
 
-def test_zero_torque_after_the_command_timeout():
-    r = robot(command_timeout=0.006)                # 3 periods of 2 ms (on robot time)
-    r.advance()
-    r.receive([5.0, 5.0, 5.0])
-    applied = [r.advance().copy() for _ in range(6)]
-    assert [bool(np.any(t)) for t in applied] == [True, True, True, False, False, False]
-    # a new command is in force again, for as long
-    r.receive([1.0, 1.0, 1.0])
-    assert [bool(np.any(r.advance())) for _ in range(4)] == [True, True, True, False]
-    # the default: 5 control periods
-    d = robot()
-    d.receive([1.0, 1.0, 1.0])
-    assert [bool(np.any(d.advance())) for _ in range(7)] == [True] * 5 + [False] * 2
-
-
-def test_the_timeout_counts_on_the_clock_given():
-    now = [100.0]                                   # a wall clock that the test moves
-    r = StandardRobot(StandardRobotParameters(task=TASK, command_timeout=0.05),
-                      clock=lambda: now[0])
-    r.receive([1.0, 1.0, 1.0])
-    for _ in range(100):                            # robot time runs, the clock stands
-        assert np.any(r.advance())
-    now[0] += 0.049
-    assert np.any(r.advance())
-    now[0] += 0.001                                 # 0.05 s since the command
-    assert not np.any(r.advance())
-
-
-def test_the_timeout_counts_from_the_arrival_not_from_the_application():
-    r = robot(latency_periods=2, command_timeout=0.006)
-    r.receive([1.0, 1.0, 1.0])
-    # sampled at advances 0, 1, 2 (in force), applied two later: 2, 3, 4
-    assert [bool(np.any(r.advance())) for _ in range(7)] == [False, False, True, True, True,
-                                                            False, False]
+def test_the_controller_acts_on_the_measured_state_with_the_robots_gains():
+    """The torque is the law on the noisy measurement (not the exact state), with the gains
+    given to the robot (not the task's)."""
+    kp, kd = [50.0, 40.0, 30.0], [2.0, 3.0, 4.0]
+    r = robot(position_noise=0.01, velocity_noise=0.05, seed=3, kp=kp, kd=kd,
+              joint_order=['joint3', 'joint1', 'joint2'])
+    target = load_task(TASK).start_posture + 0.1
+    hold(r, target)
+    for _ in range(5):
+        exact = np.array([by_name(r, 'qpos')[j] for j in r.arm.joint_names])
+        state, _ = r.step()
+        order = [state.name.index(j) for j in r.arm.joint_names]
+        q, qd = state.position[order], state.velocity[order]
+        np.testing.assert_allclose(r.controller.last.torque,
+                                   np.clip(np.array(kp) * (target - q) - np.array(kd) * qd,
+                                           -40.0, 40.0), rtol=1e-12, atol=1e-12)
+        assert np.abs(q - exact).max() > 0.0        # it was the measurement, with its noise
 
 
 def test_zero_noise_gives_the_exact_state():
     r = robot(joint_order=['joint2', 'joint3', 'joint1'])
-    r.receive([3.0, -1.0, 2.0])
+    hold(r, load_task(TASK).start_posture + 0.2)
     for _ in range(20):
-        r.advance()
+        r.step()
     m = r.measure()
     qpos, qvel = by_name(r, 'qpos'), by_name(r, 'qvel')
     assert m.name == ['joint2', 'joint3', 'joint1']
@@ -102,7 +96,7 @@ def test_noise_has_the_standard_deviation_asked_for():
     sigma_q, sigma_qd, n = 0.01, 0.05, 20000
     r = robot(position_noise=sigma_q, velocity_noise=sigma_qd, seed=7)
     for _ in range(10):
-        r.advance()
+        r.step()
     exact_q, exact_qd = by_name(r, 'qpos'), by_name(r, 'qvel')
     samples = [r.measure() for _ in range(n)]       # the same state measured n times
     q = np.array([s.position for s in samples]) - [exact_q[j] for j in r.names]
@@ -134,42 +128,40 @@ def test_the_model_error_is_applied_before_anything_runs():
         dof = m.joint(name).dofadr[0]
         assert m.dof_damping[dof] == pytest.approx(nominal.dof_damping[dof] + 0.3)
         assert m.dof_frictionloss[dof] == pytest.approx(nominal.dof_frictionloss[dof] + 0.05)
-    # and the dynamics with it: the same torque moves the heavier arm less
+    # and the dynamics with it: the same pull moves the heavier arm less
     plain = robot()
+    target = load_task(TASK).start_posture + 0.3
     for each in (r, plain):
+        hold(each, target)
         for _ in range(10):
-            each.receive([2.0, 2.0, 2.0])
-            each.advance()
+            each.step()
     assert np.all(np.abs(r.measure().velocity) < np.abs(plain.measure().velocity))
 
 
-def test_commands_in_their_order_drive_the_right_joints_and_come_back_as_effort():
-    r = robot(joint_order=['joint3', 'joint1', 'joint2'], extra_joints=['gripper'],
-              command_joints=['joint2', 'joint3', 'joint1'])
-    command = {'joint2': 1.0, 'joint3': 2.0, 'joint1': 3.0}
-    r.receive([command[j] for j in ('joint2', 'joint3', 'joint1')])
-    r.advance()
-    assert by_name(r, 'ctrl') == command                 # each actuator, found by its joint
+def test_its_joint_order_and_extra_joints_and_the_applied_torque_as_effort():
+    r = robot(joint_order=['joint3', 'joint1', 'joint2'], extra_joints=['gripper'])
+    hold(r, load_task(TASK).start_posture + 0.2)
+    r.step()
+    applied = dict(zip(r.arm.joint_names, r.applied))
+    assert by_name(r, 'ctrl') == pytest.approx(applied, abs=0.0)    # each actuator, by joint
     m = r.measure()
     assert m.name == ['joint3', 'joint1', 'joint2', 'gripper']
-    assert m.effort.tolist() == [2.0, 3.0, 1.0, 0.0]
+    assert m.effort.tolist() == [applied['joint3'], applied['joint1'], applied['joint2'], 0.0]
     assert (m.position[-1], m.velocity[-1]) == (0.0, 0.0)
 
 
-def test_commands_are_clipped_and_bad_ones_refused_without_changing_the_torque():
-    r = robot(command_timeout=1.0)
-    r.receive([100.0, -100.0, 1.0])
-    np.testing.assert_array_equal(r.advance(), [40.0, -40.0, 1.0])
-    for bad in ([1.0, 2.0], [1.0, 2.0, 3.0, 4.0], [np.nan, 0.0, 0.0], [0.0, np.inf, 0.0], []):
-        with pytest.raises(CommandRefused):
-            r.receive(bad)
-        np.testing.assert_array_equal(r.advance(), [40.0, -40.0, 1.0])
+def test_the_torque_is_clipped_to_the_limits():
+    r = robot()
+    hold(r, load_task(TASK).start_posture + [2.0, -2.0, 0.001])     # far: saturates
+    r.step()
+    assert r.applied[0] == 40.0 and r.applied[1] == -40.0 and abs(r.applied[2]) < 40.0
 
 
 def test_a_task_instance_is_placed_without_moving_the_arm():
-    r = robot(task='payload_transport', model_error='mass_scale=1.2')
+    r = robot(task='payload_transport', model_error='mass_scale=1.2', kp=[0.0, 0.0],
+              kd=[0.0, 0.0])
     for _ in range(50):                                  # falling under gravity, no torque
-        r.advance()
+        r.step()
     q, qd = by_name(r, 'qpos'), by_name(r, 'qvel')
     assert any(abs(v) > 1e-3 for v in qd.values())
     r.place([2.5])
@@ -189,15 +181,17 @@ def test_the_initial_posture_is_where_the_robot_starts():
 @pytest.mark.parametrize('changes, message', [
     ({'joint_order': ['joint1', 'joint2']}, 'missing'),
     ({'joint_order': ['joint1', 'joint2', 'joint2']}, 'once'),
-    ({'command_joints': ['joint1', 'joint2', 'finger']}, 'not driven'),
+    ({'joint_order': ['joint1', 'joint2', 'finger']}, 'not driven'),
     ({'extra_joints': ['joint1']}, 'extra_joints'),
     ({'extra_joints': ['finger', 'finger']}, 'extra_joints'),
     ({'initial_posture': [0.0, 0.0]}, 'initial_posture'),
     ({'initial_posture': [0.0, float('nan'), 0.0]}, 'initial_posture'),
+    ({'kp': [1.0, 2.0]}, 'kp'),
+    ({'kd': [1.0, -2.0, 3.0]}, 'kd'),
+    ({'kp': [1.0, float('nan'), 3.0]}, 'kp'),
     ({'position_noise': -0.1}, 'position_noise'),
     ({'velocity_noise': float('inf')}, 'velocity_noise'),
     ({'latency_periods': -1}, 'latency_periods'),
-    ({'command_timeout': -1.0}, 'command_timeout'),
     ({'seed': -3}, 'seed'),
     ({'model_error': 'mass=2'}, 'model error'),
     ({'task': 'no_such_task', 'joint_order': ['a']}, 'no_such_task'),
@@ -211,4 +205,6 @@ def test_the_defaults_are_valid_and_need_no_task():
     p = StandardRobotParameters(task='no_such_task')     # checked when the robot loads it
     assert dataclasses.replace(p, task=TASK).extras == ()
     r = robot()
-    assert r.names == r.arm.joint_names == r.command_joints
+    assert r.names == r.arm.joint_names
+    task = load_task(TASK)
+    assert r.controller.law.kp.tolist() == task.controller.kp.tolist()

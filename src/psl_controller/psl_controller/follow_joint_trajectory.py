@@ -1,0 +1,261 @@
+"""``control_msgs/action/FollowJointTrajectory`` served for a `TrajectoryController`: the
+interface of ros2_control's JointTrajectoryController (JTC), so that psl's executor drives psl's
+controller and a robot's own JTC alike.
+
+What a node that runs a `TrajectoryController` adds with `FollowJointTrajectoryServer`:
+
+* the action ``<name>/follow_joint_trajectory``: a goal is checked as JTC checks one
+  (`goal_from_msg`: the controller's joints, points with strictly increasing times, all points
+  with the same fields, finite values, the last point at rest, no effort unless the command
+  interface is ``effort``, a stamped trajectory that ends in the past, tolerances by joint name)
+  and rejected, or accepted and handed to the controller (which preempts the active goal); its
+  execution answers with the controller's result (``error_code``, ``error_string``), sends
+  feedback (desired, actual, error; ``desired.time_from_start`` = the sample time from the
+  trajectory's start) at ``action_monitor_rate``, and a cancel request holds the position;
+* the read-only parameters JTC has that tell a client what it is driving: ``joints`` (the
+  controller's joint order) and ``command_interfaces`` (``['effort']``);
+* ``<name>/controller_state`` (control_msgs/JointTrajectoryControllerState: reference,
+  feedback, error, output), published by `publish_state` from the control loop, only while
+  someone subscribes.
+
+The node calls `deliver` with the results `TrajectoryController.update` returns.
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+from control_msgs.action import FollowJointTrajectory
+from control_msgs.msg import JointTrajectoryControllerState
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.action import CancelResponse, GoalResponse
+from rclpy.node import Node
+from trajectory_msgs.msg import JointTrajectoryPoint
+
+from psl_controller.trajectory_controller import (Goal, GoalRefused, Result, Snapshot,
+                                                  Tolerances, TrajectoryController)
+from psl_controller.trajectory_sampling import SampledTrajectory
+from psl_ros import names
+from psl_ros.action_server import ActionServer
+from psl_ros.qos import RELIABLE
+from psl_ros.stamps import duration_msg, time_msg, to_ns
+
+ACTION, STATE = names.FOLLOW_JOINT_TRAJECTORY, names.CONTROLLER_STATE
+MONITOR_RATE = 20.0     # Hz: JTC's action_monitor_rate default (feedback, cancels)
+REPORTED = ('joints', 'command_interfaces')     # JTC's parameters a client reads
+FLOAT_EPS = float(np.finfo(np.float32).eps)     # JTC's "zero" for the last point's velocity
+
+
+def goal_from_msg(msg: FollowJointTrajectory.Goal, joint_names: list[str], key,
+                  defaults: Tolerances, effort_interface: bool = True,
+                  newest_ns: int | None = None) -> Goal:
+    """A controller `Goal` from an action goal (points reordered to `joint_names`); GoalRefused
+    with the reason JTC would log for a goal it rejects."""
+    trajectory = msg.trajectory
+    names = list(trajectory.joint_names)
+    if msg.multi_dof_trajectory.joint_names or msg.multi_dof_trajectory.points:
+        raise GoalRefused('this controller has no multi-DOF joints')
+    if not names:
+        raise GoalRefused('empty joint names on the incoming trajectory')
+    if sorted(names) != sorted(joint_names):
+        raise GoalRefused(f"joints {names} do not match the controller's joints {joint_names}")
+    points = trajectory.points
+    if not points:
+        raise GoalRefused('empty trajectory received')
+    times = np.array([to_ns(p.time_from_start) for p in points], dtype=np.int64)
+    if times[0] < 0 or np.any(np.diff(times) <= 0):
+        raise GoalRefused('the times of the points must be >= 0 and strictly increasing')
+    order = [names.index(name) for name in joint_names]
+    n = len(names)
+
+    def column(field: str) -> np.ndarray | None:
+        rows = [getattr(p, field) for p in points]
+        if all(len(r) == 0 for r in rows):
+            return None
+        if any(len(r) != n for r in rows):
+            raise GoalRefused(f'every point needs {n} {field} (or none of them any)')
+        array = np.asarray(rows, dtype=float)[:, order]
+        if not np.all(np.isfinite(array)):
+            raise GoalRefused(f'the trajectory\'s {field} hold NaN or inf')
+        return array
+
+    positions, velocities = column('positions'), column('velocities')
+    accelerations, effort = column('accelerations'), column('effort')
+    if positions is None:
+        raise GoalRefused('the points need positions')
+    if effort is not None and not effort_interface:
+        raise GoalRefused("trajectories with effort fields are only supported for controllers "
+                          "using the 'effort' command interface")
+    if accelerations is not None and velocities is None:
+        raise GoalRefused('accelerations need velocities')
+    if velocities is not None and np.any(np.abs(velocities[-1]) > FLOAT_EPS):
+        j = int(np.argmax(np.abs(velocities[-1])))
+        raise GoalRefused(f'velocity of the last point of joint {joint_names[j]} is not zero: '
+                          f'{velocities[-1, j]:.15f}')
+    start = to_ns(trajectory.header.stamp)
+    if start and newest_ns is not None and start + int(times[-1]) < newest_ns:
+        raise GoalRefused(f'the trajectory stamped {start * 1e-9:.3f} s ends in the past '
+                          f'(the newest state is at {newest_ns * 1e-9:.3f} s)')
+
+    def by_name(tolerances) -> dict[str, tuple[float, float]]:
+        return {t.name: (t.position, t.velocity) for t in tolerances}
+    if msg.component_path_tolerance or msg.component_goal_tolerance:
+        raise GoalRefused('component tolerances are for multi-DOF joints, which this '
+                          'controller has none of')
+    tolerances = defaults.resolved(joint_names, by_name(msg.path_tolerance),
+                                   by_name(msg.goal_tolerance),
+                                   to_ns(msg.goal_time_tolerance) * 1e-9)
+    try:
+        sampled = SampledTrajectory(times, positions, velocities, effort, accelerations)
+    except ValueError as exc:
+        raise GoalRefused(str(exc)) from None
+    return Goal(key, sampled, start, tolerances)
+
+
+def point_msg(values, time_from_start_ns: int | None = None) -> JointTrajectoryPoint:
+    """A JointTrajectoryPoint of a TrajectorySample (or any (q, qd, qdd, effort) tuple)."""
+    point = JointTrajectoryPoint()
+    for field, value in zip(('positions', 'velocities', 'accelerations', 'effort'), values):
+        if value is not None:
+            setattr(point, field, np.asarray(value, dtype=float).tolist())
+    if time_from_start_ns is not None:     # negative before the start: sec < 0 <= nanosec
+        point.time_from_start = duration_msg(time_from_start_ns)
+    return point
+
+
+class FollowJointTrajectoryServer:
+    """Serves a `TrajectoryController` to FollowJointTrajectory clients (module docstring).
+
+    Args:
+        node: the node that holds the action (``<node>/follow_joint_trajectory``), the
+            parameters and the state topic.
+        controller: the controller the node's loop updates.
+        callback_group: a reentrant group (goals execute while others arrive).
+        effort_interface: whether goals may carry effort (the command interface).
+        monitor_rate: [Hz] of the feedback (JTC's action_monitor_rate).
+        matches: the node's `psl_ros.matching.MatchReport`, which then reports the state
+            publisher's matches.
+    """
+
+    def __init__(self, node: Node, controller: TrajectoryController, callback_group,
+                 effort_interface: bool = True, monitor_rate: float = MONITOR_RATE,
+                 matches=None):
+        self.node, self.controller = node, controller
+        self.effort_interface = effort_interface
+        self.monitor_period = 1.0 / monitor_rate
+        self._results: dict = {}            # goal key -> Result, until its execution ends
+        self._cv = threading.Condition()
+        self._parsed: dict[int, tuple] = {}     # id(goal msg) -> (msg, Goal or GoalRefused)
+        for name, value in zip(REPORTED, (list(controller.joint_names),
+                                          ['effort' if effort_interface else 'position'])):
+            node.declare_parameter(name, value, ParameterDescriptor(
+                read_only=True, description="JTC's parameter: what this controller drives"))
+        self.state_publisher = (node if matches is None else matches).create_publisher(
+            JointTrajectoryControllerState, f'~/{STATE}', RELIABLE)
+        self._state = JointTrajectoryControllerState(joint_names=list(controller.joint_names))
+        self._server = ActionServer(
+            node, FollowJointTrajectory, f'~/{ACTION}', execute_callback=self._execute,
+            goal_callback=self._on_goal, before_answer=self._take,
+            dropped=lambda handle: self.deliver(self.controller.cancel(
+                bytes(handle.goal_id.uuid))),
+            cancel_callback=self._on_cancel, callback_group=callback_group)
+
+    def destroy(self) -> None:
+        self._server.destroy()
+
+    # -- results --------------------------------------------------------------------------
+    def deliver(self, results: list[Result]) -> None:
+        """Results of the controller's goals (from `update`, `cancel`, `stop`)."""
+        if results:
+            with self._cv:
+                for result in results:
+                    self._results[result.key] = result
+                self._cv.notify_all()
+
+    # -- the action -----------------------------------------------------------------------
+    def _parse(self, msg) -> Goal:
+        key = bytes(0)
+        last = self.controller.last
+        return goal_from_msg(msg, self.controller.joint_names, key, self.controller.defaults,
+                             self.effort_interface, None if last is None else last.t_ns)
+
+    def _on_goal(self, msg) -> GoalResponse:
+        try:
+            goal = self._parse(msg)
+        except GoalRefused as exc:
+            self.node.get_logger().error(f'goal rejected: {exc}')
+            return GoalResponse.REJECT
+        if len(self._parsed) > 16:      # goals accepted here but dropped by the server
+            self._parsed.clear()
+        self._parsed[id(msg)] = (msg, goal)
+        return GoalResponse.ACCEPT
+
+    def _take(self, goal_handle) -> None:
+        """An accepted goal goes to the controller before the client hears it was accepted
+        (JTC takes it right after): a client that then starts the robot's clock (psl's
+        lockstep simulator) finds it in place."""
+        msg = goal_handle.request
+        kept = self._parsed.pop(id(msg), None)
+        goal = kept[1] if kept is not None and kept[0] is msg else self._parse(msg)
+        key = bytes(goal_handle.goal_id.uuid)
+        goal = Goal(key, goal.trajectory, goal.start_ns, goal.tolerances)
+        self.deliver(self.controller.submit(goal))
+
+    def _on_cancel(self, goal_handle) -> CancelResponse:
+        self.deliver(self.controller.cancel(bytes(goal_handle.goal_id.uuid)))
+        return CancelResponse.ACCEPT
+
+    def _execute(self, goal_handle) -> FollowJointTrajectory.Result:
+        key = bytes(goal_handle.goal_id.uuid)
+        feedback = FollowJointTrajectory.Feedback(joint_names=list(self.controller.joint_names))
+        sent = None
+        with self._cv:
+            while key not in self._results:
+                # the first feedback as soon as the goal is served (or waits for its start):
+                # a client learns at once whether it came in time
+                self._cv.wait(timeout=self.monitor_period if sent else 0.005)
+                if key in self._results:
+                    break
+                last = self.controller.last
+                if last is not None and last.key == key and last is not sent:
+                    sent = last
+                    self._fill_feedback(feedback, last)
+                    goal_handle.publish_feedback(feedback)
+            result = self._results.pop(key)
+        if result.canceled:
+            deadline = time.monotonic() + 1.0       # the cancel request's state transition
+            while not goal_handle.is_cancel_requested and time.monotonic() < deadline:
+                time.sleep(0.001)
+            if goal_handle.is_cancel_requested:
+                goal_handle.canceled()
+            else:
+                goal_handle.abort()
+        elif result.error_code == 0:
+            goal_handle.succeed()
+        else:
+            goal_handle.abort()
+        return FollowJointTrajectory.Result(error_code=result.error_code,
+                                            error_string=result.error_string)
+
+    @staticmethod
+    def _fill_feedback(feedback, last: Snapshot) -> None:
+        feedback.header.stamp = time_msg(last.t_ns)
+        feedback.desired = point_msg(last.desired, last.time_from_start_ns)
+        feedback.actual = point_msg((last.q, last.qd, None, None), last.time_from_start_ns)
+        error, error_d = last.error
+        feedback.error = point_msg((error, error_d, None, None), last.time_from_start_ns)
+
+    # -- controller_state -----------------------------------------------------------------
+    def publish_state(self, last: Snapshot) -> None:
+        """The controller's state (from the control loop), if someone subscribes."""
+        if not self.state_publisher.get_subscription_count():
+            return
+        state = self._state
+        state.header.stamp = time_msg(last.t_ns)
+        state.reference = point_msg(last.desired, last.time_from_start_ns)
+        state.feedback = point_msg((last.q, last.qd, None, None), last.time_from_start_ns)
+        error, error_d = last.error
+        state.error = point_msg((error, error_d, None, None))
+        state.output = point_msg((None, None, None, last.torque))
+        self.state_publisher.publish(state)
