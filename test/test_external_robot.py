@@ -11,8 +11,9 @@ A. test/minimal_robot.py takes raw torques on /effort_controller/commands and pu
 B. test/jtc_robot.py on the effort interface (its own JointTrajectoryController, its joint
    order reversed, an extra joint, masses +30 %, noise, a period of latency): psl starts no
    controller (``Graph(robot='external', controller='/arm_controller')``), a learning session
-   completes with every goal reaching its end, and nothing of psl's publishes a torque; ``psl
-   check`` says the controller runs a task that learns a feed-forward torque.
+   completes, the robot's controller accepted every goal and aborted none, and nothing of
+   psl's publishes a torque; ``psl check`` says the controller runs a task that learns a
+   feed-forward torque.
 C. test/jtc_robot.py on the position interface: a kinematic task's rollout succeeds; a task
    that learns a feed-forward torque is refused with one line naming the position interface,
    by ``psl up`` before it starts anything and by a running graph before anything moves.
@@ -38,7 +39,8 @@ from psl_controller.robot_link import STALE
 from psl_optimizer.metrics import read_metrics
 from psl_ros.client import RosClient
 from psl_ros.graph import NODES, Graph, pid_alive
-from psl_ros.qos import LATCHED, WHOLE_EPISODE
+from psl_ros.hot_path import HotPath
+from psl_ros.qos import WHOLE_EPISODE
 from psl_task.arm_model import joint_names_of
 from psl_task.task import load_task
 
@@ -56,6 +58,7 @@ NOISE_POSITION = 1e-3   # rad: sigma of the JTC robot's measured positions
 NOISE_VELOCITY = 1e-2   # rad/s
 SILENCE = 3.0           # s the minimal robot's states stop for (SIGUSR1): many times the
                         # controller's watchdog (STATE_TIMEOUT) and the executor's STALE
+MID_EPISODE = 0.3       # of the primitive's episode (its motion: 0 to 0.75): the states stop
 MAX_SPEED = 20.0        # rad/s: a jump faster than this between two states is a teleport
 REST_STATES = 250       # states averaged for a posture: "nothing moved" compares two means,
 # whose difference has a standard deviation of NOISE_POSITION * sqrt(2 / REST_STATES)
@@ -68,8 +71,9 @@ STILL = 6 * NOISE_POSITION * np.sqrt(2 / REST_STATES)
 # -27 rad); as on hardware, gains are set for the robot's latency (pd_controller kp, kd)
 GAINS = {'kp': '[100.0,66.0,33.0]', 'kd': '[6.0,4.0,1.6]'}
 # ... and as on hardware, its loop answers the states with real-time scheduling where the
-# machine allows it (below the robot's loop, 50): a loaded machine starved both Python
-# processes of the minimal robot's loop for 0.1-0.4 s at times, the homing then did not settle
+# machine allows it (pd_controller realtime_priority; below the robot's loop, 50): on a loaded
+# machine either Python process of the loop went unanswered for 0.1-0.4 s at times (the robot
+# then applies zero torque), and the homing did not settle
 CONTROLLER_PRIORITY = 40
 MINIMAL_TOPICS = {'joint_states': '/joint_states', 'effort_command': '/effort_controller/commands'}
 START_TIMEOUT = 60.0    # s for a robot's endpoints or a graph to come up
@@ -186,17 +190,23 @@ def until(condition, timeout: float, what: str, robot: RobotProcess | None = Non
 
 
 def wait_for_robot(observer: RosClient, robot: RobotProcess, controller: str = '') -> None:
-    """Until the robot publishes joint states and, with `controller`, that controller's
-    parameter services and action server are there."""
+    """Until a joint state of the robot has come (only a running publisher sends one: the
+    robot before it is ended and reaped) and, with `controller`, that controller's parameter
+    services and action server are seen."""
+    from sensor_msgs.msg import JointState
     services = ([f'/{controller}/get_parameters',
                  f'/{controller}/follow_joint_trajectory/_action/send_goal']
                 if controller else [])
-
-    def up() -> bool:
-        offered = {name for name, _ in observer.node.get_service_names_and_types()}
-        return (observer.node.count_publishers('/joint_states') > 0
-                and all(s in offered for s in services))
-    until(up, START_TIMEOUT, 'the robot\'s joint states and controller', robot)
+    came = threading.Event()
+    sub = observer.node.create_subscription(JointState, '/joint_states',
+                                            lambda _: came.set(), 10)
+    try:
+        def up() -> bool:
+            offered = {name for name, _ in observer.node.get_service_names_and_types()}
+            return came.is_set() and all(s in offered for s in services)
+        until(up, START_TIMEOUT, 'the robot\'s joint states and controller', robot)
+    finally:
+        observer.node.destroy_subscription(sub)
 
 
 def run_psl(*args: str) -> tuple[int, str, str]:
@@ -214,58 +224,68 @@ def run_psl(*args: str) -> tuple[int, str, str]:
 
 # -- what the test process receives -----------------------------------------------------------
 class Recorder:
-    """The robot's joint states and, with `commands`, the torques sent on its effort topic,
-    with the DDS source timestamp of each (when its publisher sent it: every process here
-    reads the same system clock, so the messages of two publishers can be put in the order
-    they were sent); with `instances` the episodes psl announces. `close` ends the
-    subscriptions."""
+    """What the test process receives of the robot's joint states and, with `commands`, of the
+    torques sent on its effort topic, each with its DDS source timestamp (when its publisher
+    sent it: every process here reads the same system clock, so the messages of two
+    publishers can be put in the order they were sent) and, for a state, its publication
+    sequence number (the robot's count of the states it sent). A lean loop of its own takes
+    what queued every 10 ms (`psl_ros.hot_path.HotPath`: an rclpy executor would fall
+    behind the robot's 500 Hz on a loaded machine); `close` ends it."""
 
-    def __init__(self, node, commands: bool = False, instances: bool = False):
-        from psl_msgs.msg import TaskInstance
+    def __init__(self, node, commands: bool = False):
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray
-        self.node = node
         self.lock = threading.Lock()
-        self.states = []        # (sent [ns], stamp [ns], names, positions)
+        self.states = []        # (sent [ns], stamp [ns], names, positions, sequence number)
         self.commands = []      # (sent [ns], torques)
-        self.instances = []     # psl_msgs/TaskInstance
-        self.seqs = []
-        self.subs = [node.create_subscription(JointState, '/joint_states', self.on_state,
-                                              WHOLE_EPISODE)]
+        self.path = HotPath(node, 'recorder', pause=0.01)
+        self.path.subscribe(JointState, '/joint_states', self.on_state, WHOLE_EPISODE,
+                            info=True)
         if commands:
-            self.subs.append(node.create_subscription(
-                Float64MultiArray, MINIMAL_TOPICS['effort_command'], self.on_command,
-                WHOLE_EPISODE))
-        if instances:
-            self.subs.append(node.create_subscription(
-                TaskInstance, '/task_instance', self.on_instance, LATCHED))
+            self.path.subscribe(Float64MultiArray, MINIMAL_TOPICS['effort_command'],
+                                self.on_command, WHOLE_EPISODE, info=True)
+        self.path.start()
 
     def close(self) -> None:
-        for sub in self.subs:
-            self.node.destroy_subscription(sub)
+        self.path.stop()
 
     def on_state(self, msg, info) -> None:
         with self.lock:
-            self.seqs.append(info['publication_sequence_number'])
             self.states.append((info['source_timestamp'],
                                 msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec,
-                                list(msg.name), np.array(msg.position)))
+                                list(msg.name), np.array(msg.position),
+                                info['publication_sequence_number']))
 
     def on_command(self, msg, info) -> None:
         with self.lock:
             self.commands.append((info['source_timestamp'], np.array(msg.data)))
 
-    def on_instance(self, msg) -> None:
-        with self.lock:
-            self.instances.append(msg)
-
     def count(self) -> int:
         with self.lock:
             return len(self.states)
 
-    def newest_stamp(self) -> int:
+    def silence(self) -> tuple[tuple[int, int], tuple[int, int]] | None:
+        """(sent, sequence number) of the last state before the first pause of more than
+        SILENCE / 2 in the robot's states, and of the first after it; None before one."""
         with self.lock:
-            return self.states[-1][1] if self.states else 0
+            states = sorted((s[0], s[4]) for s in self.states)
+        gaps = np.flatnonzero(np.diff([sent for sent, _ in states]) > SILENCE / 2 * 1e9)
+        return (states[gaps[0]], states[gaps[0] + 1]) if len(gaps) else None
+
+    def timeline(self, t0: int, t1: int, around: int = 5) -> str:
+        """States and commands in the order they were sent, from `around` of each before
+        `t0` to `around` after `t1` (for a failure's message)."""
+        with self.lock:
+            events = sorted([(s[0], f'state {s[4]}') for s in self.states]
+                            + [(c[0], f'torque {np.round(c[1], 4).tolist()}')
+                               for c in self.commands])
+        sent = [e[0] for e in events]
+        lo = max(0, int(np.searchsorted(sent, t0)) - 2 * around)
+        hi = int(np.searchsorted(sent, t1, side='right')) + 2 * around
+        chosen = events[lo:hi]
+        if len(chosen) > 60:
+            chosen = chosen[:30] + [(chosen[30][0], '...')] + chosen[-30:]
+        return '\n'.join(f'{(t - t0) * 1e-6:+10.3f} ms {what}' for t, what in chosen)
 
     def posture(self, first: int, joints: int) -> np.ndarray:
         """The mean position of REST_STATES states from the `first`-th, the robot's first
@@ -285,8 +305,7 @@ def observer():
 
 @pytest.fixture
 def record(observer):
-    """record(commands=False, instances=False): a Recorder on the observer, closed after
-    the test."""
+    """record(commands=False): a Recorder on the observer, closed after the test."""
     recorders = []
 
     def start(**kinds) -> Recorder:
@@ -305,14 +324,18 @@ def default_rollout(task):
     return policy_for(task).default_theta, (task.tau_low + task.tau_high) / 2
 
 
-def learn(client: RosClient, out: Path):
-    """A learning session in graph mode (two instances, two rollouts each at most, one
-    held-out instance); its metrics."""
+def learn(client: RosClient, out: Path, budget: int):
+    """A learning session in graph mode: two instances, `budget` rollouts each at most, one
+    held-out instance; the rollouts it executed."""
     result = client.learn(timeout=SESSION_TIMEOUT, task=TASK, strategy='bootstrap',
-                          num_tasks=2, max_rollouts_per_task=2, seed=1, mode='graph',
+                          num_tasks=2, max_rollouts_per_task=budget, seed=1, mode='graph',
                           output_dir=str(out), num_test=1)
     assert result.success, result.message
-    return read_metrics(Path(result.metrics_path).parent)
+    metrics = read_metrics(Path(result.metrics_path).parent)
+    executed = (metrics.summary.total_rollouts - sum(t.refused for t in metrics.tasks)
+                + len(metrics.summary.test_rewards))
+    assert executed >= 3
+    return executed
 
 
 def goals(robot: RobotProcess) -> dict[str, int]:
@@ -325,51 +348,38 @@ def goals(robot: RobotProcess) -> dict[str, int]:
 
 
 # -- A: the minimal robot, psl's pd_controller on its torque topic ------------------------------
-class TestMinimalRobot:
+@pytest.fixture(scope='class')
+def minimal(tmp_path_factory, observer):
+    """The minimal robot and psl's graph on it (pd_controller in the robot's joint order,
+    gains for its latency, the default watchdog)."""
+    order = robot_setup(TASK)[1]
+    folder = tmp_path_factory.mktemp('minimal')
+    with robot_running('minimal_robot.py', minimal_robot_args(),
+                       folder / 'robot.log') as robot:
+        with graph_running(folder / 'graph', task=TASK, robot='external',
+                           robot_topics=MINIMAL_TOPICS,
+                           extra_params={'pd_controller': {
+                               'command_joints': '[' + ','.join(order) + ']', **GAINS,
+                               'realtime_priority': CONTROLLER_PRIORITY},
+                               'learner': {'output_root': str(folder / 'runs')}}) \
+                as (graph, client):
+            wait_for_robot(observer, robot)
+            yield robot, graph, client
 
-    @pytest.fixture(scope='class')
-    def minimal(self, tmp_path_factory, observer):
-        """The minimal robot and psl's graph on it (pd_controller in the robot's joint order,
-        gains for its latency, the default watchdog)."""
-        order = robot_setup(TASK)[1]
-        folder = tmp_path_factory.mktemp('minimal')
-        with robot_running('minimal_robot.py', minimal_robot_args(),
-                           folder / 'robot.log') as robot:
-            with graph_running(folder / 'graph', task=TASK, robot='external',
-                               robot_topics=MINIMAL_TOPICS,
-                               extra_params={'pd_controller': {
-                                   'command_joints': '[' + ','.join(order) + ']', **GAINS,
-                                   'realtime_priority': CONTROLLER_PRIORITY},
-                                   'learner': {'output_root': str(folder / 'runs')}}) \
-                    as (graph, client):
-                wait_for_robot(observer, robot)
-                yield robot, graph, client
+
+class TestMinimalRobot:
 
     def test_a_learning_session_moves_the_arm_continuously(self, minimal, record, tmp_path):
         """A session in graph mode completes; across its episodes the joint states never
         jump (psl drives the arm from where it is to each start: no teleport)."""
         robot, graph, client = minimal
         task = load_task(TASK)
-        recorder = record(commands=True)
-        try:
-            metrics = learn(client, tmp_path / 'session')
-        finally:
-            with recorder.lock:
-                st = np.array(sorted(x[0] for x in recorder.states)); hs = np.array(sorted(x[1] for x in recorder.states))
-                cm = np.array(sorted(x[0] for x in recorder.commands))
-            idx = np.searchsorted(st, cm) - 1
-            lat = (cm - st[np.maximum(idx, 0)]) * 1e-6
-            Path(f'/tmp/exp/a1-{os.getpid()}.txt').write_text(
-                f'states {len(st)} max stamp gap {np.diff(hs).max()*1e-6:.1f} ms, >10ms: {(np.diff(hs) > 1e7).sum()}, >50ms: {(np.diff(hs) > 5e7).sum()}\n'
-                f'commands {len(cm)} max gap {np.diff(cm).max()*1e-6:.1f} ms, >10ms {(np.diff(cm) > 1e7).sum()} >50ms {(np.diff(cm) > 5e7).sum()}\n'
-                f'lost states {np.diff(sorted(recorder.seqs)).sum() - len(recorder.seqs) + 1}\n'
-                f'latency ms p50 {np.percentile(lat, 50):.2f} p99 {np.percentile(lat, 99):.2f} max {lat.max():.1f}\n')
-        executed = (metrics.summary.total_rollouts - sum(t.refused for t in metrics.tasks)
-                    + len(metrics.summary.test_rewards))
-        assert executed >= 3
+        recorder = record()
+        # one rollout per instance: what is shown here is the motion across the episodes
+        executed = learn(client, tmp_path / 'session', budget=1)
         with recorder.lock:
             states = sorted(recorder.states, key=lambda s: s[1])
-        assert states[-1][2] == robot_setup(TASK)[1] + ['gripper_finger']
+        assert states[-1][2] == robot_setup(TASK)[1] + [EXTRA_JOINT]
         stamps = np.array([s[1] for s in states]) * 1e-9      # the robot's clock
         q = np.array([s[3] for s in states])
         # every rollout is at least an episode of the task's length
@@ -387,28 +397,17 @@ class TestMinimalRobot:
         robot, graph, client = minimal
         task = load_task(TASK)
         theta, tau = default_rollout(task)
-        recorder = record(commands=True, instances=True)
-        until(lambda: recorder.count() > 0, START_TIMEOUT, 'a joint state', robot)
-        before = recorder.newest_stamp()     # a latched episode older than this is not ours
-
-        def primitive_start() -> int | None:
-            with recorder.lock:
-                return next((i.stamp.sec * 10**9 + i.stamp.nanosec for i in recorder.instances
-                             if not i.homing
-                             and i.stamp.sec * 10**9 + i.stamp.nanosec > before), None)
-        outcome = []
-        rolling = threading.Thread(target=lambda: outcome.append(
-            client.rollout(TASK, tau, theta, timeout=ROLLOUT_TIMEOUT)))
+        recorder = record(commands=True)
+        outcome, progress = [], []
+        rolling = threading.Thread(target=lambda: outcome.append(client.rollout(
+            TASK, tau, theta, timeout=ROLLOUT_TIMEOUT,
+            feedback=lambda message: progress.append(message.feedback.progress))))
         rolling.start()
         try:
-            # the primitive's episode is announced (stamped with its start on the robot's
-            # clock); its states stop once the robot is half way through the motion
-            until(lambda: outcome or primitive_start() is not None, ROLLOUT_TIMEOUT,
-                  'the primitive\'s announcement', robot)
-            assert not outcome, outcome[0].message
-            half_way = primitive_start() + round(task.duration / 2 * 1e9)
-            until(lambda: outcome or recorder.newest_stamp() >= half_way, ROLLOUT_TIMEOUT,
-                  'a state half way through the motion', robot)
+            # the primitive's episode runs (its progress, from the controller's feedback):
+            # its states stop in the middle of the motion
+            until(lambda: outcome or (progress and progress[-1] >= MID_EPISODE),
+                  ROLLOUT_TIMEOUT, 'the primitive in the middle of its motion', robot)
             assert not outcome, outcome[0].message
             os.kill(robot.pid, signal.SIGUSR1)
         finally:
@@ -416,57 +415,50 @@ class TestMinimalRobot:
         assert outcome, 'the rollout did not end'
         result = outcome[0]
         assert not result.success and 'joint states stopped' in result.message, result.message
-
-        def silence() -> tuple[int, int] | None:
-            """(sent, of the last state before the silence; of the first after it)."""
-            with recorder.lock:
-                sent = sorted(s[0] for s in recorder.states)
-            gaps = np.flatnonzero(np.diff(sent) > SILENCE / 2 * 1e9)
-            return (sent[gaps[0]], sent[gaps[0] + 1]) if len(gaps) else None
-        until(lambda: silence() is not None, SILENCE + START_TIMEOUT, 'the states back', robot)
-        last, back = silence()
+        until(lambda: recorder.silence() is not None, SILENCE + START_TIMEOUT,
+              'the states back', robot)
+        (last, last_seq), (back, back_seq) = recorder.silence()
+        # the robot published no state between these two that this test did not receive
+        assert back_seq == last_seq + 1, (
+            f'the test lost states {last_seq + 1}..{back_seq - 1} of the robot at the silence')
         with recorder.lock:
             commands = sorted(recorder.commands, key=lambda c: c[0])
         zero = next((sent for sent, u in commands if not np.any(u)), None)
         assert zero is not None, 'the controller never commanded zero torque'
-        assert last < zero < back, 'the first zero torque was not sent in the silence'
+        timeline = recorder.timeline(last, back)
+        assert last < zero < back, (
+            f'the first zero torque was not sent in the silence:\n{timeline}')
         torque = [u for sent, u in commands if zero <= sent < back and np.any(u)]
-        with recorder.lock:
-            ev = sorted([(c[0], 'C', np.round(c[1], 4).tolist()) for c in recorder.commands] + [(st[0], 'S', st[1]) for st in recorder.states])
-        Path(f'/tmp/exp/events-{os.getpid()}-{len(torque)}.txt').write_text('\n'.join(f'{(e[0]-last)*1e-6:10.3f} {e[1]} {e[2]}' for e in ev if last - 5e7 < e[0] < back + 5e7))
-        assert not torque, f'torque {torque[0]} sent after the zero, in the silence'
+        assert not torque, f'torque sent after the zero, in the silence:\n{timeline}'
         # the states are back: the session can go on
         again = client.rollout(TASK, tau, theta, timeout=ROLLOUT_TIMEOUT)
         assert again.success and not again.aborted, again.message
 
 
 # -- B: the JTC robot on the effort interface ---------------------------------------------------
-class TestJtcRobotOnEffort:
+@pytest.fixture(scope='class')
+def effort(tmp_path_factory, observer):
+    """The JTC robot on the effort interface (the task's model) and psl's graph driving
+    its controller: psl starts no robot and no controller."""
+    folder = tmp_path_factory.mktemp('effort')
+    with robot_running('jtc_robot.py', jtc_robot_args(TASK, 'effort'),
+                       folder / 'robot.log') as robot:
+        with graph_running(folder / 'graph', robot='external', controller=f'/{CONTROLLER}',
+                           robot_topics={'joint_states': '/joint_states'},
+                           extra_params={'learner': {'output_root': str(folder / 'runs')}}) \
+                as (graph, client):
+            wait_for_robot(observer, robot, CONTROLLER)
+            yield robot, graph, client
 
-    @pytest.fixture(scope='class')
-    def effort(self, tmp_path_factory, observer):
-        """The JTC robot on the effort interface (the task's model) and psl's graph driving
-        its controller: psl starts no robot and no controller."""
-        folder = tmp_path_factory.mktemp('effort')
-        with robot_running('jtc_robot.py', jtc_robot_args(TASK, 'effort'),
-                           folder / 'robot.log') as robot:
-            with graph_running(folder / 'graph', task=TASK, robot='external',
-                               controller=f'/{CONTROLLER}',
-                               robot_topics={'joint_states': '/joint_states'},
-                               extra_params={'learner': {'output_root': str(folder / 'runs')}}) \
-                    as (graph, client):
-                wait_for_robot(observer, robot, CONTROLLER)
-                yield robot, graph, client
+
+class TestJtcRobotOnEffort:
 
     def test_a_learning_session_through_the_robots_controller(self, effort, observer, tmp_path):
         """A session completes; every goal psl sent was accepted and none aborted; psl runs
         no controller and nothing publishes a torque (no effort_command, no
         Float64MultiArray publisher anywhere)."""
         robot, graph, client = effort
-        metrics = learn(client, tmp_path / 'session')
-        executed = (metrics.summary.total_rollouts - sum(t.refused for t in metrics.tasks)
-                    + len(metrics.summary.test_rewards))
-        assert executed >= 3
+        executed = learn(client, tmp_path / 'session', budget=2)
         seen = goals(robot)
         # each executed rollout: a homing goal and the primitive's
         assert seen['received'] >= 2 * executed, seen
@@ -512,7 +504,7 @@ def test_a_kinematic_rollout_on_the_position_interface(tmp_path, observer):
         assert result.success and not result.aborted, result.message
         seen = goals(robot)
         assert seen['received'] >= 2 and seen['accepted'] == seen['received'], seen
-        assert seen['aborted'] == 0, seen
+        assert seen['reached'] >= 2 and seen['aborted'] == 0, seen
 
 
 def test_a_feedforward_task_is_refused_on_the_position_interface(tmp_path, observer, record):
@@ -540,12 +532,12 @@ def test_a_feedforward_task_is_refused_on_the_position_interface(tmp_path, obser
             until(lambda: recorder.count() >= REST_STATES, START_TIMEOUT, 'states', robot)
             before = recorder.count()           # the states before the rollout
             result = client.rollout(FEEDFORWARD_TASK, tau, theta, timeout=ROLLOUT_TIMEOUT)
-            settled = recorder.count()
+            after = recorder.count()            # the states after it
             assert not result.success, result.message
             assert lines[0] == f'psl up: {result.message}'
-            until(lambda: recorder.count() >= settled + REST_STATES, START_TIMEOUT,
+            until(lambda: recorder.count() >= after + REST_STATES, START_TIMEOUT,
                   'states after the rollout', robot)
-        moved = np.abs(recorder.posture(settled, joints)
+        moved = np.abs(recorder.posture(after, joints)
                        - recorder.posture(before - REST_STATES, joints)).max()
         assert moved < STILL, f'the arm moved {moved * 1e3:.2f} mrad'
         assert goals(robot)['received'] == 0, robot.log()

@@ -41,7 +41,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from psl_ros.action_client import ActionClient
 from psl_ros.client import RosClient
-from psl_ros.graph import Graph, pid_alive
+from psl_ros.graph import PD_CONTROLLER, Graph, pid_alive
 from psl_task.arm_model import joint_names_of
 from psl_task.task import load_task
 
@@ -408,9 +408,9 @@ def grid(end_ns: int, step_ns: int = 10 * MS, also=()) -> list[int]:
 # -- the controllers ---------------------------------------------------------------------
 @contextlib.contextmanager
 def controller_process(namespace: str, log_dir, **params):
-    """psl's pd_controller alone (robot 'external': no simulator), as a process; ended by
-    PID whatever happens."""
-    graph = Graph(task=TASK, namespace=namespace, robot='external', nodes=(),
+    """psl's pd_controller alone (no loop: no simulator, no executor; its parameters its
+    defaults unless given), as a process; ended by PID whatever happens."""
+    graph = Graph(task=TASK, namespace=namespace, nodes=(PD_CONTROLLER,),
                   extra_params={'pd_controller': params}, log_dir=log_dir)
     assert [p[0] for p in graph.nodes_spec] == ['pd_controller']
     try:

@@ -60,6 +60,14 @@ class Robot:
              '-p', f'extra_joints:=[{EXTRA}]', '-p', f'kp:={KP}', '-p', f'kd:={KD}',
              '-r', f'__ns:={namespace}'],
             stdout=self._log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+        try:
+            self._connect(namespace)
+        except BaseException:           # the process ends with the test that made it
+            self.stop()
+            self._log.close()
+            raise
+
+    def _connect(self, namespace: str) -> None:
         self.client = RosClient(namespace, name='standard_robot_test')
         node = self.client.node
         node.create_subscription(JointState, names.JOINT_STATES, self._on_state,
@@ -167,17 +175,17 @@ def test_its_controller_says_what_it_drives(robot):
 
 
 def test_a_goal_moves_the_arm_by_the_law_on_the_reported_state(robot, wait_until):
-    """A one-point goal a second ahead: the arm comes to it (SUCCESSFUL at its end: the goal
-    tolerance erased), and every effort the robot reports is the compliant law, with its own
-    gains, on the state it reported one period earlier and the goal's reference (the
-    trajectory's segment from the state at the goal's first sample to the point: between
-    the two, the reference is known only to the controller, so the law is checked where it
-    is the point itself: from the point's time on)."""
+    """A one-point goal a second long, a second ahead: the arm comes to it (SUCCESSFUL at its
+    end: the goal tolerance erased), and every effort the robot reports is the compliant law,
+    with its own gains, on the state it reported one period earlier and the goal's reference
+    (the trajectory's segment from the state at the goal's first sample to the point: between
+    the two, the reference is known only to the controller, so the law is checked where it is
+    the point itself: from the point's time on)."""
     task = load_task(TASK)
     target = {j: float(q) + 0.15 for j, q in zip(['joint1', 'joint2', 'joint3'],
                                                   task.start_posture)}
     newest = robot.since(robot.count() - 1)[-1]
-    start = to_ns(newest.header.stamp) + 100 * PERIOD_NS          # 0.2 s ahead
+    start = to_ns(newest.header.stamp) + 10**9                    # a second ahead
     goal = FollowJointTrajectory.Goal(trajectory=JointTrajectory(
         joint_names=list(target), points=[JointTrajectoryPoint(
             positions=list(target.values()), velocities=[0.0] * 3,

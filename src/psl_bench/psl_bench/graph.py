@@ -191,10 +191,10 @@ def _realtime(task, seconds: float, busy: int = 0) -> dict:
     and the CPU it used per second."""
     from psl_bench.busy_cores import busy_cores
     from psl_ros.client import RosClient
-    from psl_ros.graph import Graph
+    from psl_ros.graph import STANDARD_ROBOT, Graph
     from psl_task.task import task_id
 
-    graph = Graph(task=task_id(task), robot='standard', nodes=())
+    graph = Graph(task=task_id(task), robot='standard', nodes=(STANDARD_ROBOT,))
     with graph, RosClient() as client:
         reports = LoopReports(client.node)
         reports.wait(2, 30.0)           # running (and the first report's start-up behind)

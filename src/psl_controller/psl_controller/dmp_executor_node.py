@@ -143,7 +143,8 @@ class DMPExecutor(Node):
         episode = Episode(link, task, tau, policy, safety,
                           lambda q, qd, qdd: arm.inverse_dynamics(tau, q, qd, qdd), kp,
                           task_id(task), self.get_parameter('timeout_margin').value,
-                          log=self.get_logger().warning)
+                          log=self.get_logger().warning,
+                          cancelled=lambda: goal_handle.is_cancel_requested)
         notes: list[str] = []
         episode.begin(reset)
         if goal_handle.is_cancel_requested:

@@ -105,8 +105,9 @@ class Robot(Protocol):
     def measure(self, count: int) -> tuple[int, np.ndarray, np.ndarray]:
         """(stamp, q, qd): the task's joints, the mean of the newest `count` states."""
 
-    def start_time(self) -> int:
-        """The robot-clock stamp a goal sent now can start at."""
+    def start_time(self, attempt: int = 0) -> int:
+        """The robot-clock stamp a goal sent now can start at; a later one for a goal sent
+        again (`attempt` > 0: the one before came late)."""
 
     def send(self, goal: GoalSpec) -> object:
         """Send a goal; its handle once accepted (RobotError if rejected)."""
@@ -121,9 +122,11 @@ class Robot(Protocol):
         its reset of that length, ``teleport`` or ``drive``; a robot: its clock runs anyway):
         the episode's first state's stamp."""
 
-    def finish(self, handle: object, end_ns: int, timeout: float) -> GoalResult:
+    def finish(self, handle: object, end_ns: int, timeout: float,
+               cancelled: Callable[[], bool]) -> GoalResult:
         """Wait for the goal's result and the robot's state at `end_ns` (RobotError when the
-        states stop or neither comes within `timeout` s)."""
+        states stop, neither comes within `timeout` s, or `cancelled()`: the goal is then
+        cancelled, the controller holds)."""
 
     def wait(self, seconds: float, done: Callable[[], bool]) -> None:
         """Let `seconds` of the robot's time pass while the arm holds, or until `done()`."""
@@ -172,16 +175,20 @@ class Episode:
         kp: the controller's proportional gains (the corrected hold's stiffness).
         task_id: the task's name as the graph announces it.
         timeout_margin: seconds to wait beyond a goal's length.
+        log: where notes for people go.
+        cancelled: asked while a goal runs; True cancels it (RobotError 'rollout canceled').
     """
 
     def __init__(self, robot: Robot, task: TaskDefinition, tau: np.ndarray,
                  policy: TaskPolicy, safety: SafetyCheck,
                  inverse_dynamics: Callable, kp: np.ndarray, task_id: str,
-                 timeout_margin: float = 10.0, log: Callable[[str], None] = print):
+                 timeout_margin: float = 10.0, log: Callable[[str], None] = print,
+                 cancelled: Callable[[], bool] = lambda: False):
         self.robot, self.task, self.tau = robot, task, np.asarray(tau, dtype=float)
         self.policy, self.safety = policy, safety
         self.inverse_dynamics, self.kp = inverse_dynamics, np.asarray(kp, dtype=float)
         self.task_id, self.margin, self.log = task_id, timeout_margin, log
+        self.cancelled = cancelled
         self.handle = None              # the primitive's goal while it runs
         self.outcome: Outcome | None = None
         self.send_cost = 0.0            # [s] wall time to send the primitive's goal
@@ -240,7 +247,7 @@ class Episode:
         handle, start = self._start(reference, num_steps, 'drive', homing=True,
                                     path=float('inf'))
         result = self.robot.finish(handle, start + num_steps * task.control_period_ns,
-                                   float(reference.t[-1]) + self.margin)
+                                   float(reference.t[-1]) + self.margin, self.cancelled)
         if result.error_code not in (SUCCESSFUL, GOAL_TOLERANCE_VIOLATED):
             raise RobotError(f'homing: {result.error_string}')
 
@@ -287,7 +294,7 @@ class Episode:
         end = start + num_steps * task.control_period_ns
         timeout = num_steps * task.control_period + self.margin
         while True:
-            result = self.robot.finish(handle, end, timeout)
+            result = self.robot.finish(handle, end, timeout, self.cancelled)
             with self._change:          # a goal change replaced the goal meanwhile: its turn
                 self._change.wait_for(lambda: not self._changing, timeout=timeout)
                 if self.handle is handle:
@@ -309,7 +316,7 @@ class Episode:
         robot, task = self.robot, self.task
         mode = 'drive' if homing else mode
         for attempt in range(START_ATTEMPTS):
-            start = robot.start_time()
+            start = robot.start_time(attempt)
             robot.announce(Instance(start, self.task_id, self.tau, num_steps,
                                     task.control_period, homing))
             sending = time.monotonic()

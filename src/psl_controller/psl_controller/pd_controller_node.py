@@ -13,8 +13,9 @@ controller's clock: a goal's start and its trajectory's times are on the robot's
 
 It is the controller of psl's simulator (lockstep: the simulator waits for the command that
 answers each state; or the wall clock) and of a robot that offers only an effort
-forward_command_controller. For the latter the watchdog is on by default (``state_timeout``):
-when no joint state came for that long (the wall clock), the active goal aborts with the
+forward_command_controller. For the latter the watchdog is on by default (``state_timeout``;
+armed by the first state): when no joint state came for that long (the wall clock), the
+active goal aborts with the
 reason and the controller commands ``on_state_loss`` (zero torque, or the last torque again)
 every control period until states come again; then it holds the position of the first new
 state. psl's simulator pauses between episodes: its graph turns the watchdog off.
@@ -68,7 +69,7 @@ class PDController(Node):
 
         # watchdog: the wall time of the last state, and whether their loss is reported
         self._state_lock = threading.Lock()
-        self._last_state = time.monotonic()
+        self._last_state: float | None = None   # armed by the first state: none yet, none lost
         self._lost = False
         self._last_torque = np.zeros(self.n_joints)
         self.matches = MatchReport(self)        # what the loop's endpoints matched
@@ -169,6 +170,8 @@ class PDController(Node):
         and on_state_loss is commanded."""
         timeout = self.state_timeout
         with self._state_lock:
+            if self._last_state is None:
+                return                  # no state yet: the robot's brakes hold it, not psl
             silent = time.monotonic() - self._last_state
             if silent <= timeout:
                 return

@@ -16,9 +16,10 @@ The clock (`CLOCKS`, the executor's ``clock`` parameter) is what differs between
   arm put at the start posture first; ``drive``: from where it is). A goal starts at the
   simulator's current time; the episode's time runs when the reset starts it.
 * `RobotClock`: a robot's own wall clock. The posture is the mean of its newest joint states
-  (its stamps, its joint order, noise); a goal starts `LEAD` s after its newest state, and the
-  episode's time runs anyway. Joint states that stop for `STALE` s while a goal runs fail it
-  (the goal is cancelled: the controller holds), whatever the controller does about it.
+  (its stamps, its joint order, noise); a goal starts `LEAD` s after its newest state (a goal
+  sent again after a late one: twice as long, and so on), and the episode's time runs anyway.
+  Joint states that stop for `STALE` s while a goal runs fail it (the goal is cancelled: the
+  controller holds), whatever the controller does about it.
 
 Whether a goal came in time (`RobotLink.taken`): psl's controller ends a goal whose start has
 passed with ``OLD_HEADER_TIMESTAMP``; a robot's JTC takes it and jumps into it, which its first
@@ -214,7 +215,7 @@ class SimulatorClock:
             raise RobotError(f'the simulator: {exc}') from None
         return to_ns(response.stamp), q, qd
 
-    def start_time(self) -> int:
+    def start_time(self, attempt: int = 0) -> int:
         return self.measure(1)[0]
 
     def begin(self, start_ns: int, num_steps: int, mode: str) -> int:
@@ -262,8 +263,10 @@ class RobotClock:
     def measure(self, count: int) -> tuple[int, np.ndarray, np.ndarray]:
         return self.link.measured(count)
 
-    def start_time(self) -> int:
-        return self.link.measured(1)[0] + int(LEAD * 1e9)
+    def start_time(self, attempt: int = 0) -> int:
+        """LEAD s after the newest state, twice that for a goal sent again, and so on: a
+        burst of load that made one goal late may last."""
+        return self.link.measured(1)[0] + int(LEAD * 2 ** attempt * 1e9)
 
     def begin(self, start_ns: int, num_steps: int, mode: str) -> int:
         return start_ns
@@ -408,11 +411,12 @@ class RobotLink:
         except TimeoutError as exc:
             self.node.get_logger().error(f'cancel: {exc}')
 
-    def finish(self, goal: _Goal, end_ns: int, timeout: float) -> GoalResult:
+    def finish(self, goal: _Goal, end_ns: int, timeout: float,
+               cancelled=lambda: False) -> GoalResult:
         deadline = time.monotonic() + timeout + LEAD
         try:
             while not goal.event.wait(0.02):
-                why = self.clock.watch(goal)
+                why = 'rollout canceled' if cancelled() else self.clock.watch(goal)
                 if why:
                     self.cancel(goal)
                     raise RobotError(why)
@@ -443,8 +447,8 @@ class RobotLink:
     def measure(self, count: int) -> tuple[int, np.ndarray, np.ndarray]:
         return self.clock.measure(count)
 
-    def start_time(self) -> int:
-        return self.clock.start_time()
+    def start_time(self, attempt: int = 0) -> int:
+        return self.clock.start_time(attempt)
 
     def begin(self, start_ns: int, num_steps: int, mode: str) -> int:
         began = self.clock.begin(start_ns, num_steps, mode)

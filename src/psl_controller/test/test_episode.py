@@ -107,7 +107,7 @@ class FakeRobot:
         return (states[-1][0], np.mean([s[1] for s in states], axis=0),
                 np.mean([s[2] for s in states], axis=0))
 
-    def start_time(self) -> int:
+    def start_time(self, attempt: int = 0) -> int:
         return self.states[-1][0] + LEAD_STEPS * self.dt_ns
 
     def send(self, goal: GoalSpec) -> str:
@@ -143,11 +143,15 @@ class FakeRobot:
             mujoco.mj_forward(self.arm.model, self.arm.data)
         return self.now                         # the stamp of the episode's first state
 
-    def finish(self, handle: str, end_ns: int, timeout: float) -> GoalResult:
+    def finish(self, handle: str, end_ns: int, timeout: float,
+               cancelled=lambda: False) -> GoalResult:
         deadline = max(self.now, end_ns) + int(timeout * NS)
         while handle not in self.results or self.now <= end_ns:
             if self.now > deadline:
                 raise RobotError(f'no result of {handle} within {timeout} s')
+            if cancelled():
+                self.cancel(handle)
+                raise RobotError('rollout canceled')
             self.tick()
         result = self.results[handle]
         return GoalResult(result.error_code, result.error_string)
@@ -516,3 +520,25 @@ def test_no_goal_change_without_a_running_episode(payload):
     episode = make_episode(payload, FakeRobot(payload, payload.tau_default))
     with pytest.raises(ValueError, match='no episode runs'):
         episode.change_goal(policy.default_theta, policy.dmp.goal, 0.5)
+
+
+def test_a_cancelled_rollout_cancels_its_goal_and_the_controller_holds():
+    """The executor's goal cancelled mid-episode (its `cancelled` turns true): the episode
+    ends with RobotError 'rollout canceled', the controller's goal ends canceled and it holds
+    the measured position. (Caught: a cancel the episode does not look at runs to the end.)"""
+    reach = load_task('reach_over_obstacle')
+    robot = FakeRobot(reach, reach.tau_default)
+    asked = []
+    episode = make_episode(reach, robot)
+    episode.cancelled = lambda: bool(asked)
+    start = robot.start_time()
+    robot.hooks[start + 200 * robot.dt_ns] = lambda: asked.append(True)
+    with pytest.raises(RobotError, match='rollout canceled'):
+        episode.run(default_reference(reach), 'teleport')
+    (handle,) = robot.goals
+    assert robot.results[handle].canceled
+    at_cancel = robot.controller.last.q
+    robot.tick()                                    # the next state: held where it was
+    held = robot.controller.last
+    assert held.key is None and np.all(held.desired.velocities == 0.0)
+    np.testing.assert_array_equal(held.desired.positions, at_cancel)

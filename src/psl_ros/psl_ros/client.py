@@ -288,16 +288,22 @@ class RolloutClient:
         if not self.evaluate_client.service_is_ready():
             missing.append(f'{self.node.resolve_service_name(self.evaluate_client.srv_name)} '
                            'service')
-        for topic, (pubs, subs) in (names.LOOP_TOPICS if simulated
-                                    else names.ROBOT_LOOP_TOPICS).items():
-            topic = self.topic(topic)
+        for name, (pubs, subs) in (names.LOOP_TOPICS if simulated
+                                   else names.ROBOT_LOOP_TOPICS).items():
+            if not simulated and name == names.JOINT_STATES:
+                # the robot's, wherever it was remapped: its publisher reports nothing, psl's
+                # subscriptions say what they matched
+                readers = self.matched.counts(SUBSCRIPTION, name, as_asked=True)
+                if len(readers) < subs or any(n < pubs for n in readers.values()):
+                    missing.append(f'the robot\'s joint states ({len(readers)}/{subs} '
+                                   f'subscriptions matched {pubs} publisher)')
+                continue
+            topic = self.topic(name)
             p, s = self.node.count_publishers(topic), self.node.count_subscribers(topic)
             if p < pubs or s < subs:
                 missing.append(f'{topic} ({p}/{pubs} publishers, {s}/{subs} subscribers)')
                 continue
-            robots = not simulated and topic == self.topic(names.JOINT_STATES)
-            if not robots:          # a robot's publisher reports nothing
-                missing.append(self.unmatched(topic, subs, pubs))
+            missing.append(self.unmatched(topic, subs, pubs))
             readers = self.matched.counts(SUBSCRIPTION, topic)
             if len(readers) < subs or any(n < pubs for n in readers.values()):
                 missing.append(f'{topic} ({len(readers)}/{subs} subscriptions matched {pubs} '

@@ -214,9 +214,13 @@ class Graph:
         # the robot's topics, by psl's name (joint_states, effort_command): remaps of the loop
         self.robot, self.robot_topics = robot, dict(robot_topics or {})
         self.controller = controller or kind.controller
-        # the robot kind's nodes, first, in place of any robot-side node of `nodes`
-        robot_side = {SIM, PD_CONTROLLER, STANDARD_ROBOT}
-        nodes = kind.robot_nodes(controller) + tuple(n for n in nodes if n not in robot_side)
+        # a loop (an executor) runs on the robot kind's nodes, first, in place of any
+        # robot-side node of `nodes`; a graph without one starts what it is given
+        self.loop = any(name == 'dmp_executor' for name, *_ in nodes)
+        if self.loop:
+            robot_side = {SIM, PD_CONTROLLER, STANDARD_ROBOT}
+            nodes = kind.robot_nodes(controller) + tuple(n for n in nodes
+                                                         if n not in robot_side)
         if view_port is not None:       # the view node, serving Foxglove on this port
             nodes = nodes + (VIEW,)
         self.view_port = view_port
@@ -243,7 +247,8 @@ class Graph:
                   else {})
         if name == 'sim':
             params['mode'] = self.mode
-        params.update(dict(self.kind.node_params).get(name, {}))
+        if self.loop:               # the robot kind's settings of its nodes
+            params.update(dict(self.kind.node_params).get(name, {}))
         if name == 'dmp_executor':
             params['controller'] = self.controller
             params['clock'] = self.kind.clock

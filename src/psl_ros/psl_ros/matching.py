@@ -13,7 +13,9 @@ half (0.2-0.3 s, never a promise on a loaded machine).
 (relative: a rollout worker's nodes report under its namespace) as one
 diagnostic_msgs/DiagnosticStatus per node: ``name`` the node's fully qualified name, one
 KeyValue per watched endpoint, key ``publisher <topic>`` or ``subscription <topic>`` (the
-resolved topic name), value the number of endpoints it has matched. It is published again
+resolved topic name), value the number of endpoints it has matched, and the same count again
+under ``publisher as <name>`` / ``subscription as <name>`` (the name as the node asked for it:
+a robot's topic remapped anywhere is still found as ``joint_states``). It is published again
 on every matched event of a watched endpoint (DDS's publication/subscription matched status,
 rclpy's ``matched`` event callbacks), so it costs nothing while nothing changes.
 
@@ -45,6 +47,13 @@ def key(kind: str, topic: str) -> str:
     return f'{kind} {topic}'
 
 
+def key_as_asked(kind: str, name: str) -> str:
+    """The report's second key of an endpoint, by the name its node asked for, before the
+    namespace and any remapping: ``subscription as joint_states`` (a client that does not
+    know where a robot's topic was remapped finds the endpoint by what it is)."""
+    return f'{kind} as {name}'
+
+
 class MatchReport:
     """One node's report on ``matched_endpoints`` of what its watched endpoints matched.
 
@@ -64,7 +73,8 @@ class MatchReport:
         """``node.create_publisher``, watched."""
         publisher = self._node.create_publisher(
             msg_type, topic, qos, event_callbacks=PublisherEventCallbacks(matched=self.update))
-        self._watch(key(PUBLISHER, publisher.topic_name), publisher.get_subscription_count)
+        self._watch((key(PUBLISHER, publisher.topic_name), key_as_asked(PUBLISHER, topic)),
+                    publisher.get_subscription_count)
         return publisher
 
     def create_subscription(self, msg_type, topic: str, callback: Callable, qos,
@@ -73,8 +83,8 @@ class MatchReport:
         subscription = self._node.create_subscription(
             msg_type, topic, guard_subscription(self._node.get_logger(), topic, callback), qos,
             event_callbacks=SubscriptionEventCallbacks(matched=self.update), **kwargs)
-        self._watch(key(SUBSCRIPTION, subscription.topic_name),
-                    subscription.get_publisher_count)
+        self._watch((key(SUBSCRIPTION, subscription.topic_name),
+                     key_as_asked(SUBSCRIPTION, topic)), subscription.get_publisher_count)
         return subscription
 
     def subscribe(self, hot_path, msg_type, topic: str, callback: Callable, qos: QoSProfile,
@@ -82,12 +92,13 @@ class MatchReport:
         """``hot_path.subscribe`` (`psl_ros.hot_path.HotPath`), watched."""
         handle = hot_path.subscribe(msg_type, topic, callback, qos, matched=self.update,
                                     **kwargs)
-        self._watch(key(SUBSCRIPTION, handle.get_topic_name()), handle.get_publisher_count)
+        self._watch((key(SUBSCRIPTION, handle.get_topic_name()),
+                     key_as_asked(SUBSCRIPTION, topic)), handle.get_publisher_count)
         return handle
 
-    def _watch(self, name: str, count: Callable[[], int]) -> None:
+    def _watch(self, keys: tuple[str, ...], count: Callable[[], int]) -> None:
         with self._lock:
-            self._endpoints.append((name, count))
+            self._endpoints.extend((name, count) for name in keys)
         self.update()
 
     def update(self, _status=None) -> None:
@@ -126,10 +137,11 @@ class MatchedEndpoints:
         with self._lock:
             self._reports[msg.name] = counts
 
-    def counts(self, kind: str, topic: str) -> dict[str, int]:
-        """node -> matched endpoints of its `kind` endpoint on `topic` (resolved name), for
-        the nodes that reported one."""
-        name = key(kind, topic)
+    def counts(self, kind: str, topic: str, as_asked: bool = False) -> dict[str, int]:
+        """node -> matched endpoints of its `kind` endpoint on `topic` (resolved name; with
+        `as_asked` the name the node asked for, before namespace and remapping), for the
+        nodes that reported one."""
+        name = key_as_asked(kind, topic) if as_asked else key(kind, topic)
         with self._lock:
             return {node: counts[name] for node, counts in self._reports.items()
                     if name in counts}
