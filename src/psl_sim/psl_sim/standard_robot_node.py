@@ -25,6 +25,7 @@ joint_states:=/joint_states``.
 """
 from __future__ import annotations
 
+import gc
 import math
 import sys
 import threading
@@ -44,7 +45,7 @@ from psl_ros.matching import MatchReport
 from psl_ros.node_main import run_node
 from psl_ros.parameters import check_update, declare
 from psl_ros.qos import LATCHED, RELIABLE
-from psl_ros.realtime import sleep_until
+from psl_ros.realtime import raise_priority, sleep_until
 from psl_ros.stamps import time_msg
 from psl_sim.standard_robot import StandardRobot
 from psl_sim.standard_robot_parameters import StandardRobotParameters
@@ -131,6 +132,9 @@ class StandardRobotNode(Node):
         goes on from now."""
         robot = self.robot
         period = robot.period
+        scheduling = raise_priority(self.parameters.realtime_priority)
+        self.get_logger().info(f'control loop: {scheduling}')
+        gc.freeze()         # what exists now is never collected: a full collection stays short
         next_tick = time.perf_counter()
         js = self._joint_state
         js.name = list(robot.names)

@@ -12,6 +12,7 @@ from psl_task.model_error import ModelError
 
 NOT_GIVEN = ('',)           # a string list left to the task (or empty)
 FROM_TASK = (0.0,)          # initial_posture, kp, kd: the task's
+REALTIME_PRIORITY = 50      # ros2_control's controller manager's default (its thread_priority)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,6 +45,9 @@ class StandardRobotParameters:
         "how the robot differs from the task's model, e.g. "
         "'mass_scale=1.3,frictionloss=0.05,damping=0.3' (psl_task.model_error); '' = none")})
     seed: int = field(default=0, metadata={'doc': 'seed of the measurement noise'})
+    realtime_priority: int = field(default=REALTIME_PRIORITY, metadata={'doc': (
+        "SCHED_FIFO priority of its control loop (1..99) where the machine allows it, as "
+        "ros2_control's controller manager runs its loop; 0 = normal scheduling")})
     initial_posture: tuple[float, ...] = field(default=FROM_TASK, metadata={'doc': (
         "joint positions at start, in the task's joint order (its start_posture's); "
         "[0.0] = the task's start_posture")})
@@ -63,6 +67,10 @@ class StandardRobotParameters:
             if not all(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0.0
                        for v in value):
                 raise ValueError(f'{name} must be finite gains >= 0, got {list(value)}')
+        if isinstance(self.realtime_priority, bool) or not isinstance(
+                self.realtime_priority, int) or not 0 <= self.realtime_priority <= 99:
+            raise ValueError(f'realtime_priority must be a whole number in 0..99, got '
+                             f'{self.realtime_priority!r}')
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f'seed must be a whole number >= 0, got {self.seed!r}')
         ModelError.parse(self.model_error)      # ValueError naming what is wrong
