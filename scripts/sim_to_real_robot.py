@@ -132,7 +132,8 @@ def run_task(name: str, out: Path, seeds: list[int], tasks: int, test: int,
         for seed in seeds:
             row = {'before': before(task_path, nominal / 'memory.npz', seed, test)}
             for way, extra in (('scratch', []),
-                               ('continued', ['--continue-from', 'nominal/memory.npz'])):
+                               ('continued', ['--continue-from',
+                                              str(nominal / 'memory.npz')])):
                 session = folder / f'{way}-seed{seed}'
                 psl('learn', '--task', str(task_path), '--mode', 'graph', '--learner', 'here',
                     '--tasks', str(tasks), '--seed', str(seed), '--test-tasks', str(test),

@@ -186,7 +186,7 @@ def test_where_a_session_runs_and_how_its_rollouts_run_are_two_choices(start_up,
     the batch rewards). Both publish the learning curve on the graph; a batch session in this
     process does not."""
     up = start_up()
-    session = ['--tasks', '2', '--budget', '12', '--seed', '5', '--test-tasks', '2']
+    session = ['--tasks', '2', '--budget', '6', '--seed', '5', '--test-tasks', '1']
     up.wait_for_line('graph ready')
     results, curves = {}, {}
     with RosClient() as watcher:          # the learning curve the sessions publish

@@ -53,7 +53,10 @@ def consecutive_rollouts(tmp_path, reset: str, mode: str, wait_until):
     return task, first, second, q
 
 
-@pytest.mark.parametrize('mode', ['lockstep', 'realtime'])
+# realtime: psl's simulated robot on the wall clock, its torque loop over DDS: with the robot
+# tests, alone (a loaded machine's late answers may keep the homing from settling)
+@pytest.mark.parametrize('mode', ['lockstep', pytest.param(
+    'realtime', marks=pytest.mark.robot_on_the_wall_clock)])
 def test_drive_resets_keep_the_joint_states_continuous(tmp_path, mode, wait_until):
     task, first, second, q = consecutive_rollouts(tmp_path, 'drive', mode, wait_until)
     # between the episodes the arm went back from the goal to the start, through the controller

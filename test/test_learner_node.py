@@ -116,7 +116,7 @@ def goal(s: LearnSettings, out, mode: str = 'batch') -> dict:
 
 def test_a_session_through_the_nodes_equals_the_in_process_session(client, tmp_path):
     fresh_memory(client, tmp_path)
-    s = settings('bootstrap', num_tasks=4, budget=60, seed=5)
+    s = settings('bootstrap', num_tasks=3, budget=30, seed=5)
     feedback = []
     result = client.learn(feedback=lambda m: feedback.append(m.feedback), timeout=300,
                           **goal(s, tmp_path / 'node'))
@@ -362,7 +362,7 @@ def test_two_rollout_workers_learn_what_batch_mode_learns(tmp_path, wait_until):
             for worker, sub in zip(evaluations, subscriptions):
                 RolloutClient(c.node, worker).wait_for_subscribers(
                     [names.ROLLOUT_EVALUATION], subscriptions=[sub], timeout=30.0)
-            s = settings('scratch', num_tasks=2, budget=22, seed=5)
+            s = settings('scratch', num_tasks=2, budget=12, seed=5)
             result = c.learn(timeout=300, **goal(s, tmp_path / 'graph', mode='graph'))
             assert result.success, result.message
             metrics = json.loads(open(result.metrics_path).read())

@@ -26,8 +26,8 @@ from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'
 EVALUATIONS = ('/worker0/rollout_evaluation', '/worker1/rollout_evaluation')
-SETTINGS = LearnSettings(strategy='scratch', num_tasks=2, seed=7, num_test=4,
-                         search=SearchSettings(max_rollouts=22))
+SETTINGS = LearnSettings(strategy='scratch', num_tasks=2, seed=7, num_test=2,
+                         search=SearchSettings(max_rollouts=12))
 
 
 SERIAL = itertools.count()

@@ -23,8 +23,8 @@ from psl_task.task import load_task
 
 PSL = [sys.executable, '-m', 'psl_cli.main']
 TASK = 'reach_over_obstacle'
-SETTINGS = LearnSettings(strategy='scratch', num_tasks=2, seed=5, num_test=4,
-                         search=SearchSettings(max_rollouts=22))
+SETTINGS = LearnSettings(strategy='scratch', num_tasks=2, seed=5, num_test=2,
+                         search=SearchSettings(max_rollouts=12))
 
 
 def hold_nodes(up: subprocess.Popen, text: str, nodes: dict[int, NodeHandle]) -> None:
