@@ -15,7 +15,7 @@ measurement noise, one period of latency, the task's gains), driven by ``psl up 
    ``continued`` (the same with ``--continue-from`` the nominal skill, the residual way), the
    same training and held-out instances.
 
-Writes ``OUT/<task>/...`` (each session's metrics.json) and ``OUT/summary.json``; prints the
+Writes ``OUT/<task>/...`` (each session's metrics.json) and ``OUT/summary_<task>.json``; prints the
 table. Runs for an hour or two (a rollout on the wall clock takes 4-7 s). After ``source
 scripts/env.sh``:
 
@@ -106,7 +106,7 @@ def summary(path: Path) -> dict:
 
 
 def run_task(name: str, out: Path, seeds: list[int], tasks: int, test: int,
-             budget: int) -> dict:
+             budget: int, ways: list[str]) -> dict:
     folder = out / name
     folder.mkdir(parents=True, exist_ok=True)
     log = folder / 'psl.log'
@@ -134,6 +134,8 @@ def run_task(name: str, out: Path, seeds: list[int], tasks: int, test: int,
             for way, extra in (('scratch', []),
                                ('continued', ['--continue-from',
                                               str(nominal / 'memory.npz')])):
+                if way not in ways:
+                    continue
                 session = folder / f'{way}-seed{seed}'
                 psl('learn', '--task', str(task_path), '--mode', 'graph', '--learner', 'here',
                     '--tasks', str(tasks), '--seed', str(seed), '--test-tasks', str(test),
@@ -158,15 +160,18 @@ def table(results: dict) -> str:
         for seed, row in list(rows.items()) + [('all', None)]:
             if row is None:
                 rs = [rows[s] for s in rows]
-                sums = {w: sum(r[w]['rollouts'] for r in rs) for w in ('scratch', 'continued')}
-                zs = {w: np.mean([r[w]['zero_shot'] for r in rs]) for w in
-                      ('before', 'scratch', 'continued')}
+                sums = {w: sum(r[w]['rollouts'] for r in rs) if all(w in r for r in rs)
+                        else '—' for w in ('scratch', 'continued')}
+                zs = {w: f"{100 * np.mean([r[w]['zero_shot'] for r in rs]):.0f}"
+                      if all(w in r for r in rs) else '—'
+                      for w in ('before', 'scratch', 'continued')}
             else:
-                sums = {w: row[w]['rollouts'] for w in ('scratch', 'continued')}
-                zs = {w: row[w]['zero_shot'] for w in ('before', 'scratch', 'continued')}
+                sums = {w: row[w]['rollouts'] if w in row else '—'
+                        for w in ('scratch', 'continued')}
+                zs = {w: f"{100 * row[w]['zero_shot']:.0f}" if w in row else '—'
+                      for w in ('before', 'scratch', 'continued')}
             lines.append(f"| {name} | {seed} | {sums['scratch']} | {sums['continued']} | "
-                         f"{100 * zs['before']:.0f} / {100 * zs['scratch']:.0f} / "
-                         f"{100 * zs['continued']:.0f} % |")
+                         f"{zs['before']} / {zs['scratch']} / {zs['continued']} % |")
     return '\n'.join(lines)
 
 
@@ -178,13 +183,17 @@ def main() -> int:
     parser.add_argument('--tasks', type=int, default=10)
     parser.add_argument('--test', type=int, default=10)
     parser.add_argument('--budget', type=int, default=100)
+    parser.add_argument('--ways', nargs='+', choices=('scratch', 'continued'),
+                        default=['scratch', 'continued'],
+                        help='the sessions per seed (the simulated skill is always rolled out)')
     args = parser.parse_args()
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     results = {}
     for name in args.names:
-        results[name] = run_task(name, out, args.seeds, args.tasks, args.test, args.budget)
-        (out / 'summary.json').write_text(json.dumps(results, indent=1))
+        results[name] = run_task(name, out, args.seeds, args.tasks, args.test, args.budget,
+                                 args.ways)
+        (out / f'summary_{name}.json').write_text(json.dumps(results[name], indent=1))
     print(table(results))
     return 0
 

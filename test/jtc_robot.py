@@ -199,7 +199,8 @@ class JointTrajectoryController(Node):
         ActionServer(self, FollowJointTrajectory, f'{name}/follow_joint_trajectory',
                      execute_callback=self.execute, goal_callback=self.on_goal,
                      handle_accepted_callback=self.on_accepted,
-                     cancel_callback=self.on_cancel, callback_group=group)
+                     cancel_callback=self.on_cancel, callback_group=group,
+                     result_timeout=10)    # s; rclcpp's 15 min of goals stalls Python's gc
         self.state_pub = self.create_publisher(JointTrajectoryControllerState,
                                                '~/controller_state', 10)
         self.create_timer(1.0 / self.get_parameter('action_monitor_rate').value,

@@ -44,6 +44,11 @@ from psl_ros.stamps import duration_msg, time_msg, to_ns
 ACTION, STATE = names.FOLLOW_JOINT_TRAJECTORY, names.CONTROLLER_STATE
 MONITOR_RATE = 20.0     # Hz: JTC's action_monitor_rate default (feedback, cancels)
 REPORTED = ('joints', 'command_interfaces')     # JTC's parameters a client reads
+# s a goal's handle (with its request: a long trajectory is tens of thousands of Python
+# objects) is kept after its result; rclpy's default, rclcpp's, is 15 min, and in a Python robot
+# loop the cycle collector's full passes over 15 min of goals stalled the loop for 80-390 ms
+# (the 10-DOF arm on the standard robot). A client asks for the result as the goal is accepted.
+RESULT_KEPT = 10.0
 FLOAT_EPS = float(np.finfo(np.float32).eps)     # JTC's "zero" for the last point's velocity
 
 
@@ -159,7 +164,8 @@ class FollowJointTrajectoryServer:
             goal_callback=self._on_goal, before_answer=self._take,
             dropped=lambda handle: self.deliver(self.controller.cancel(
                 bytes(handle.goal_id.uuid))),
-            cancel_callback=self._on_cancel, callback_group=callback_group)
+            cancel_callback=self._on_cancel, callback_group=callback_group,
+            result_timeout=RESULT_KEPT)
 
     def destroy(self) -> None:
         self._server.destroy()
