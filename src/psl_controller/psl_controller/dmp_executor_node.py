@@ -68,7 +68,8 @@ class DMPExecutor(Node):
             lambda params: check_update(self, ExecutorParameters, params))
         self.parameters = declare(self, ExecutorParameters)
         group = ReentrantCallbackGroup()
-        self.matches = MatchReport(self)        # what its endpoints matched
+        # what its endpoints matched, and the clock of its episodes (read by clients)
+        self.matches = MatchReport(self, {'clock': self.parameters.clock})
         self.link = RobotLink(self, self.parameters.controller, self.parameters.clock, group,
                               self.parameters.command_interface,
                               self.parameters.timeout_margin, self.matches)

@@ -26,7 +26,6 @@ import numpy as np
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.parameter_client import AsyncParameterClient
 from std_srvs.srv import Trigger
 
 from psl_msgs.action import ExecuteRollout, LearnSkill
@@ -218,7 +217,6 @@ class RolloutClient:
                                                   callback_group=callback_group,
                                                   qos_profile=SERVICES)
         self._callback_group = callback_group
-        self._executor_parameters: AsyncParameterClient | None = None
         self._clock = ''
         self._matched: MatchedEndpoints | None = None
         self._ready = False      # the loop was seen complete once
@@ -249,23 +247,12 @@ class RolloutClient:
         return ''
 
     def clock(self) -> str:
-        """The worker's executor's ``clock`` parameter (``simulator``: psl's simulator runs
-        its episodes; ``robot``: a robot's own clock), asked once; '' while it does not
-        answer."""
-        if self._clock:
-            return self._clock
-        if self._executor_parameters is None:
-            self._executor_parameters = AsyncParameterClient(
-                self.node, names.under(self.worker, 'dmp_executor'),
-                callback_group=self._callback_group)
-        if not self._executor_parameters.services_are_ready():
-            return ''
-        try:
-            response = wait_for(self._executor_parameters.get_parameters(['clock']), 2.0,
-                                'the dmp_executor\'s parameters')
-        except TimeoutError:
-            return ''
-        self._clock = response.values[0].string_value
+        """The worker's executor's ``clock`` (``simulator``: psl's simulator runs its
+        episodes; ``robot``: a robot's own clock), as its latched report on
+        ``matched_endpoints`` states it (`psl_ros.matching`); '' while none has come."""
+        if not self._clock:
+            executor = self.node.resolve_topic_name(names.under(self.worker, 'dmp_executor'))
+            self._clock = self.matched.fact(executor, 'clock')
         return self._clock
 
     def missing_endpoints(self) -> str:
@@ -280,7 +267,7 @@ class RolloutClient:
             missing.append(f'{self.node.resolve_service_name(self.name)} action server')
         clock = self.clock()
         if not clock:
-            return ', '.join(missing + ['the dmp_executor\'s parameters'])
+            return ', '.join(missing + ['the dmp_executor\'s report of its clock'])
         simulated = clock == 'simulator'
         if simulated and not self.reset_client.service_is_ready():
             missing.append(f'{self.node.resolve_service_name(self.reset_client.srv_name)} '

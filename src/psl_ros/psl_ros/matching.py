@@ -15,9 +15,12 @@ diagnostic_msgs/DiagnosticStatus per node: ``name`` the node's fully qualified n
 KeyValue per watched endpoint, key ``publisher <topic>`` or ``subscription <topic>`` (the
 resolved topic name), value the number of endpoints it has matched, and the same count again
 under ``publisher as <name>`` / ``subscription as <name>`` (the name as the node asked for it:
-a robot's topic remapped anywhere is still found as ``joint_states``). It is published again
-on every matched event of a watched endpoint (DDS's publication/subscription matched status,
-rclpy's ``matched`` event callbacks), so it costs nothing while nothing changes.
+a robot's topic remapped anywhere is still found as ``joint_states``), and the facts the node
+states about itself that never change while it runs, key ``fact <name>`` (the executor's
+``clock``: a client learns it from this latched report instead of asking a parameter service,
+whose answers rclpy loses while the two ends are not yet matched in DDS). It is published
+again on every matched event of a watched endpoint (DDS's publication/subscription matched
+status, rclpy's ``matched`` event callbacks), so it costs nothing while nothing changes.
 
 `MatchedEndpoints`: the client side, a subscription to the reports of one namespace and the
 counts they hold (`psl_ros.client` waits on it).
@@ -47,6 +50,11 @@ def key(kind: str, topic: str) -> str:
     return f'{kind} {topic}'
 
 
+def fact_key(name: str) -> str:
+    """The report's key of a fact the node states about itself: ``fact clock``."""
+    return f'fact {name}'
+
+
 def key_as_asked(kind: str, name: str) -> str:
     """The report's second key of an endpoint, by the name its node asked for, before the
     namespace and any remapping: ``subscription as joint_states`` (a client that does not
@@ -59,15 +67,20 @@ class MatchReport:
 
     The node creates the endpoints to watch through it (`create_publisher`,
     `create_subscription`, `subscribe` for a hot-path subscription): each is created with a
-    matched event that updates the report."""
+    matched event that updates the report. `facts`: what the node states about itself
+    (name -> text), fixed for its life, sent with every report."""
 
-    def __init__(self, node: Node):
+    def __init__(self, node: Node, facts: dict[str, str] | None = None):
         self._node = node
+        self._facts = [KeyValue(key=fact_key(name), value=str(value))
+                       for name, value in (facts or {}).items()]
         self._lock = threading.Lock()
         self._endpoints: list[tuple[str, Callable[[], int]]] = []    # (key, count)
         self._sent: dict[str, int] | None = None
         self._publisher = node.create_publisher(DiagnosticStatus, names.MATCHED_ENDPOINTS,
                                                 LATCHED)
+        if self._facts:         # stated before any endpoint is watched
+            self.update()
 
     def create_publisher(self, msg_type, topic: str, qos: QoSProfile):
         """``node.create_publisher``, watched."""
@@ -114,7 +127,8 @@ class MatchReport:
             self._publisher.publish(DiagnosticStatus(
                 level=DiagnosticStatus.OK, name=self._node.get_fully_qualified_name(),
                 message='matched endpoints',
-                values=[KeyValue(key=k, value=str(v)) for k, v in counts.items()]))
+                values=[KeyValue(key=k, value=str(v)) for k, v in counts.items()]
+                + self._facts))
 
 
 class MatchedEndpoints:
@@ -123,19 +137,30 @@ class MatchedEndpoints:
     def __init__(self, node: Node, namespace: str = '', callback_group=None):
         self._lock = threading.Lock()
         self._reports: dict[str, dict[str, int]] = {}    # node -> key -> matched
+        self._facts: dict[str, dict[str, str]] = {}      # node -> fact -> text
         self._subscription = node.create_subscription(
             DiagnosticStatus, names.under(namespace, names.MATCHED_ENDPOINTS), self._on_report,
             REPORTS, callback_group=callback_group)
 
     def _on_report(self, msg: DiagnosticStatus) -> None:
-        counts = {}
+        counts, facts = {}, {}
         for kv in msg.values:
+            if kv.key.startswith(fact_key('')):
+                facts[kv.key[len(fact_key('')):]] = kv.value
+                continue
             try:
                 counts[kv.key] = int(kv.value)
             except ValueError:
                 continue
         with self._lock:
             self._reports[msg.name] = counts
+            self._facts[msg.name] = facts
+
+    def fact(self, node: str, name: str) -> str:
+        """The fact `name` that `node` (its fully qualified name) states in its report; ''
+        while no report of it with that fact has come."""
+        with self._lock:
+            return self._facts.get(node, {}).get(name, '')
 
     def counts(self, kind: str, topic: str, as_asked: bool = False) -> dict[str, int]:
         """node -> matched endpoints of its `kind` endpoint on `topic` (resolved name; with

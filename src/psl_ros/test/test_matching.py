@@ -245,6 +245,22 @@ def test_the_report_follows_matches_and_a_matched_reader_gets_the_next_message(p
     assert wait_for(lambda: reports.counts(SUBSCRIPTION, topic + '_in') == {'/reporting': 0})
 
 
+def test_a_report_states_the_nodes_facts_to_a_watcher_that_comes_later(participants):
+    """A node's facts (the executor's clock) come with its first report, before it watches
+    any endpoint, and with every later one; a watcher that subscribes afterwards gets them
+    (latched); a fact nobody stated is ''."""
+    server, client = participants('stating'), participants('reading')
+    report = MatchReport(server.node, {'clock': 'robot'})
+    reports = MatchedEndpoints(client.node)
+    assert wait_for(lambda: reports.fact('/stating', 'clock') == 'robot'), 'no fact came'
+    assert reports.fact('/stating', 'other') == ''
+    assert reports.fact('/elsewhere', 'clock') == ''
+    report.create_publisher(String, REPORTED, RELIABLE)   # a later report keeps the fact
+    topic = server.node.resolve_topic_name(REPORTED)
+    assert wait_for(lambda: reports.counts(PUBLISHER, topic) == {'/stating': 0})
+    assert reports.fact('/stating', 'clock') == 'robot'
+
+
 def action_server(server: Participant, ran: list, taken: list | None = None):
     """An ExecuteRollout action server through psl_ros.action_server that notes each goal it
     takes (`taken`) and executes (`ran`, its `task`) and succeeds."""
