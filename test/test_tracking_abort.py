@@ -9,13 +9,17 @@ import json
 import numpy as np
 import pytest
 import yaml
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from psl_controller.policy import policy_for
+from psl_msgs.msg import RolloutEvaluation
+from psl_ros import names
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_task.arm_model import joint_names_of
 from psl_task.task import load_task
 
 BASE = 'reach_over_obstacle'
+RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 
 @pytest.fixture(scope='module')
@@ -62,37 +66,68 @@ def test_an_episode_beyond_the_bound_is_aborted_with_the_reason(client, graph_ta
     assert not evaluation.fulfilled
     assert list(evaluation.component_names) == ['tracking_abort']
     violation = evaluation.component_values[0]
-    assert 0.0 < violation
-    assert evaluation.reward == pytest.approx(task.safety.penalty - violation, abs=1e-12)
-    batch = BatchRollouts(task).run(theta[None], task.tau_default)[0]
-    assert batch.aborted, 'batch mode did not abort the same candidate'
-    assert batch.evaluation.reward == pytest.approx(evaluation.reward, abs=1e-9)
-    assert not batch.evaluation.fulfilled and not batch.has_trajectory
     # the measured episode: the arm followed the reference up to the abort, then held
     q = np.asarray(evaluation.position).reshape(-1, task.n_joints)
     q_ref = np.asarray(evaluation.reference_position).reshape(-1, task.n_joints)
-    error = np.abs(q - q_ref).max(axis=1)
-    assert error[:k].max() <= bound < error[k]
+    error = np.abs(q - q_ref)
+    assert error[:k].max() <= bound < error[k].max()
     assert np.abs(np.diff(q[k + 50:], axis=0)).max() < 1e-3     # at rest, held
+    # the violation is the error beyond the bound at that state and joint
+    assert violation == pytest.approx(error[k, joint] - bound, rel=1e-9, abs=1e-12)
+    assert evaluation.reward == pytest.approx(task.safety.penalty - violation, abs=1e-12)
+    batch = BatchRollouts(task).run(theta[None], task.tau_default)[0]
+    assert batch.aborted, 'batch mode did not abort the same candidate'
+    assert f'joint {joint_names_of(task)[joint]!r}' in batch.aborted, batch.aborted
+    assert f'at {k * task.control_period:.3f} s' in batch.aborted, batch.aborted
+    assert batch.evaluation.reward == pytest.approx(evaluation.reward, abs=1e-9)
+    assert not batch.evaluation.fulfilled and not batch.has_trajectory
 
 
 def test_a_learning_session_goes_on_past_aborted_episodes(client, graph_task, tmp_path):
     """Candidates whose episodes the controller aborts are bad candidates, not a broken
-    robot: a graph-mode session on the bounded task runs its budget and ends with the task
-    not fulfilled, every rollout counted."""
-    result = client.learn(timeout=300, task=graph_task, strategy='scratch', num_tasks=1,
-                          max_rollouts_per_task=3, seed=0, mode='graph',
-                          output_dir=str(tmp_path / 'session'))
+    robot: a graph-mode session on the bounded task runs its whole budget, each rollout an
+    executed episode (none refused), aborted ones among them scored as the tracking abort,
+    and ends with the task not fulfilled."""
+    budget = 3
+    evaluations = []
+    sub = client.node.create_subscription(RolloutEvaluation, names.ROLLOUT_EVALUATION,
+                                          evaluations.append, RELIABLE)
+    try:
+        client.wait_for_subscribers([names.ROLLOUT_EVALUATION], subscriptions=[sub])
+        result = client.learn(timeout=300, task=graph_task, strategy='scratch', num_tasks=1,
+                              max_rollouts_per_task=budget, seed=0, mode='graph',
+                              output_dir=str(tmp_path / 'session'))
+    finally:
+        client.node.destroy_subscription(sub)
     assert result.success, result.message
     metrics = json.loads(open(result.metrics_path).read())
-    assert metrics['summary']['total_rollouts'] >= 3
-    assert not metrics['tasks'][0]['fulfilled']
+    record = metrics['tasks'][0]
+    assert metrics['summary']['total_rollouts'] == record['rollouts'] == budget
+    assert record.get('refused', 0) == 0
+    assert not record['fulfilled']
+    aborted = [e for e in evaluations if list(e.component_names) == ['tracking_abort']]
+    assert aborted, f'no aborted episode among {len(evaluations)} evaluations'
+    assert all(not e.fulfilled for e in aborted)
 
 
-def test_the_bound_is_the_rollouts_tasks(client, graph_task):
-    """The controller started with the bounded task; a rollout of the task without a bound
-    (its gains and bound set by the executor) runs to its end, also after an abort."""
+def test_the_bound_is_the_rollouts_tasks(client, graph_task, bound_and_first):
+    """The controller runs each rollout's task's bound: right after an episode of the
+    bounded task that it aborts, the same candidate on the task without a bound runs to its
+    end and is scored by the task's reward."""
+    bounded = load_task(graph_task)
+    theta = policy_for(bounded).default_theta
+    first = client.rollout(graph_task, bounded.tau_default, theta, timeout=60)
+    assert first.success and first.aborted.startswith('path tolerance violated'), \
+        first.message
     task = load_task(BASE)
-    result = client.rollout(BASE, task.tau_default, policy_for(task).default_theta,
-                            timeout=60)
+    result = client.rollout(BASE, task.tau_default, theta, timeout=60)
     assert result.success, result.message
+    assert not result.aborted, result.aborted
+    evaluation = result.evaluation
+    assert 'tracking_abort' not in evaluation.component_names
+    assert evaluation.num_steps == task.num_steps
+    # the whole episode measured, beyond the state where the bounded one was aborted
+    _, k, _, largest = bound_and_first
+    q = np.asarray(evaluation.position).reshape(-1, task.n_joints)
+    q_ref = np.asarray(evaluation.reference_position).reshape(-1, task.n_joints)
+    assert len(q) > k and np.abs(q - q_ref).max() == pytest.approx(largest, rel=1e-6)

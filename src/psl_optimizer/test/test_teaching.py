@@ -56,6 +56,36 @@ def task():
     return load_task(TASK)
 
 
+def shown_thetas(task, taus, rng):
+    """A demonstrator's thetas, one per instance: the default's DMP weights and goal each
+    moved at random, so far that each movement stays more than 4 TOL_TAUGHT from the
+    default's somewhere (a fit that returned the default theta, or its weights with the
+    demonstration's end as the goal, would not reproduce them)."""
+    policy = policy_for(task)
+    default = policy.reference(policy.default_theta).q
+    weights = slice(0, policy.goal.start)
+    scale = max(1.0, float(np.abs(policy.default_theta[weights]).max()))
+    thetas = []
+    for tau in taus:
+        theta = policy.default_theta.copy()
+        theta[weights] += rng.normal(0.0, 0.1 * scale, weights.stop)
+        theta[policy.goal] += rng.normal(0.0, 0.1, policy.goal.stop - policy.goal.start)
+        assert np.abs(policy.reference(theta, tau).q - default).max() > 4 * TOL_TAUGHT
+        thetas.append(theta)
+    return thetas
+
+
+def assert_taught(task, taught_thetas, taus, shown):
+    """Each taught theta's movement reproduces the shown one within TOL_TAUGHT, which lies
+    more than 4 TOL_TAUGHT from the default's."""
+    policy = policy_for(task)
+    default = policy.reference(policy.default_theta).q
+    for theta, tau, truth in zip(taught_thetas, taus, shown):
+        mine, seen = policy.reference(theta, tau).q, policy.reference(truth, tau).q
+        assert np.abs(mine - seen).max() < TOL_TAUGHT
+        assert np.abs(mine - default).max() > 4 * TOL_TAUGHT
+
+
 def guided(task, thetas, taus, offsets=None, rng=None):
     """Joint states (t, q) of demonstrations: each theta's reference (its motion, without
     the settling) framed by REST s at rest, one after the other; offsets (per demonstration,
@@ -105,11 +135,7 @@ def test_a_bag_of_guided_demonstrations_becomes_the_skills_samples(task, tmp_pat
     rng = np.random.default_rng(0)
     taus = [np.array([0.5, 0.2]), np.array([0.62, 0.35]), np.array([0.45, 0.1]),
             np.array([0.55, 0.3])]
-    thetas = []
-    for tau in taus:
-        theta = policy.default_theta.copy()
-        theta[policy.goal] += rng.normal(0.0, 0.1, policy.goal.stop - policy.goal.start)
-        thetas.append(theta)
+    thetas = shown_thetas(task, taus, rng)
     offsets = [np.zeros(task.n_joints)] * 3 + [np.full(task.n_joints, 0.02)]
     offsets[3][0] = 0.2
     t, q = guided(task, thetas, taus, offsets, rng)
@@ -148,11 +174,8 @@ def test_a_bag_of_guided_demonstrations_becomes_the_skills_samples(task, tmp_pat
         # at the end of its duration), the movement the demonstrated one
         np.testing.assert_allclose(outcome.theta[policy.goal], theta[policy.goal],
                                    atol=TOL_TAUGHT)
-        mine, shown = policy.reference(outcome.theta, tau), policy.reference(theta, tau)
-        assert np.abs(mine.q - shown.q).max() < TOL_TAUGHT
-    # the goals differ from the default's by far more than that
-    assert all(np.abs(theta[policy.goal] - policy.default_theta[policy.goal]).max() > 0.1
-               for theta in thetas[:3])
+    assert_taught(task, [o.theta for o in outcomes[:3]], taus[:3], thetas[:3])
+    np.testing.assert_array_equal(skill.taus, np.array(taus[:3]))
 
 
 def test_a_demonstration_the_policy_cannot_follow_is_refused(task):
@@ -193,7 +216,9 @@ def test_psl_teach_writes_a_memory_that_psl_learn_continues(task, tmp_path, caps
     taus = [np.array([0.5, 0.2]), np.array([0.6, 0.3]), np.array([0.45, 0.15])]
     offsets = [np.zeros(task.n_joints), np.zeros(task.n_joints),
                np.full(task.n_joints, 0.15)]
-    t, q = guided(task, [policy.default_theta] * 3, taus, offsets, np.random.default_rng(1))
+    rng = np.random.default_rng(1)
+    shown = shown_thetas(task, taus, rng)
+    t, q = guided(task, shown, taus, offsets, rng)
     spans = teaching.rest_to_rest(teaching.Recording(t=t, q=q))
     bag = tmp_path / 'taught'
     write_bag(bag, t, q, joint_names_of(task), [(t[i] - 0.2, tau) for (i, _), tau in
@@ -205,9 +230,17 @@ def test_psl_teach_writes_a_memory_that_psl_learn_continues(task, tmp_path, caps
     assert out.count('accepted') == 2 and 'refused: it starts 0.150 rad' in out
     taught = SkillMemory.read(memory).get(task.name)
     assert taught.num_samples == 2
+    np.testing.assert_array_equal(taught.taus, np.array(taus[:2]))
+    assert_taught(task, taught.thetas, taus[:2], shown[:2])
+    run = tmp_path / 'run'
     assert main(['learn', '--task', TASK, '--tasks', '2', '--test-tasks', '2',
                  '--continue-from', str(memory), '--continuation', 'samples',
-                 '--out', str(tmp_path / 'run')]) == 0
+                 '--out', str(run)]) == 0
+    # the session went on from the taught samples: its skill holds them, then its own
+    learned = SkillMemory.read(run / 'memory.npz').get(task.name)
+    np.testing.assert_array_equal(learned.taus[:2], taught.taus)
+    np.testing.assert_array_equal(learned.thetas[:2], taught.thetas)
+    assert learned.num_samples > 2
     # a bag in which nothing is accepted writes nothing and says so
     assert main(['teach', '--task', TASK, str(bag), '--tau', '0.5', '0.2', '--tau', '0.6',
                  '0.3', '--tau', '3.0', '3.0', '--start-tolerance', '1e-6',
@@ -268,7 +301,8 @@ def test_returns_to_the_start_are_no_demonstrations_and_take_no_tau(task, tmp_pa
     from psl_cli.main import main
     policy = TaskPolicy(task)
     taus = [np.array([0.5, 0.2]), np.array([0.6, 0.3]), np.array([0.45, 0.15])]
-    t, q, begins = with_returns(task, [policy.default_theta] * 3, taus)
+    demonstrated = shown_thetas(task, taus, np.random.default_rng(2))
+    t, q, begins = with_returns(task, demonstrated, taus)
     recording = teaching.Recording(t=t, q=q)
     shown, returns = teaching.split_returns(task, recording, teaching.rest_to_rest(recording))
     assert len(shown) == 3 and len(returns) == 3
@@ -291,3 +325,4 @@ def test_returns_to_the_start_are_no_demonstrations_and_take_no_tau(task, tmp_pa
         assert out.count('brought back to the start posture') == 3, out
         taught = SkillMemory.read(out_file).get(task.name)
         np.testing.assert_array_equal(taught.taus, np.array(taus))
+        assert_taught(task, taught.thetas, taus, demonstrated)
