@@ -38,17 +38,24 @@ def test_rollouts_recorded_from_the_graph_teach_the_skill(client, graph_task, tm
     policy = policy_for(task)
     rng = np.random.default_rng(2)
     taus = [np.array([0.5, 0.2]), np.array([0.62, 0.35]), np.array([0.45, 0.1])]
+    default = policy.reference(policy.default_theta).q
+    # the default's weights and goal moved: each movement more than twice the tolerance from
+    # the default's (which would not pass for it)
     thetas = []
-    for _ in taus:
+    for tau in taus:
         theta = policy.default_theta.copy()
+        scale = np.abs(theta[:policy.goal.start]).max()
+        theta[:policy.goal.start] += rng.normal(0.0, 0.05 * scale, policy.goal.start)
         theta[policy.goal] += rng.normal(0.0, 0.1, policy.goal.stop - policy.goal.start)
+        assert np.abs(policy.reference(theta, tau).q - default).max() > 2 * TOL_TAUGHT
         thetas.append(theta)
     bag = tmp_path / 'guided'
     stop, counts = threading.Event(), {}
     recorder = threading.Thread(target=record, args=(bag, [names.JOINT_STATES,
                                                            names.TASK_INSTANCE]),
                                 kwargs={'stop': stop, 'discovery_timeout': 2.0,
-                                        'progress': lambda r: counts.update(r.counts)})
+                                        'progress': lambda r: counts.update(r.counts)},
+                                daemon=True)
     recorder.start()
     try:
         client.wait_for_subscribers([names.JOINT_STATES])
@@ -60,9 +67,12 @@ def test_rollouts_recorded_from_the_graph_teach_the_skill(client, graph_task, tm
         while (counts.get('/' + names.JOINT_STATES, 0) < steps
                and time.monotonic() < deadline):
             stop.wait(0.01)
+        assert counts.get('/' + names.JOINT_STATES, 0) >= steps, \
+            f'the recorder has {counts} of the episodes\' {steps} joint states'
     finally:
         stop.set()
-        recorder.join()
+        recorder.join(timeout=30)
+    assert not recorder.is_alive(), 'the recorder did not end within 30 s'
     memory = tmp_path / 'taught.npz'
     assert main(['teach', '--task', graph_task, str(bag), '--episodes',
                  '--tau-topic', '/' + names.TASK_INSTANCE, '-o', str(memory)]) == 0
@@ -89,3 +99,6 @@ def test_rollouts_recorded_from_the_graph_teach_the_skill(client, graph_task, tm
         np.testing.assert_allclose(policy.reference(theta_taught, np.array(tau)).q,
                                    policy.reference(theta, np.array(tau)).q, rtol=0,
                                    atol=TOL_TAUGHT)
+        # which is far from what the default theta moves
+        assert np.abs(policy.reference(theta_taught, np.array(tau)).q - default).max() \
+            > TOL_TAUGHT

@@ -81,21 +81,42 @@ def view_subscribes(client, topic: str) -> bool:
                for info in client.node.get_subscriptions_info_by_topic(topic))
 
 
+def view_subscriptions(client) -> set[str] | None:
+    """The topics the view node subscribes to in ROS, as the graph sees it; None while the
+    node is not discovered."""
+    from rclpy._rclpy_pybind11 import NodeNameNonExistentError
+    try:
+        return {name for name, _ in
+                client.node.get_subscriber_names_and_types_by_node('view', '/')}
+    except NodeNameNonExistentError:
+        return None
+
+
+def nobody_watches(client, wait_until) -> None:
+    """Until the view subscribes to nothing (a viewer of an earlier test gone: every test
+    starts and ends so, in whatever order they run)."""
+    assert wait_until(lambda: view_subscriptions(client) == set(), WAIT), \
+        view_subscriptions(client)
+
+
 def test_a_topic_is_subscribed_in_ros_only_while_a_viewer_watches_it(url, client, wait_until):
+    nobody_watches(client, wait_until)
     viewer = FoxgloveClient(url)
     try:
         assert viewer.wait_channels(VIEWED, WAIT), sorted(viewer.channels)
-        assert not any(view_subscribes(client, t) for t in VIEWED)     # nobody watches
+        assert view_subscriptions(client) == set()     # channels offered, nothing subscribed
         viewer.subscribe(['/' + names.JOINT_STATES])
-        assert wait_until(lambda: view_subscribes(client, '/' + names.JOINT_STATES), WAIT)
-        assert not view_subscribes(client, '/' + names.PSL_CONTROLLER_STATE)
+        # that topic and only that one
+        assert wait_until(lambda: view_subscriptions(client) == {'/' + names.JOINT_STATES},
+                          WAIT), view_subscriptions(client)
     finally:
         viewer.close()
-    assert wait_until(lambda: not view_subscribes(client, '/' + names.JOINT_STATES), WAIT)
+    nobody_watches(client, wait_until)
 
 
 def test_a_viewer_sees_the_session_as_the_graph_published_it(url, client, graph,
                                                             wait_until):
+    nobody_watches(client, wait_until)
     assert wait_until(lambda: set(VIEWED) <= set(dict(client.node.get_topic_names_and_types())),
                       WAIT)
     published = Published(client.node, VIEWED)
@@ -112,10 +133,12 @@ def test_a_viewer_sees_the_session_as_the_graph_published_it(url, client, graph,
         viewer.subscribe(VIEWED)
         assert wait_until(lambda: all(view_subscribes(client, t) for t in VIEWED), WAIT)
 
+        began = client.node.get_clock().now().nanoseconds
         result = client.learn(timeout=300, **SESSION,
                               output_dir=str(Path(graph.params('learner')['output_root'])
                                              / 'viewed'))
         assert result.success, result.message
+        ended = client.node.get_clock().now().nanoseconds
         metrics = json.loads(Path(result.metrics_path).read_text())
         rollouts = sum(task['rollouts'] for task in metrics['tasks'])
         progress = '/' + names.LEARNING_PROGRESS
@@ -133,8 +156,11 @@ def test_a_viewer_sees_the_session_as_the_graph_published_it(url, client, graph,
             if topic in LATCHED:
                 assert viewer.pump(lambda: viewer.messages[topic][-1][1] == sent[-1], WAIT), \
                     topic
-            else:
-                assert set(seen) <= set(sent), topic
+            else:       # in the order sent, none twice (at most max_rate a second of them)
+                position = {data: k for k, data in enumerate(sent)}
+                assert all(data in position for data in seen), topic
+                order = [position[data] for data in seen]
+                assert order == sorted(set(order)), topic
         assert [d for _, d in viewer.messages[progress]] == published.of(progress)
 
         # decoded with the advertised schema: the session's learning curve
@@ -147,7 +173,11 @@ def test_a_viewer_sees_the_session_as_the_graph_published_it(url, client, graph,
             assert mine[-1].best_reward >= record['best_reward']
             assert bool(mine[-1].task_fulfilled) == record['fulfilled']
             assert [list(p.tau) for p in mine] == [record['tau']] * len(mine)
-        assert all(p.task == TASK and p.header.stamp.sec > 0 for p in points)
+        assert all(p.task == TASK for p in points)
+        stamps = [p.header.stamp.sec * 10**9 + p.header.stamp.nanosec for p in points]
+        # stamped by the learner as they came (a batch's rollouts together), in the session
+        assert all(a <= b for a, b in zip(stamps, stamps[1:]))
+        assert began <= stamps[0] and stamps[-1] <= ended
         scenes = viewer.decoded('/' + names.SCENE)
         assert all(m.header.frame_id == names.WORLD_FRAME
                    for scene in scenes for m in scene.markers)
@@ -168,6 +198,7 @@ def test_a_viewer_sees_the_session_as_the_graph_published_it(url, client, graph,
         viewer.close()
         for subscription in published.subscriptions:
             client.node.destroy_subscription(subscription)
+    nobody_watches(client, wait_until)
 
 
 def test_the_shipped_layout_is_generated_and_names_what_the_graph_publishes(client,
