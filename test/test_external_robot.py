@@ -332,10 +332,41 @@ def learn(client: RosClient, out: Path, budget: int):
                           output_dir=str(out), num_test=1)
     assert result.success, result.message
     metrics = read_metrics(Path(result.metrics_path).parent)
-    executed = (metrics.summary.total_rollouts - sum(t.refused for t in metrics.tasks)
-                + len(metrics.summary.test_rewards))
-    assert executed >= 3
-    return executed
+    return (metrics.summary.total_rollouts - sum(t.refused for t in metrics.tasks)
+            + len(metrics.summary.test_rewards))
+
+
+@contextlib.contextmanager
+def announced(client: RosClient, observer: RosClient):
+    """The task instances psl announces while the block runs, one per goal it sends (each
+    homing, hold and primitive goal, each sent again after a late one: `Episode._start`), as
+    the observer receives them (matched before the block begins)."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    from psl_msgs.msg import TaskInstance
+    from psl_ros import names
+    instances = []
+    sub = observer.node.create_subscription(
+        TaskInstance, '/' + names.TASK_INSTANCE, instances.append,
+        QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
+                   durability=DurabilityPolicy.VOLATILE))
+    try:
+        topic = '/' + names.TASK_INSTANCE
+        # both halves: this reader matched the executor's writer, and the writer every reader
+        # the graph knows of (this one among them)
+        until(lambda: sub.get_publisher_count() > 0 and not client.worker.unmatched(
+            topic, observer.node.count_subscribers(topic)),
+            START_TIMEOUT, 'the executor\'s task_instance publisher matched the observer')
+        yield instances
+    finally:
+        observer.node.destroy_subscription(sub)
+
+
+def resent(graph: Graph) -> int:
+    """The goals psl's executor sent again because they reached the controller after their
+    start (its log says each)."""
+    return (graph.log_dir / 'dmp_executor.log').read_text(errors='replace').count(
+        'sending it again')
 
 
 def goals(robot: RobotProcess) -> dict[str, int]:
@@ -428,6 +459,11 @@ class TestMinimalRobot:
         timeline = recorder.timeline(last, back)
         assert last < zero < back, (
             f'the first zero torque was not sent in the silence:\n{timeline}')
+        # not before the watchdog's timeout had passed since the last state was sent (it was
+        # received after that: both stamps are their publishers', on this machine's clock)
+        assert zero - last >= STATE_TIMEOUT * 1e9, (
+            f'zero torque {(zero - last) * 1e-9:.3f} s after the last state, before the '
+            f'watchdog\'s {STATE_TIMEOUT} s:\n{timeline}')
         torque = [u for sent, u in commands if zero <= sent < back and np.any(u)]
         assert not torque, f'torque sent after the zero, in the silence:\n{timeline}'
         # the states are back: the session can go on
@@ -458,10 +494,16 @@ class TestJtcRobotOnEffort:
         no controller and nothing publishes a torque (no effort_command, no
         Float64MultiArray publisher anywhere)."""
         robot, graph, client = effort
-        executed = learn(client, tmp_path / 'session', budget=2)
+        before = goals(robot)['received']
+        with announced(client, observer) as instances:
+            executed = learn(client, tmp_path / 'session', budget=2)
+            until(lambda: len(instances) >= 2 * executed, 10.0, 'every announcement')
         seen = goals(robot)
-        # each executed rollout: a homing goal and the primitive's
-        assert seen['received'] >= 2 * executed, seen
+        # every goal psl sent (announced), and none else, reached the robot's controller:
+        # per executed rollout one primitive, besides homings and holds
+        assert seen['received'] - before == len(instances), (seen, len(instances))
+        primitives = sum(not i.homing for i in instances)
+        assert primitives - resent(graph) <= executed <= primitives, (executed, primitives)
         assert seen['accepted'] == seen['received'] and seen['aborted'] == 0, seen
         assert {p.name for p in graph.processes} == {'dmp_executor', 'reward_evaluator',
                                                      'skill_memory', 'learner'}
@@ -500,11 +542,18 @@ def test_a_kinematic_rollout_on_the_position_interface(tmp_path, observer):
                            robot_topics={'joint_states': '/joint_states'},
                            nodes=ROLLOUT_NODES) as (graph, client):
             wait_for_robot(observer, robot, CONTROLLER)
-            result = client.rollout(TASK, tau, theta, timeout=ROLLOUT_TIMEOUT)
+            with announced(client, observer) as instances:
+                result = client.rollout(TASK, tau, theta, timeout=ROLLOUT_TIMEOUT)
+                until(lambda: any(not i.homing for i in instances), 10.0,
+                      'the primitive\'s announcement')
         assert result.success and not result.aborted, result.message
         seen = goals(robot)
-        assert seen['received'] >= 2 and seen['accepted'] == seen['received'], seen
-        assert seen['reached'] >= 2 and seen['aborted'] == 0, seen
+        # the homing (the robot starts off the start posture) and the primitive, each
+        # accepted and reached (a goal sent again after a late start: announced again)
+        assert [i.homing for i in instances][0] and not instances[-1].homing, instances
+        assert seen['received'] == len(instances), (seen, len(instances))
+        assert seen['accepted'] == seen['received'] and seen['aborted'] == 0, seen
+        assert seen['reached'] == sum(1 for i in instances) - resent(graph), seen
 
 
 def test_a_feedforward_task_is_refused_on_the_position_interface(tmp_path, observer, record):
