@@ -11,9 +11,8 @@ import json
 import re
 from pathlib import Path
 
+import ament_index_python.packages as ament_index
 import pytest
-
-ament_index = pytest.importorskip('ament_index_python.packages')
 
 # control_msgs/action/FollowJointTrajectory on ROS 2 Jazzy (control_msgs 5.8.0), given by the
 # issue that asked for this package

@@ -26,6 +26,7 @@ FK_TOLERANCE = 1e-9             # m, the evaluator's geometry against MuJoCo's o
 Q_TOLERANCE = 1e-9              # rad, graph against batch (as in conftest)
 DELIVERY_TIMEOUT = 10.0         # s, for messages already published to reach the test
 SETTLE = 1.5                    # s the arm needs after a goal change to reach the new goal
+ROLLOUT_WAIT = 60.0             # s for a rollout of the live change to end
 
 
 @pytest.fixture(scope='module')
@@ -228,13 +229,15 @@ def test_a_live_goal_update_moves_the_goal_of_the_running_rollout(long_task, tmp
                 before = len(recorder.episodes)
                 results = []
                 rollout = threading.Thread(target=lambda: results.append(
-                    client.rollout(task_id(task), tau, theta)))
+                    client.rollout(task_id(task), tau, theta, timeout=ROLLOUT_WAIT)),
+                    daemon=True)
                 rollout.start()
                 try:
                     assert recorder.new_episode.wait(30.0) and len(recorder.episodes) > before
                     client.update_goal(NEW_GOAL, SWITCH, episode_ns=recorder.episodes[-1])
                 finally:
-                    rollout.join(timeout=60.0)
+                    rollout.join(timeout=ROLLOUT_WAIT + 10.0)
+                assert results, f'the rollout did not end within {ROLLOUT_WAIT} s'
                 result, = results
                 assert result.success, result.message
                 ev = result.evaluation

@@ -118,7 +118,7 @@ def test_bad_effort_commands_never_reach_the_physics(client, graph, task, theta,
         finally:
             node.destroy_publisher(pub)
 
-    thread = threading.Thread(target=spam)
+    thread = threading.Thread(target=spam, daemon=True)
     thread.start()
     try:
         # the episode has started once the executor reports progress
@@ -130,7 +130,8 @@ def test_bad_effort_commands_never_reach_the_physics(client, graph, task, theta,
     finally:
         running.set()
         stop.set()
-        thread.join()
+        thread.join(timeout=30)
+    assert not thread.is_alive(), 'the spamming publisher did not stop'
     assert result.success, result.message
     assert list(result.evaluation.component_values) == list(reference_result.component_values)
     # once the publisher has gone, episodes start again

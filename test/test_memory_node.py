@@ -263,11 +263,12 @@ def test_four_concurrent_clients_lose_no_sample(client):
         except Exception as exc:  # noqa: BLE001 - reported below
             errors.append(repr(exc))
 
-    threads = [threading.Thread(target=work, args=(k,)) for k in range(4)]
+    threads = [threading.Thread(target=work, args=(k,), daemon=True) for k in range(4)]
     for t in threads:
         t.start()
     for t in threads:
         t.join(timeout=120)
+    assert not any(t.is_alive() for t in threads), 'a client did not end within 120 s'
     assert not errors
     assert info(client)['concurrent']['num_samples'] == 4 * per_client
 

@@ -140,8 +140,8 @@ def test_a_session_across_two_network_namespaces_equals_batch_mode(namespaces, t
         assert recorder.wait(timeout=30) == 0, recorder_log.read_text()
     finally:
         if recorder is not None and recorder.poll() is None:
-            recorder.kill()
-            recorder.wait()
+            os.killpg(recorder.pid, signal.SIGKILL)
+            recorder.wait(timeout=10)
         g.stop()
         assert not [p.name for p in g.processes if p.process.poll() is None]
     metrics = json.loads((tmp_path / 'graph' / 'metrics.json').read_text())

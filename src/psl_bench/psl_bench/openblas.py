@@ -59,3 +59,41 @@ def environment(kernel: str) -> dict[str, str]:
         raise ValueError(f'this CPU cannot run the OpenBLAS kernel {kernel!r} (it lacks '
                          f'{", ".join(sorted(KERNELS[kernel] - cpu_flags()))})')
     return {**os.environ, 'OPENBLAS_CORETYPE': kernel}
+
+
+def run_per_kernel(arguments: list[str], timeout: float = 300.0) -> dict[str, str]:
+    """``python -m pytest ARGUMENTS`` once per kernel this CPU runs, one after the other, each
+    in a session of its own with OpenBLAS told to take that kernel and ``PSL_OPENBLAS_SWEEP``
+    naming it: kernel -> its output. First checks that a process started so takes the kernel.
+    Raises AssertionError naming the kernel when a run fails or times out (its process group
+    is ended then, and when anything else goes wrong); ValueError when this CPU offers no
+    choice of kernel (no x86-64 flags: tests say so by skipping)."""
+    import signal
+    import subprocess
+    import sys
+    kernels = runnable_kernels()
+    if not kernels:
+        raise ValueError('no x86-64 CPU flags found: OpenBLAS kernels cannot be chosen here')
+    outputs = {}
+    for kernel in kernels:
+        env = {**environment(kernel), 'PSL_OPENBLAS_SWEEP': kernel}
+        taken = subprocess.run([sys.executable, '-c', 'from psl_bench.openblas import '
+                                'current_kernel; print(current_kernel())'], env=env,
+                               capture_output=True, text=True, timeout=60)
+        assert taken.stdout.strip() == kernel, \
+            f'OPENBLAS_CORETYPE={kernel} took {taken.stdout.strip()!r}: {taken.stderr}'
+        run = subprocess.Popen([sys.executable, '-m', 'pytest', '-q', '-p', 'no:randomly',
+                                '-p', 'no:cacheprovider', *arguments], env=env,
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                               start_new_session=True)
+        try:
+            out, _ = run.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            out = f'(no end within {timeout:g} s)'
+        finally:
+            if run.poll() is None:
+                os.killpg(run.pid, signal.SIGKILL)
+                run.wait(timeout=10)
+        assert run.returncode == 0, f'with the {kernel} kernel:\n{out[-3000:]}'
+        outputs[kernel] = out
+    return outputs

@@ -678,6 +678,7 @@ def test_goals_from_another_thread_while_updating():
                 ended.extend(results)
     finally:
         stop.set()
-        thread.join()
+        thread.join(timeout=30)
+    assert not thread.is_alive(), 'the sampling thread did not end'
     active = [c.active_key] if c.active_key is not None else []
     assert sorted([r.key for r in ended] + active) == sorted(keys)

@@ -72,6 +72,9 @@ class StandardRobotNode(Node):
         self.periods = 0                    # control periods since the start (run, skipped)
         self.deadline_misses = 0            # periods whose step ended a period or more late
         self.skipped = 0                    # periods skipped after a stall (MAX_BEHIND)
+        # (stamp of the newest state, periods, deadline misses, skipped) as of its period,
+        # replaced whole each period: a report reads counts that belong together
+        self._counts = (0, 0, 0, 0)
         self._lateness: list[float] = []    # [s] end of each step minus its period's end,
                                             # since the last report (negative: in time)
         self._joint_state = JointState()
@@ -101,17 +104,19 @@ class StandardRobotNode(Node):
         self._thread.start()
 
     def _report(self) -> None:
-        """The loop's timing since the start (periods, misses) and since the last report
-        (lateness p99 and max) on /diagnostics."""
+        """The loop's timing since the start (periods, misses, skipped periods, as of the
+        newest state's stamp) and since the last report (lateness p99 and max) on
+        /diagnostics."""
         lateness, self._lateness = self._lateness, []
         late = np.array(lateness) if lateness else np.zeros(1)
-        values = {'periods': self.periods, 'deadline_misses': self.deadline_misses,
-                  'skipped': self.skipped,
+        stamp, periods, misses, skipped = self._counts
+        values = {'periods': periods, 'deadline_misses': misses, 'skipped': skipped,
+                  'stamp_ns': stamp,
                   'late_p99_us': f'{1e6 * np.percentile(late, 99):.1f}',
                   'late_max_us': f'{1e6 * late.max():.1f}'}
         self.pub_diag.publish(DiagnosticArray(status=[DiagnosticStatus(
             level=DiagnosticStatus.OK, name=f'{self.get_fully_qualified_name()}: loop',
-            message=f'{self.periods} periods, {self.deadline_misses} deadline misses',
+            message=f'{periods} periods, {misses} deadline misses',
             values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])]))
 
     def on_task_instance(self, msg: TaskInstance) -> None:
@@ -174,6 +179,7 @@ class StandardRobotNode(Node):
                     'so far), the robot stood still', throttle_duration_sec=THROTTLE)
                 next_tick += skipped * period
                 base += skipped * robot.period_ns   # its time goes on from the next tick
+            self._counts = (stamp, self.periods, self.deadline_misses, self.skipped)
             if late < 0.0:                      # else the next period at once: catching up
                 sleep_until(next_tick, 0.0)
 

@@ -5,8 +5,6 @@ element; its solution against DifferentialIK candidate by candidate; row indepen
 kernel this CPU runs); refused input; the optional orientation term."""
 
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import mujoco
@@ -17,7 +15,7 @@ from psl_task.arm_model import ArmModel
 from psl_task.inverse_kinematics import DifferentialIK, IKError
 from psl_task.population_ik import PopulationIK
 from psl_task.site_chain import orientation_error, quaternion_of, rotation_vector
-from psl_task.task import TaskError, load_task
+from psl_task.task import load_task
 
 EXAMPLES = Path(__file__).resolve().parents[3] / 'examples'
 
@@ -42,10 +40,7 @@ PATH_SAMPLES = 600          # 1.2 s at the task's 500 Hz
 
 # -- models ---------------------------------------------------------------------------------------
 def task_arm(name):
-    try:
-        arm = ArmModel(load_task(name))
-    except TaskError as exc:        # an example whose robot description is not installed
-        pytest.skip(f'{name}: {exc}')
+    arm = ArmModel(load_task(name))     # the examples' robots are installed (requirements.txt)
     return arm, arm.task.end_effector_site
 
 
@@ -360,25 +355,14 @@ def test_rows_are_independent_under_every_openblas_kernel_this_cpu_runs():
     """OpenBLAS blocks a matrix product by its shape, with kernels chosen by CPU
     (test_policy_population.py): the row-independence test above once per kernel
     (OPENBLAS_CORETYPE), as on other CPUs."""
-    openblas = pytest.importorskip('psl_bench.openblas')
-    kernels = openblas.runnable_kernels()
-    if not kernels:
-        pytest.skip('no x86-64 CPU flags found: OpenBLAS kernels cannot be chosen here')
-    runs = {kernel: subprocess.Popen(
-        [sys.executable, '-m', 'pytest', '-q', '-p', 'no:randomly', '-p', 'no:cacheprovider',
-         __file__, '-k', 'alone_equals_it_in_any_population or orientation_term'],
-        env={**openblas.environment(kernel), SWEEP: kernel},
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for kernel in kernels}
+    from psl_bench import openblas
     try:
-        for kernel, run in runs.items():
-            out, _ = run.communicate(timeout=300)
-            assert run.returncode == 0, f'with the {kernel} kernel:\n{out[-3000:]}'
-            assert '2 passed' in out, out[-3000:]
-    finally:
-        for run in runs.values():
-            if run.poll() is None:
-                run.kill()
-                run.wait()
+        outputs = openblas.run_per_kernel(
+            [__file__, '-k', 'alone_equals_it_in_any_population or orientation_term'])
+    except ValueError as exc:
+        pytest.skip(str(exc))
+    for kernel, out in outputs.items():
+        assert '2 passed' in out, f'with the {kernel} kernel:\n{out[-3000:]}'
 
 
 # -- (4) refused input ----------------------------------------------------------------------------
