@@ -109,3 +109,5 @@ def test_a_homing_that_does_not_settle_names_the_joint(tmp_path):
     assert not result.success
     assert 'homing did not settle: joint' in result.message
     assert 'tolerance 1e-09' in result.message and 'homing.settle_time' in result.message
+    # no episode was scored: the result carries no evaluation
+    assert result.evaluation.num_steps == 0 and not list(result.evaluation.component_names)

@@ -44,6 +44,10 @@ def test_a_session_learns_on_the_instances_published_to_it(tmp_path, wait_until)
     assert learn.returncode == 0, stderr
     tasks = json.loads((out / 'metrics.json').read_text())['tasks']
     np.testing.assert_array_equal([t['tau'] for t in tasks], given)
+    # the two bad ones skipped, each said with its reason
+    skipped = [line for line in stderr.splitlines() if f'on {TOPIC} skipped' in line]
+    assert len(skipped) == 2, stderr
+    assert 'nan' in skipped[0] and '[1.0, 2.0, 3.0]' in skipped[1], skipped
 
 
 def test_a_topic_that_is_no_topic_name_is_refused_with_the_reason(tmp_path):

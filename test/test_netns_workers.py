@@ -157,4 +157,6 @@ def test_a_session_across_two_network_namespaces_equals_batch_mode(namespaces, t
     counts = {topic: count for topic, (_, count) in read_bag_summary(tmp_path / 'bag').items()}
     assert counts.get('/worker0/rollout_evaluation', 0) > 0, counts
     assert counts.get('/worker1/rollout_evaluation', 0) > 0, counts
-    assert sum(counts.values()) <= metrics['summary']['total_rollouts'] + SETTINGS.num_test
+    refused = sum(r.get('refused', 0) for r in got)
+    assert sum(counts.values()) == (metrics['summary']['total_rollouts'] - refused
+                                    + SETTINGS.num_test), counts

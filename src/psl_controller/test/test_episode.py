@@ -326,17 +326,12 @@ def test_a_robot_heavier_than_its_model_is_homed_with_corrected_holds(payload, r
 
 
 @pytest.mark.parametrize('case', ['still moving', 'too heavy'])
-def test_BUG_homing_that_cannot_settle_names_the_joint(payload, case):
+def test_a_homing_that_cannot_settle_names_the_joint(payload, case):
     """A robot heavier than its model that does not come to rest at the start: RobotError
     naming the joint farthest from the start, as the robot measures it. 'still moving': a
     3 kg payload (the model 1.5 kg) with the task's 0.3 s settle_time is still swinging after
     it, and a moving arm gets no corrected hold (the homing goal only); 'too heavy': also bodies
-    2.5 times as heavy (its gravity torque near the torque limits), never at rest, 1 s.
-
-    BUG (reported to the lead, not fixed here): episode.py line 229 formats the message with
-    ``self.policy.joint_names``; `TaskPolicy` has no such attribute, so the episode raises
-    AttributeError instead of RobotError whenever a homing does not settle. (Checked: with
-    ``TaskPolicy.joint_names`` patched to the task's joint names this test passes.)"""
+    2.5 times as heavy (its gravity torque near the torque limits), never at rest, 1 s."""
     task, model_error = ((payload, '') if case == 'still moving' else
                          (with_homing(payload, settle_time=1.0), 'mass_scale=2.5'))
     robot = FakeRobot(task, task.tau_high, q0=task.start_posture + AWAY['payload_transport'],
