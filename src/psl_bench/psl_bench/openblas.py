@@ -7,7 +7,8 @@ picks the kernels of the CPU it finds, or those named by ``OPENBLAS_CORETYPE``. 
 block and sum matrix products in different orders, so a product of the same numbers can
 differ in its last bits from one CPU kind to another (measured: a learning session's results
 by up to 4.3e-11 relative after hundreds of rollouts, README "What is equal to what"). Used by the
-suite's kernel sweep (test_policy_population.py) and by scripts/learning_identity.py.
+suite's kernel sweeps (`run_per_kernel`) and by the learning identity
+(`psl_bench.learning_identity`).
 """
 from __future__ import annotations
 
