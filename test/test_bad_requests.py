@@ -192,11 +192,14 @@ def live_update(client, task, goal, time_from_start):
                                + episodes[-1].stamp.nanosec)
         finally:
             rollout.join(timeout=90)
+        assert results, 'the rollout did not end within 90 s'
         result = results[0]
         # every state's reference, also those still on their way
         deadline = time.monotonic() + 10.0
         while len(references) < result.evaluation.num_steps + 1 and time.monotonic() < deadline:
             time.sleep(0.01)
+        assert len(references) >= result.evaluation.num_steps + 1, \
+            f'{len(references)} of the episode\'s {result.evaluation.num_steps + 1} references came'
         return result, np.asarray(references)
     finally:
         client.node.destroy_subscription(sub)
