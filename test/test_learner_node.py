@@ -29,7 +29,7 @@ from psl_optimizer.policy_search import SearchSettings
 from psl_task.task import load_task
 
 TASK = 'reach_over_obstacle'
-NUM_TEST = 6
+NUM_TEST = 2
 SKILL = LearnSettings().skill      # the memory node gets the in-process default's readout
 MEMORY_PARAMS = {'readout': SKILL.readout, 'n_hidden': SKILL.n_hidden,
                  'regularization': SKILL.regularization, 'seed': SKILL.seed}

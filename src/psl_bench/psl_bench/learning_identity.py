@@ -30,18 +30,20 @@ import tempfile
 from pathlib import Path
 
 from psl_bench.openblas import current_kernel, environment, runnable_kernels
+from psl_task import DEFAULT_TASK
 
+REACH = DEFAULT_TASK     # reach_over_obstacle
 # (label, psl learn arguments)
 SESSIONS = (
-    ('scratch', ['--task', 'reach_over_obstacle', '--strategy', 'scratch', '--tasks', '20',
+    ('scratch', ['--task', REACH, '--strategy', 'scratch', '--tasks', '20',
                  '--seed', '4711']),
-    ('bootstrap', ['--task', 'reach_over_obstacle', '--strategy', 'bootstrap', '--tasks', '20',
+    ('bootstrap', ['--task', REACH, '--strategy', 'bootstrap', '--tasks', '20',
                    '--seed', '4711']),
-    ('hybrid', ['--task', 'reach_over_obstacle', '--strategy', 'hybrid', '--tasks', '20',
+    ('hybrid', ['--task', REACH, '--strategy', 'hybrid', '--tasks', '20',
                 '--seed', '4711']),
-    ('bootstrap_cost', ['--task', 'reach_over_obstacle', '--strategy', 'bootstrap_cost',
+    ('bootstrap_cost', ['--task', REACH, '--strategy', 'bootstrap_cost',
                         '--tasks', '20', '--seed', '4711']),
-    ('variance_selection', ['--task', 'reach_over_obstacle', '--strategy', 'bootstrap',
+    ('variance_selection', ['--task', REACH, '--strategy', 'bootstrap',
                             '--tasks', '10', '--seed', '4711', '--task-selection', 'variance']),
     ('reach_4dof', ['--task', 'reach_4dof', '--strategy', 'bootstrap', '--tasks', '10',
                     '--seed', '4711']),

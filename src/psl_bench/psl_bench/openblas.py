@@ -63,7 +63,8 @@ def environment(kernel: str) -> dict[str, str]:
 
 
 def run_per_kernel(arguments: list[str], timeout: float = 300.0) -> dict[str, str]:
-    """``python -m pytest ARGUMENTS`` once per kernel this CPU runs, one after the other, each
+    """``python -m pytest ARGUMENTS`` once per kernel this CPU runs but the one this process
+    runs (the suite runs the tests with that one already), one after the other, each
     in a session of its own with OpenBLAS told to take that kernel and ``PSL_OPENBLAS_SWEEP``
     naming it: kernel -> its output. First checks that a process started so takes the kernel.
     Raises AssertionError naming the kernel when a run fails or times out (its process group
@@ -72,9 +73,10 @@ def run_per_kernel(arguments: list[str], timeout: float = 300.0) -> dict[str, st
     import signal
     import subprocess
     import sys
-    kernels = runnable_kernels()
+    kernels = [k for k in runnable_kernels() if k != current_kernel()]
     if not kernels:
-        raise ValueError('no x86-64 CPU flags found: OpenBLAS kernels cannot be chosen here')
+        raise ValueError('no x86-64 CPU flags found (or one kernel only): OpenBLAS kernels '
+                         'cannot be chosen here')
     outputs = {}
     for kernel in kernels:
         env = {**environment(kernel), 'PSL_OPENBLAS_SWEEP': kernel}
