@@ -148,7 +148,7 @@ def test_learn_in_graph_mode_cancels_on_ctrl_c_and_resumes(start_up, tmp_path):
     up = start_up()
     out = tmp_path / 'graph'
     learn = PSL + ['learn', '--mode', 'graph', '--tasks', '3', '--budget', '12', '--seed', '3',
-                   '--test-tasks', '3', '--out', str(out)]
+                   '--test-tasks', '1', '--out', str(out)]
     up.wait_for_line('graph ready')
     first = subprocess.Popen(learn, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                              text=True)
@@ -169,7 +169,7 @@ def test_learn_in_graph_mode_cancels_on_ctrl_c_and_resumes(start_up, tmp_path):
     graph = json.loads((out / 'metrics.json').read_text())
     assert graph['tasks'][:len(kept)] == kept
     batch = subprocess.run(PSL + ['learn', '--tasks', '3', '--budget', '12', '--seed', '3',
-                                  '--test-tasks', '3', '--out', str(tmp_path / 'batch')],
+                                  '--test-tasks', '1', '--out', str(tmp_path / 'batch')],
                            capture_output=True, text=True, timeout=300)
     assert batch.returncode == 0, batch.stderr
     batch = json.loads((tmp_path / 'batch' / 'metrics.json').read_text())

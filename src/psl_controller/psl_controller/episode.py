@@ -17,7 +17,8 @@ An episode, from the goal the executor got:
    instance applied) as one goal, announced as a homing episode; then the arm must come within
    ``homing.tolerance`` of the start posture, at rest, within ``homing.settle_time`` more; an
    arm at rest off the start (the robot is not its model) is held again with a corrected torque
-   (`psl_controller.homing.corrected_hold`), up to `HOLD_CORRECTIONS` times;
+   (`psl_controller.homing.corrected_hold`), up to `HOLD_CORRECTIONS` times; one still moving
+   off the start is first given up to `REST_WAITS` more ``settle_time`` to come to rest;
 2. the primitive (`Episode.run`): its task instance announced, the reference as one goal
    stamped to start at the clock's next start (`Robot.start_time`), with the task's
    ``safety.max_tracking_error`` as the path tolerance (the controller aborts beyond it:
@@ -53,6 +54,7 @@ from psl_task.task import TaskDefinition
 
 SETTLE_STATES = 25      # the newest states averaged for the homing check on a noisy robot
 HOLD_CORRECTIONS = 3    # holds with a corrected torque when homing comes to rest off the start
+REST_WAITS = 5          # settle times an arm still moving off the start is given to come to rest
 START_ATTEMPTS = 3      # goals sent, each later, before a late start fails the rollout
 LEAD_STEPS = 5          # control periods of lead at the least (a live change)
 RATE_MARGIN = 1.5       # the loop may run this many times faster than last measured
@@ -220,8 +222,13 @@ class Episode:
         waited = float(reference.t[-1]) + spec.settle_time
         stiffness = None
         for _ in range(HOLD_CORRECTIONS):
-            if self._homed(q, qd) or np.abs(qd).max() > spec.tolerance:
-                break                                     # there, or not at rest
+            if self._homed(q, qd):
+                break
+            if np.abs(qd).max() > spec.tolerance:     # still moving: it comes to rest in its
+                q, qd = self._at_rest()                 # own time (a lightly damped payload)
+                waited += REST_WAITS * spec.settle_time
+                if self._homed(q, qd) or np.abs(qd).max() > spec.tolerance:
+                    break                             # there, or it does not come to rest
             if stiffness is None:
                 stiffness = hold_stiffness(self.kp, self.inverse_dynamics, task.start_posture)
             hold = corrected_hold(task.start_posture, held, stiffness, q, spec.settle_time,
@@ -263,6 +270,21 @@ class Episode:
         if not homed():
             self.robot.wait(self.task.homing.settle_time, homed)
             homed()
+        return found[0], found[1]
+
+    def _at_rest(self) -> tuple[np.ndarray, np.ndarray]:
+        """The posture and velocity (means of the newest SETTLE_STATES) once the arm is at
+        rest (within homing.tolerance of no velocity), or after REST_WAITS more
+        homing.settle_time."""
+        found = []
+
+        def resting() -> bool:
+            _, q, qd = self.robot.measure(SETTLE_STATES)
+            found[:] = [q, qd]
+            return bool(np.abs(qd).max() <= self.task.homing.tolerance)
+        if not resting():
+            self.robot.wait(REST_WAITS * self.task.homing.settle_time, resting)
+            resting()
         return found[0], found[1]
 
     def _homed(self, q: np.ndarray, qd: np.ndarray) -> bool:

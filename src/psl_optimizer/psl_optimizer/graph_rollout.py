@@ -6,6 +6,11 @@ rollouts do not depend on the worker, so the results are those of one worker. Th
 carry the evaluator's evaluation and the measured episode it scored (joint angles, applied
 torques, the controller's reference: `trajectory_of`), so that whatever needs trajectories
 (ILC of the feed-forward) runs in graph mode as in batch mode.
+
+A rollout that fails (a homing that did not settle on a robot, a worker that died) is tried
+again, up to ATTEMPTS times on each worker, before the population fails: on a robot the next
+attempt starts from wherever the arm came to rest; a lockstep rollout's result does not depend
+on the attempt.
 """
 from __future__ import annotations
 
@@ -24,6 +29,8 @@ from psl_optimizer.rollouts import (RolloutResult, Rollouts, Stopped, aborted_re
 from psl_ros.client import RolloutClient
 from psl_ros.timeouts import ROLLOUT_TIMEOUT
 from psl_task.task import TaskDefinition, task_id
+
+ATTEMPTS = 2        # tries of a rollout on each worker before the population fails
 
 
 class GraphRollouts(Rollouts):
@@ -47,9 +54,20 @@ class GraphRollouts(Rollouts):
     def run(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
         thetas, taus = self._inputs(thetas, taus)
         if len(self.workers) == 1:
-            return self._count([self._one(self.workers[0], tau, theta)
+            return self._count([self._tried(self.workers[0], tau, theta)
                                 for theta, tau in zip(thetas, taus)])
         return self._count(self._spread(thetas, taus))
+
+    def _tried(self, worker: RolloutClient, tau: np.ndarray, theta: np.ndarray
+               ) -> RolloutResult:
+        """`_one`, tried again after a failure, ATTEMPTS times in all; the last error raised
+        with the number of tries."""
+        for attempt in range(ATTEMPTS):
+            try:
+                return self._one(worker, tau, theta)
+            except (RuntimeError, TimeoutError) as exc:
+                if attempt == ATTEMPTS - 1:
+                    raise RuntimeError(f'{exc} ({ATTEMPTS} tries)') from None
 
     def _spread(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
         """The population over the workers, one rollout per worker at a time. A worker whose
@@ -62,7 +80,7 @@ class GraphRollouts(Rollouts):
         for i in range(len(thetas)):
             pending.put(i)
         results: list[RolloutResult | None] = [None] * len(thetas)
-        failures: dict[int, dict[str, str]] = {}     # rollout -> worker -> its last error
+        failures: dict[int, list[tuple[str, str]]] = {}   # rollout -> (worker, error) per try
         lock = threading.Lock()
         alive = [len(self.workers)]
         abort = threading.Event()               # a cancel or an error: every worker stops
@@ -70,7 +88,7 @@ class GraphRollouts(Rollouts):
         def finished() -> bool:
             with lock:
                 return abort.is_set() or all(r is not None for r in results) or \
-                    any(len(f) >= alive[0] for f in failures.values())
+                    any(len(f) >= ATTEMPTS * alive[0] for f in failures.values())
 
         def back(worker: RolloutClient) -> bool:
             """Wait until the worker's loop is up again; False after `timeout` or when the
@@ -95,7 +113,7 @@ class GraphRollouts(Rollouts):
                         results[i] = self._one(worker, taus[i], thetas[i])
                     except (RuntimeError, TimeoutError) as exc:
                         with lock:
-                            failures.setdefault(i, {})[worker.name] = str(exc)
+                            failures.setdefault(i, []).append((worker.name, str(exc)))
                         pending.put(i)
                         if not back(worker):
                             return
@@ -112,10 +130,10 @@ class GraphRollouts(Rollouts):
                 future.result()              # Stopped (a cancel) and bugs surface here
         missing = [i for i, r in enumerate(results) if r is None]
         if missing:
-            reasons = '; '.join(f'{w}: {e}' for w, e in failures.get(missing[0], {}).items()) \
-                or 'no worker left'
+            last = dict(failures.get(missing[0], []))      # each worker's last error
+            reasons = '; '.join(f'{w}: {e}' for w, e in last.items()) or 'no worker left'
             raise RuntimeError(f'{len(missing)} rollouts of the population failed on every '
-                               f'rollout worker ({reasons})')
+                               f'rollout worker, {ATTEMPTS} tries each ({reasons})')
         return results
 
     def _one(self, worker: RolloutClient, tau: np.ndarray, theta: np.ndarray) -> RolloutResult:
