@@ -14,6 +14,13 @@ fix for
 - **torque saturation**: the share of control periods of the demonstration's rollout (batch
   mode, the default instance) in which some joint's torque sits at its limit
   (`SATURATION_WARNING`);
+- **targets out of reach**: a task whose policy learns a hand goal point for a target the task
+  parameters move (``policy.space: end_effector``, ``learn_goal``): the default movement with
+  its goal at each corner of the target range (the box of the target_position parameters,
+  the others at their defaults), its joint reference by the policy's inverse kinematics; where
+  the reference ends farther from the corner than `REACH_WARNING` of the success threshold
+  allows (goal_error's weight times the miss), those instances cannot be fulfilled: move or
+  shrink the range;
 - **the reward's geometry**: what each measured (arm geom, obstacle geom) pair costs per
   physics step (``mj_geomDistance``, timed here at the start posture) beside the physics step
   itself; a task whose pairs cost more than `GEOMETRY_WARNING` physics steps is told which
@@ -23,6 +30,7 @@ Imports no ROS.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import time
 
 import mujoco
@@ -39,6 +47,7 @@ SATURATION_WARNING = 0.01    # share of saturated control periods worth a warnin
 LIMIT_WARNING = 0.02         # rad (m): a posture this close to a joint limit is warned about
 GEOMETRY_WARNING = 5.0       # the reward's distances costing more physics steps than this
 TIMING_REPEATS = 20          # calls timed per pair (and physics steps per timing)
+REACH_WARNING = 0.5          # share of |success_threshold| a corner's goal_error may use up
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,6 +78,9 @@ class RobotReport:
     step_seconds: float                 # one physics step of the model (no reward sensors)
     pair_seconds: dict[str, float]      # 'arm geom / obstacle geom' -> one distance [s]
     warnings: list[str]
+    # the target range's corners and how far the default movement toward each ends [m]
+    # (a task with a learned hand goal for a moving target; else empty)
+    reach: list[tuple[np.ndarray, float]] = dataclasses.field(default_factory=list)
 
 
 def hand_sag(arm: ArmModel, q: np.ndarray, kp: np.ndarray) -> tuple[np.ndarray, float]:
@@ -81,6 +93,28 @@ def hand_sag(arm: ArmModel, q: np.ndarray, kp: np.ndarray) -> tuple[np.ndarray, 
     jac = np.zeros((3, model.nv))
     mujoco.mj_jacSite(model, data, jac, None, arm.ee_site)
     return sag, float(np.linalg.norm(jac[:, arm.dof_adr] @ sag))
+
+
+def target_reach(task: TaskDefinition) -> list[tuple[np.ndarray, float]]:
+    """(tau, miss [m]) at each corner of the target range: how far the default movement with
+    its hand goal at that instance's target ends from it (its joint reference by the policy's
+    inverse kinematics); [] for a task without a learned hand goal or a target the task
+    parameters move."""
+    from psl_controller.policy import policy_for
+    policy = policy_for(task)
+    moving = [k for k, p in enumerate(task.parameters) if p.binds.kind == 'target_position']
+    if policy.ik is None or not task.policy.learn_goal or task.target is None or not moving:
+        return []
+    out = []
+    for corner in itertools.product(*((task.tau_low[k], task.tau_high[k]) for k in moving)):
+        tau = np.array(task.tau_default, dtype=float)
+        tau[moving] = corner
+        theta = policy.default_theta.copy()
+        target, _ = task.target_of(tau)
+        theta[policy.goal] = target
+        hand, _ = policy.ik.pose(policy.reference(theta, tau).q[-1])
+        out.append((tau, float(np.linalg.norm(hand - target))))
+    return out
 
 
 def geometry_cost(arm: ArmModel) -> tuple[float, dict[str, float]]:
@@ -175,6 +209,18 @@ def check_robot(task: TaskDefinition) -> RobotReport:
     costly = geometry_warning(step_seconds, pair_seconds)
     if costly:
         warnings.append(costly)
+    reach = target_reach(task)
+    weight = task.reward.weights.get('goal_error', 0.0)
+    far = [(tau, miss) for tau, miss in reach
+           if weight * miss > REACH_WARNING * abs(task.reward.success_threshold)]
+    if far:
+        tau, miss = max(far, key=lambda c: c[1])
+        warnings.append(
+            f'targets out of reach: at {len(far)} of the {len(reach)} corners of the target '
+            f'range the hand ends up to {1000 * miss:.1f} mm from the target (tau '
+            f'{np.array2string(tau, precision=3)}), goal_error alone '
+            f'{weight * miss:.3f} of the success threshold\'s {abs(task.reward.success_threshold):g}: '
+            'move or shrink the target_position ranges into the arm\'s reach')
     if saturated > SATURATION_WARNING:
         joints_at = [arm.joint_names[j] for j in np.flatnonzero(np.any(at_limit, axis=0))]
         warnings.append(
@@ -191,7 +237,8 @@ def check_robot(task: TaskDefinition) -> RobotReport:
                        obstacle_geoms=list(task.reward.obstacle_geoms), sag_rad=sag_rad,
                        sag_hand=sag_hand, saturated_share=saturated,
                        contacts_at_rest=resting, contacts_excluded=excluded,
-                       step_seconds=step_seconds, pair_seconds=pair_seconds, warnings=warnings)
+                       step_seconds=step_seconds, pair_seconds=pair_seconds, warnings=warnings,
+                       reach=reach)
 
 
 def _contacts(resting: list[RestingContact]) -> str:
@@ -257,5 +304,9 @@ def format_report(report: RobotReport) -> str:
                      f'{np.array2string(np.round(report.sag_rad[label], 6), precision=4)} rad')
     lines.append(f'demonstration rollout: {100 * report.saturated_share:.1f} % of control '
                  'periods at a torque limit')
+    if report.reach:
+        worst = max(miss for _, miss in report.reach)
+        lines.append(f'target range: {len(report.reach)} corners, the default movement toward '
+                     f'each ends within {1000 * worst:.1f} mm of it')
     lines += [f'warning: {w}' for w in report.warnings] or ['no warnings']
     return '\n'.join(lines)

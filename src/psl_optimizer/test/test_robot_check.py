@@ -118,3 +118,19 @@ def test_a_posture_at_a_joint_limit_is_a_warning(tmp_path):
     (warning,) = report.warnings
     assert warning.startswith('postures at a joint limit: r_wrist_flex_joint;')
     assert not check_robot(load_task(str(source))).warnings
+
+
+def test_a_target_range_out_of_reach_is_a_warning(tmp_path):
+    """point_reach_3d's target box within reach: every corner's default movement ends at the
+    target; its x range moved 0.5 m out, beyond the arm's reach: every corner is far (over
+    0.1 m) and the warning says how many and what to change."""
+    task = load_task('point_reach_3d')
+    report = check_robot(task)
+    assert len(report.reach) == 8 and max(miss for _, miss in report.reach) < 1e-3
+    assert not any('out of reach' in w for w in report.warnings)
+    far = variant(tmp_path, 'point_reach_3d', lambda d: d['task_parameters'][0].update(
+        low=d['task_parameters'][0]['low'] + 0.5, high=d['task_parameters'][0]['high'] + 0.5))
+    report = check_robot(far)
+    assert min(miss for _, miss in report.reach) > 0.1
+    (warning,) = [w for w in report.warnings if 'out of reach' in w]
+    assert 'at 8 of the 8 corners' in warning and 'target_position ranges' in warning
