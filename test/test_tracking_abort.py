@@ -95,7 +95,7 @@ def test_a_learning_session_goes_on_past_aborted_episodes(client, graph_task, tm
     try:
         client.wait_for_subscribers([names.ROLLOUT_EVALUATION], subscriptions=[sub])
         result = client.learn(timeout=300, task=graph_task, strategy='scratch', num_tasks=1,
-                              max_rollouts_per_task=budget, seed=0, mode='graph',
+                              max_rollouts_per_task=budget, seed=0, mode='graph', num_test=1,
                               output_dir=str(tmp_path / 'session'))
     finally:
         client.node.destroy_subscription(sub)
