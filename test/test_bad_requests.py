@@ -295,7 +295,9 @@ def test_no_episode_starts_while_someone_else_publishes_torques(graph, client, t
 # -- a generated family: every numeric and string field of every request ----------------------
 def bad_requests(task):
     """(label, service type, name, fields) for every numeric and string field of the
-    simulator's reset and the memory's services (the evaluator's goal_change holds none)."""
+    simulator's reset and the memory's services (the evaluator's goal_change holds none); a
+    vector field of the reset's good request also gets the good vector with one bad entry
+    (every BAD_NUMBERS value lies outside the task's tau ranges)."""
     good = {
         (ResetTask, names.RESET): dict(task=TASK, tau=task.tau_default.tolist()),
     }
@@ -318,6 +320,14 @@ def bad_requests(task):
                 for value in ([], [math.nan], [math.inf] * 3, [1e308] * 3, [0.0] * 100000):
                     yield (f'{name}.{field}=[{len(value)} x {value[:1]}]', srv, name,
                            {**fields, field: value})
+                # of the right length: one bad entry in a good value (first, then last)
+                good = fields.get(field, [])
+                for i in sorted({0, len(good) - 1}) if good else ():
+                    for number in BAD_NUMBERS:
+                        value = list(good)
+                        value[i] = number
+                        yield (f'{name}.{field}[{i}]={number}', srv, name,
+                               {**fields, field: value})
 
 
 # the generated requests the interfaces document as valid (every other one must be refused):
@@ -330,6 +340,9 @@ VALID = {f'{names.RESET}.mode=' + repr(''), f'{names.RESET}.duration=0.0',
 def test_a_generated_family_of_bad_requests_leaves_every_node_serving(graph, client, task):
     """Every generated request is answered, the ones documented as valid accepted and every
     other one refused with a reason; no node dies, and the graph serves afterwards."""
+    # the one-bad-entry vectors are refused for that entry: no BAD_NUMBERS value is in range
+    assert not any(low <= x <= high for x in BAD_NUMBERS
+                   for low, high in zip(task.tau_low, task.tau_high))
     cases = list(bad_requests(task))
     assert VALID <= {label for label, *_ in cases}, VALID - {label for label, *_ in cases}
     try:

@@ -400,17 +400,23 @@ def minimal(tmp_path_factory, observer):
 
 class TestMinimalRobot:
 
-    def test_a_learning_session_moves_the_arm_continuously(self, minimal, record, tmp_path):
+    def test_a_learning_session_moves_the_arm_continuously(self, minimal, record, observer,
+                                                           tmp_path):
         """A session in graph mode completes; across its episodes the joint states never
-        jump (psl drives the arm from where it is to each start: no teleport)."""
+        jump (psl drives the arm from where it is to each start: no teleport), and every
+        primitive starts with the arm homed: over the REST_STATES / 5 states before its
+        announced start (the robot's clock) every joint stays within homing.tolerance of the
+        start posture (the robot starts OFF_START away)."""
         robot, graph, client = minimal
         task = load_task(TASK)
         recorder = record()
         # one rollout per instance: what is shown here is the motion across the episodes
-        executed = learn(client, tmp_path / 'session', budget=1)
+        with announced(client, observer) as instances:
+            executed = learn(client, tmp_path / 'session', budget=1)
         with recorder.lock:
             states = sorted(recorder.states, key=lambda s: s[1])
-        assert states[-1][2] == robot_setup(TASK)[1] + [EXTRA_JOINT]
+        _, order, _, _, _ = robot_setup(TASK)
+        assert states[-1][2] == order + [EXTRA_JOINT]
         stamps = np.array([s[1] for s in states]) * 1e-9      # the robot's clock
         q = np.array([s[3] for s in states])
         # every rollout is at least an episode of the task's length
@@ -418,6 +424,21 @@ class TestMinimalRobot:
         # a jump: more than MAX_SPEED allows between two states, beyond ten times the noise
         jumps = np.abs(np.diff(q, axis=0)) - MAX_SPEED * np.diff(stamps)[:, None]
         assert jumps.max() < 0.01, f'a jump of {jumps.max():.3f} rad between two states'
+        # homed before each primitive: the states of the last REST_STATES / 5 periods before
+        # its start, in the task's joint order (the robot's is reversed; 1 mrad of noise
+        # against a tolerance of 10)
+        start = np.asarray(task.start_posture)
+        primitives = [i for i in instances if not i.homing]
+        assert len(primitives) >= executed, (len(primitives), executed)
+        window = REST_STATES // 5
+        for instance in primitives:
+            at = instance.stamp.sec + instance.stamp.nanosec * 1e-9
+            last = int(np.searchsorted(stamps, at, side='right'))
+            assert last >= window, f'no states recorded before the primitive at {at:.3f} s'
+            before = q[last - window:last, :task.n_joints][:, ::-1]
+            off = np.abs(before - start).max()
+            assert off <= task.homing.tolerance, (
+                f'the primitive at {at:.3f} s started {off:.4f} rad from the start posture')
 
     def test_lost_states_fail_the_rollout_and_stop_the_torque(self, minimal, record):
         """The robot's states stop mid-episode (SIGUSR1: SILENCE s): the rollout fails with
@@ -464,6 +485,11 @@ class TestMinimalRobot:
         assert zero - last >= STATE_TIMEOUT * 1e9, (
             f'zero torque {(zero - last) * 1e-9:.3f} s after the last state, before the '
             f'watchdog\'s {STATE_TIMEOUT} s:\n{timeline}')
+        # and within one more timeout (the watchdog's timer runs every control period: one a
+        # whole timeout late is a watchdog that reacts late; conftest.check_watchdog_silence)
+        assert zero - last <= 2 * STATE_TIMEOUT * 1e9, (
+            f'zero torque {(zero - last) * 1e-9:.3f} s after the last state, more than twice '
+            f'the watchdog\'s {STATE_TIMEOUT} s:\n{timeline}')
         torque = [u for sent, u in commands if zero <= sent < back and np.any(u)]
         assert not torque, f'torque sent after the zero, in the silence:\n{timeline}'
         # the states are back: the session can go on

@@ -744,8 +744,10 @@ def test_goals_the_controller_cannot_run_are_rejected_and_change_nothing(robot):
     assert robot.result(running)[:2] == (GoalStatus.STATUS_SUCCEEDED, Result.SUCCESSFUL)
 
 
-def test_the_watchdog_aborts_the_goal_and_commands_zero_torque(tmp_path, wait_until):
-    """Catches: the watchdog off by default, or not aborting / not zeroing the torque.
+def test_the_watchdog_aborts_the_goal_and_commands_zero_torque(tmp_path, wait_until,
+                                                               watchdog_silence):
+    """Catches: the watchdog off by default, not aborting / not zeroing the torque, or firing
+    before its timeout or a whole timeout late (the silence it measured itself).
 
     When the states stop: the goal aborts with INVALID_GOAL and the reason, and only zero
     torque is commanded, every control period."""
@@ -782,6 +784,7 @@ def test_the_watchdog_aborts_the_goal_and_commands_zero_torque(tmp_path, wait_un
         status, code, why = bench.result(handle)
         assert (status, code) == (GoalStatus.STATUS_ABORTED, Result.INVALID_GOAL)
         assert 'joint states stopped' in why
+        watchdog_silence(why)
         with bench.lock:
             first = next(i for i in range(seen, len(bench.commands))
                          if holding(bench.commands[i]))
