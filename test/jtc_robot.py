@@ -570,7 +570,12 @@ def main():
     jtc = JointTrajectoryController(a.controller, a.joints, a.interface, a.kp or [0.0] * n,
                                     a.kd or [0.0] * n, period)
     broadcaster = Node('joint_state_broadcaster')
-    states = broadcaster.create_publisher(JointState, '/joint_states', 10)
+    # a second of states kept for a reader that falls behind (ros2_control's broadcaster keeps
+    # 10): on a loaded machine a test's process was starved 0.33 s and lost the states of
+    # the motion it compares (reliable delivery resends only what the writer still keeps)
+    states = broadcaster.create_publisher(
+        JointState, '/joint_states',
+        QoSProfile(depth=int(round(1.0 / period)), reliability=ReliabilityPolicy.RELIABLE))
     names = list(a.joints) + ([a.extra_joint] if a.extra_joint else [])
     extra = [0.0] * (len(names) - n)
     payload = {}                            # the mass the operator put on the arm
