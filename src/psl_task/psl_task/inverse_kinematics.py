@@ -22,7 +22,26 @@ approximation, so the reference velocity is not an input.
 The error-scaled part of the damping keeps steps bounded (<~ 0.7 rad along a singular
 direction) when the target is out of reach or the arm near-singular, and vanishes while
 tracking; ``damping`` is the floor that keeps J J^T + lam2 I invertible where rows of J are
-zero (the z row of a planar arm). A step that makes the error worse (the linear model fails
+zero (the z row of a planar arm).
+
+Near a singular posture the error-scaled part is not enough: while the arm tracks, |e| is a
+few 1e-6 m, and a direction of the task space in which the arm can hardly move (a singular
+value sigma of J far below the arm's size: an elbow nearly straight, two wrist axes nearly
+aligned) gets the gain sigma / (sigma^2 + lam2), hundreds of rad per m. Each sample's step
+then overshoots in that direction and the next one takes it back: the joint path zig-zags
+from sample to sample (seen on TALOS's arm as published, whose start posture lies near the
+straight elbow: joint accelerations of 10^3-10^4 rad/s^2 along a hand path of 2 m/s^2, a
+measured motion whose smoothness and tracking costs jumped between neighbouring instances).
+So the damping is also selective (numerical filtering, Maciejewski and Klein 1988; per
+singular direction as in Buss and Kim 2005): in the eigenbasis J J^T = U diag(sigma_i^2) U^T,
+a direction with sigma_i below ``singular_region`` (eps) gets the extra damping
+
+    lam_i^2 = singular_damping^2 (1 - sigma_i^2 / eps^2)
+    dq      = z + J^T U diag(1 / (sigma_i^2 + lam2 + lam_i^2)) U^T (e - J z)
+
+which rises continuously from 0 at eps to singular_damping^2 at a singular posture. A step
+whose smallest sigma is at least eps is the Cholesky solve above, unchanged (an arm far from
+its singular postures follows the very same path). A step that makes the error worse (the linear model fails
 near a singular posture, e.g. at the edge of the reach) is halved back until it does not:
 no chatter across the stretched posture.
 
@@ -99,6 +118,13 @@ for robot manipulator control. Journal of Dynamic Systems, Measurement, and Cont
 Sugihara, T. (2011). Solvability-unconcerned inverse kinematics by the Levenberg-Marquardt
 method. IEEE Transactions on Robotics, 27(5), 984-991.
 
+Maciejewski, A. A., Klein, C. A. (1988). Numerical filtering for the operation of robotic
+manipulators through kinematically singular configurations. Journal of Robotic Systems, 5(6),
+527-552.
+
+Buss, S. R., Kim, J.-S. (2005). Selectively damped least squares for inverse kinematics.
+Journal of Graphics Tools, 10(3), 37-49.
+
 Flacco, F., De Luca, A., Khatib, O. (2015). Control of redundant robots under hard joint
 constraints: saturation in the null space. IEEE Transactions on Robotics, 31(3), 637-654.
 
@@ -119,6 +145,8 @@ from psl_task.site_chain import IKError, SiteChain, orientation_error
 ORIENTATION_WEIGHT = 0.1   # m/rad: 1 rad of orientation error weighs as 0.1 m of position error
 QUATERNION_NORM_TOLERANCE = 1e-6   # |q| of an orientation reference may be off 1 by this much
 KNOT_STEP = 0.008    # s between the samples solved step by step (module docstring, "Knots")
+SINGULAR_REGION = 0.05   # m/rad: a singular value of J below this gets the selective damping
+SINGULAR_DAMPING = 0.02  # m: that damping at a singular posture (module docstring)
 _KNOT_PASSES = 3     # passes over a path with knots before every sample is solved
 _ONE_DOF_JOINTS = (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)
 _HALVINGS = 8        # a step that makes the error worse is halved back at most this often
@@ -172,6 +200,10 @@ class DifferentialIK:
             position error (only for a solve with an orientation reference).
         knot_step: time [s] between the samples solved step by step, the others
             interpolated (module docstring, "Knots"); 0 solves every sample.
+        singular_region: eps [m/rad] (of the stacked Jacobian with an orientation): a
+            direction whose singular value of J lies below it is damped selectively (module
+            docstring); 0 switches it off.
+        singular_damping: the selective damping [m] at a singular posture.
 
     Raises:
         IKError: an unknown site, addresses that are not one-dof joints of the model, shapes
@@ -182,7 +214,9 @@ class DifferentialIK:
                  dof_adr: np.ndarray, q_rest: np.ndarray, damping: float = 1e-3,
                  nullspace_gain: float = 5.0, limit_margin: float = 0.01,
                  iterations: int = 3, tolerance: float = 1e-5,
-                 orientation_weight: float = ORIENTATION_WEIGHT, knot_step: float = KNOT_STEP):
+                 orientation_weight: float = ORIENTATION_WEIGHT, knot_step: float = KNOT_STEP,
+                 singular_region: float = SINGULAR_REGION,
+                 singular_damping: float = SINGULAR_DAMPING):
         self.model = model
         self.site = self._site_id(model, site)
         joints = self._joints(model, qpos_adr, dof_adr)
@@ -195,7 +229,9 @@ class DifferentialIK:
                                       ('limit_margin', limit_margin, False),
                                       ('tolerance', tolerance, False),
                                       ('orientation_weight', orientation_weight, True),
-                                      ('knot_step', knot_step, False)):
+                                      ('knot_step', knot_step, False),
+                                      ('singular_region', singular_region, False),
+                                      ('singular_damping', singular_damping, False)):
             if not (np.isfinite(value) and (value > 0 if positive else value >= 0)):
                 raise IKError(f'{name} must be finite and {">" if positive else ">="} 0, '
                               f'got {value!r}')
@@ -205,6 +241,8 @@ class DifferentialIK:
         self.limit_margin, self.tolerance = float(limit_margin), float(tolerance)
         self.iterations = int(iterations)
         self.orientation_weight, self.knot_step = float(orientation_weight), float(knot_step)
+        self.singular_region = float(singular_region)
+        self.singular_damping = float(singular_damping)
         # bounds (n,): limited joints' range narrowed by the margin, others unbounded
         limited = model.jnt_limited[joints].astype(bool)
         self.low = np.where(limited, model.jnt_range[joints, 0] + limit_margin, -np.inf)
@@ -394,7 +432,7 @@ class DifferentialIK:
         damping2, tolerance2, iterations = self.damping ** 2, self.tolerance ** 2, self.iterations
         low, high, q_rest, gain = self.low, self.high, self.q_rest, self.nullspace_gain
         m = 3 if quat_ref is None else 6
-        step_solve = _Step(m)
+        step_solve = _Step(m, self.singular_region, self.singular_damping)
         jac = self._jacp if (self._dof_index is None and m == 3) else np.empty((m, n))
         e, e_new = np.empty(m), np.empty(m)           # errors before / after a step
         z, dq, q_old, q_knot = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
@@ -623,31 +661,50 @@ class _Step:
     """The damped least-squares step (module docstring) on preallocated buffers:
     dq (n,) = z + J^T (J J^T + lam2 I)^-1 (e - J z) toward the error e (m,) (m = 3, or 6 with
     the orientation), with the joint displacement z (n,) projected onto J's damped null space
-    (z None: no null-space term). MuJoCo's mju_* routines instead of numpy: a fraction of the
+    (z None: no null-space term); where a singular value of J lies below `region` [m/rad],
+    the selectively damped step of the module docstring (`damping` [m] at a singular
+    posture; region 0: never). MuJoCo's mju_* routines instead of numpy: a fraction of the
     call overhead on m x n."""
 
-    def __init__(self, m: int = 3):
+    def __init__(self, m: int = 3, region: float = 0.0, damping: float = 0.0):
         self.a = np.empty((m, m))
         self.a_flat = self.a.reshape(m * m)     # a view
         self.eye_flat = np.eye(m).reshape(m * m)
         self.r = np.empty(m)
         self.y = np.empty(m)
+        self.region2, self.damping2 = region * region, damping * damping
+        self.sigma2, self.basis = np.empty(m), np.empty((m, m))   # J J^T's eigen-pairs
+        self._quat = np.empty(4)                                  # mju_eig3's by-product
 
     def __call__(self, dq: np.ndarray, jac: np.ndarray, e: np.ndarray, z: np.ndarray | None,
                  lam2: float) -> None:
         a, r, y = self.a, self.r, self.y
         mujoco.mju_mulMatMatT(a, jac, jac)
-        mujoco.mju_addToScl(self.a_flat, self.eye_flat, lam2)
         if z is None:
             r = e
         else:
             mujoco.mju_mulMatVec(r, jac, z)
             mujoco.mju_sub(r, e, r)
-        mujoco.mju_cholFactor(a, 0.0)
-        mujoco.mju_cholSolve(y, a, r)
+        if self.region2 > 0.0 and self._eigen(a) < self.region2:
+            # in J J^T's eigenbasis (columns of basis): each direction's own damping
+            extra = self.damping2 * np.maximum(0.0, 1.0 - self.sigma2 / self.region2)
+            np.matmul(self.basis, (self.basis.T @ r) / (self.sigma2 + lam2 + extra), out=y)
+        else:
+            mujoco.mju_addToScl(self.a_flat, self.eye_flat, lam2)
+            mujoco.mju_cholFactor(a, 0.0)
+            mujoco.mju_cholSolve(y, a, r)
         mujoco.mju_mulMatTVec(dq, jac, y)
         if z is not None:
             mujoco.mju_addTo(dq, z)
+
+    def _eigen(self, a: np.ndarray) -> float:
+        """J J^T = a (m, m) into sigma2 (its eigenvalues, the squared singular values of J)
+        and basis (its eigenvectors, columns); returns the smallest eigenvalue."""
+        if len(a) == 3:
+            mujoco.mju_eig3(self.sigma2, self.basis.reshape(9), self._quat, self.a_flat)
+        else:
+            self.sigma2[:], self.basis[:] = np.linalg.eigh(a)
+        return float(self.sigma2.min())
 
 
 def _slack(q: np.ndarray, low: np.ndarray, high: np.ndarray) -> float:

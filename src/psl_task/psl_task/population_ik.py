@@ -3,7 +3,8 @@
 `PopulationIK.solve` is `DifferentialIK.solve` (`psl_task.inverse_kinematics`: its module
 docstring states the algorithm and its settings) with every sample solved (``knot_step`` 0:
 no knots) for P paths x_ref (P, T, 3) at once: the
-same damped least-squares step with the error-scaled damping of Sugihara (2011), the
+same damped least-squares step with the error-scaled damping of Sugihara (2011) and the
+selective damping of the directions near a singular posture (Maciejewski and Klein 1988), the
 null-space pull toward q_rest in the first step of a sample, further steps while |e| >
 ``tolerance`` up to ``iterations``, a step that makes the error worse halved back (at most
 8 times), the one-pass saturation at the margin-narrowed joint limits (Flacco 2015), qd by
@@ -124,15 +125,32 @@ try:    # the gufunc behind numpy.linalg.solve, without its checks (5 of its 7 u
     from numpy.linalg._umath_linalg import solve as _solve
 except ImportError:     # pragma: no cover - another numpy layout
     _solve = np.linalg.solve
-def _step(jt: np.ndarray, e: np.ndarray, z: np.ndarray | None, lam2: np.ndarray) -> np.ndarray:
+def _step(jt: np.ndarray, e: np.ndarray, z: np.ndarray | None, lam2: np.ndarray,
+          region2: float = 0.0, damping2: float = 0.0) -> np.ndarray:
     """Damped least-squares steps dq (R, n) = z + J^T (J J^T + lam2 I)^-1 (e - J z) of R rows:
-    jt (R, n, m) the transposed Jacobians, e (R, m), z (R, n) or None, lam2 (R,)."""
+    jt (R, n, m) the transposed Jacobians, e (R, m), z (R, n) or None, lam2 (R,); a row whose
+    J J^T has an eigenvalue below region2 [m^2] takes the selectively damped step of
+    `psl_task.inverse_kinematics` (damping2 [m^2] at a singular posture)."""
     rows, _, m = jt.shape
     jac = jt.swapaxes(1, 2)                                     # (R, m, n)
     a = jac @ jt                                                # (R, m, m)
-    a.reshape(rows, m * m)[:, ::m + 1] += lam2[:, None]
     r = e if z is None else e - (jac @ z[..., None])[..., 0]
-    dq = (jt @ _solve(a, r[..., None]))[..., 0]
+    y = np.empty((rows, m))
+    near = np.zeros(rows, dtype=bool)
+    if region2 > 0.0:
+        sigma2, basis = np.linalg.eigh(a)                       # (R, m), (R, m, m)
+        near = sigma2[:, 0] < region2
+        if near.any():
+            s2, u = sigma2[near], basis[near]
+            extra = damping2 * np.maximum(0.0, 1.0 - s2 / region2)
+            y[near] = (u @ ((u.swapaxes(1, 2) @ r[near][..., None])[..., 0]
+                            / (s2 + lam2[near][:, None] + extra))[..., None])[..., 0]
+    far = ~near
+    if far.any():
+        a_far = a[far]
+        a_far.reshape(-1, m * m)[:, ::m + 1] += lam2[far][:, None]
+        y[far] = _solve(a_far, r[far][..., None])[..., 0]
+    dq = (jt @ y[..., None])[..., 0]
     if z is not None:
         dq += z
     return dq
@@ -293,6 +311,7 @@ class _Stepper:
                  pull: float, q_rest: np.ndarray, low: np.ndarray, high: np.ndarray):
         self.chain, self.weight = chain, weight
         self.damping2, self.tolerance2 = ik.damping ** 2, ik.tolerance ** 2
+        self.region2, self.singular2 = ik.singular_region ** 2, ik.singular_damping ** 2
         self.pull, self.pulled_rest = pull, pull * q_rest
         self.low, self.high = low, high
 
@@ -314,7 +333,7 @@ class _Stepper:
             goal[0][rows], None if goal[1] is None else goal[1][rows])
         lam2 = self.damping2 + 0.5 * ee
         z = self.pulled_rest + q * (-self.pull) if first and self.pull > 0.0 else None
-        q_new = q + _step(jt, e, z, lam2)
+        q_new = q + _step(jt, e, z, lam2, self.region2, self.singular2)
         over = (q_new < self.low) | (q_new > self.high)
         if over.any():
             hit = np.flatnonzero(over.any(axis=1))
@@ -339,7 +358,8 @@ class _Stepper:
         free = ~over
         locked = (clipped - q) * over
         e_free = e - (jt.swapaxes(1, 2) @ locked[..., None])[..., 0]
-        dq = _step(jt * free[..., None], e_free, None if z is None else z * free, lam2)
+        dq = _step(jt * free[..., None], e_free, None if z is None else z * free, lam2,
+                   self.region2, self.singular2)
         return np.clip(q + locked + dq, self.low, self.high)
 
     def _backtrack(self, worse, goal, bound, old, new) -> None:
