@@ -27,7 +27,13 @@ deviation, min, max):
   (`BatchRollouts.simulation_seconds`), kept in the run folder (``bench_session.json``);
   ``ik_share`` and ``ik_ms_per_path``: of an end-effector-space task, the share spent in the
   differential inverse kinematics and its wall time per candidate's path
-  (`TaskPolicy.ik_seconds`, ``ik_paths``).
+  (`TaskPolicy.ik_seconds`, ``ik_paths``);
+- ``consistency_<block>`` (a skill of the skill memory): how well the skill's samples agree
+  with each other, per block of theta (the DMP weights, a learned goal, the feed-forward):
+  the leave-one-out error of the skill's mean on its own samples (`sample_consistency`), as a
+  share of the samples' spread in that block. 0: every sample is what the others predict; 1:
+  the others tell nothing about it (a sample's own noise, or a mix the neighbours do not
+  share). Samples that contradict each other make a skill that misses between them.
 Plain Python, no ROS.
 """
 from __future__ import annotations
@@ -55,6 +61,8 @@ HAND_ERRORS = {'held_out_goal_error': 'goal_error',                 # m
                'held_out_orientation_error': 'orientation_error'}   # rad
 METRICS = ('total_rollouts', 'late_rollouts', 'speedup', 'zero_shot_success',
            'zero_shot_reward', 'train_seconds', 'refused')
+CONSISTENCY = ('weights', 'goal', 'feedforward')     # the blocks of theta `sample_consistency`
+SPREAD_FLOOR = 1e-9      # unit coordinates: samples that spread less share the block
 
 
 def run_folder(out: Path, task: str, strategy: str, seed: int, readout: str | None,
@@ -107,7 +115,52 @@ def read_run(folder: Path, after: int) -> dict:
         'train_seconds': float(sum(t.seconds for t in metrics.tasks)),
         # candidates the safety check refused (not executed), of total_rollouts
         'refused': sum(t.refused for t in metrics.tasks),
+        **{f'consistency_{block}': value
+           for block, value in _run_consistency(folder).items()},
     }
+
+
+def sample_consistency(skill, blocks: dict[str, np.ndarray]) -> dict[str, float]:
+    """How well a skill's samples agree (module docstring), per block of theta (name -> the
+    indices of its entries): for the ridge mean of the skill (`SkillConfig.regularization`
+    over `noise_precision`: the Bayesian readout's mean, and the one the incremental readouts
+    agree with) on its own samples, the leave-one-out residuals in closed form,
+    e_i = (y_i - yhat_i) / (1 - H_ii) with the hat matrix H of ridge regression, their RMS
+    over the block's entries and the samples over the RMS of the samples about their mean
+    (unit coordinates). A block the samples share (spread below SPREAD_FLOOR) is left out;
+    {} for fewer than 3 samples."""
+    if skill.num_samples < 3:
+        return {}
+    h = skill.features.transform(skill.taus)                           # (N, N_H)
+    y = skill.theta_scaler.to_unit(skill.thetas)                       # (N, F)
+    ridge = skill.config.regularization / skill.config.noise_precision
+    hat = h @ np.linalg.solve(h.T @ h + ridge * np.eye(h.shape[1]), h.T)
+    loo = (y - hat @ y) / (1.0 - np.diag(hat))[:, None]                # (N, F)
+    spread = y - y.mean(axis=0)
+    rms = {name: float(np.sqrt(np.mean(spread[:, block] ** 2))) if len(block) else 0.0
+           for name, block in blocks.items()}
+    return {name: float(np.sqrt(np.mean(loo[:, block] ** 2))) / rms[name]
+            for name, block in blocks.items() if rms[name] > SPREAD_FLOOR}
+
+
+def _run_consistency(folder: Path) -> dict[str, float]:
+    """`sample_consistency` of a run's skill (its memory file) over the blocks of CONSISTENCY
+    its task has; {} for a baseline's run."""
+    from psl_controller.policy import policy_for
+    from psl_memory.skill_memory import SkillMemory
+    from psl_task.task import load_task
+    metrics = read_metrics(folder)
+    if metrics.settings.get('skill_map', 'elm') != 'elm':
+        return {}
+    task = load_task(metrics.task_path)
+    skill = SkillMemory.read(folder / 'memory.npz').get(task.name)
+    policy = policy_for(task)
+    index = np.arange(skill.theta_dim)
+    goal = index[policy.goal] if task.policy.learn_goal else index[:0]
+    feedforward = index[policy.dynamics] if policy.has_feedforward else index[:0]
+    return sample_consistency(skill, {
+        'weights': np.setdiff1d(index, np.r_[goal, feedforward]), 'goal': goal,
+        'feedforward': feedforward})
 
 
 def _settings_json(settings) -> dict:
@@ -260,8 +313,9 @@ def _aggregate(runs: dict[int, dict[str, dict]], rows: dict[str, dict]) -> dict:
             row['speedup'] = over_seeds([runs[seed][scratch]['late_rollouts'] /
                                          runs[seed][name]['late_rollouts'] for seed in runs])
         row['fulfilled_tasks'] = over_seeds([r['fulfilled_tasks'] for r in records])
-        for key in (*TIMINGS, *HAND_ERRORS):    # not for runs of old folders, nor without
-            if all(key in r for r in records):  # IK or a target
+        for key in (*TIMINGS, *HAND_ERRORS,      # not for runs of old folders, nor without
+                    *(f'consistency_{b}' for b in CONSISTENCY)):    # IK, a target, a block
+            if all(key in r for r in records):
                 row[key] = over_seeds([r[key] for r in records])
         result[name] = row
     return result
@@ -325,6 +379,14 @@ def format_table(report: dict) -> str:
             + (f", {row['held_out_orientation_error']['mean']:.3f} rad"
                if 'held_out_orientation_error' in row else '')
             for name, row in rows.items() if 'held_out_goal_error' in row))
+    consistent = {name: [b for b in CONSISTENCY if f'consistency_{b}' in row]
+                  for name, row in rows.items()}
+    if any(consistent.values()):
+        lines.append('sample consistency (the skill\'s leave-one-out error on its own samples, '
+                     'share of their spread): ' + '; '.join(
+                         f"{name} " + ', '.join(f"{b} {row[f'consistency_{b}']['mean']:.2f}"
+                                                for b in consistent[name])
+                         for name, row in rows.items() if consistent[name]))
     lines.append('safety check, candidates refused (not executed) per session: ' + ', '.join(
         f"{name} {cell(row, 'refused', 1)} of {row['total_rollouts']['mean']:.0f}"
         for name, row in rows.items() if 'refused' in row))

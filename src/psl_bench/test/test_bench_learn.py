@@ -169,3 +169,24 @@ def test_the_inverse_kinematics_share_is_reported_where_there_is_one(bench_run, 
     assert 'held_out_orientation_error' not in row
     assert 0.0 < row['held_out_goal_error']['mean'] < 0.5
     assert "final miss on the held-out" in bench_learn.format_table(report)
+
+
+def test_sample_consistency_against_a_smooth_map_and_noise():
+    """A skill whose samples lie on a smooth map of tau (quadratic): its leave-one-out error is
+    a small share of their spread; samples of independent noise: about their whole spread
+    (the others tell nothing about each); a block all samples share is left out."""
+    from psl_memory.skill_memory import SkillMemory
+    rng = np.random.default_rng(0)
+    memory = SkillMemory()
+    memory.create('s', np.zeros(2), np.ones(2), np.zeros(6))
+    skill = memory.get('s')
+    taus = rng.uniform(0.0, 1.0, (40, 2))
+    smooth = np.c_[taus, taus ** 2] - 0.5                     # entries 0-3
+    noise = rng.normal(0.0, 0.3, (40, 1))                     # entry 4
+    for tau, a, b in zip(taus, smooth, noise):
+        skill.add(tau, np.r_[a, b, 0.25])                     # entry 5: the same in all
+    got = bench_learn.sample_consistency(skill, {'smooth': np.arange(4), 'noise': [4],
+                                                 'shared': [5]})
+    assert set(got) == {'smooth', 'noise'}
+    assert got['smooth'] < 0.1
+    assert got['noise'] > 0.9

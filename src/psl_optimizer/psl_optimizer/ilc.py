@@ -19,11 +19,25 @@ the rotation from the hand's final orientation to the target's (quaternions, wor
 
     g_o <- exp(goal_gain * log(q_target * conj(q_hand(T)))) * g_o
 
-Otherwise the commanded path (theta_K) is left as it is. It stops at the first
-rollout that fulfils the task instance, when the budget is spent, or after ``patience``
-iterations in a row without a better reward. It needs the applied torque of each rollout: it
-asks the results (`RolloutResult.has_trajectory`) and ends after the first rollout whose
-result carries none (the caller's search goes on from there). Imports no ROS.
+Otherwise the commanded path (theta_K) is left as it is.
+
+When it stops. The theta it returns becomes a sample of the skill, and the skill interpolates
+between its samples: a sample taken at the first rollout past the success threshold is
+whatever mix of feed-forward and goal offset crossed it first (the goal takes up the sag
+at once, the feed-forward catches up over the iterations), so neighbouring instances give
+contradicting samples, and a skill between samples that barely fulfil their instances
+misses its own. So ILC goes on past the first fulfilling rollout to its fixed point, as far
+as the reward shows it: while each fulfilling rollout betters the best one by more than
+``min_gain`` of its magnitude, and unless the step it would take next is below
+``converged`` (in the search's units, CMA-ES's normalised coordinates: then the sample is
+converged already, and no rollout is spent to find that out). It returns the best fulfilling
+rollout's theta. It also stops when the budget is spent, or after ``patience`` iterations in a
+row without a better reward. Measured on TALOS's arm as published, point_reach_3d and
+payload_transport: docs/benchmarks.md, "Arms as published: generalisation".
+
+It needs the applied torque of each rollout: it asks the results
+(`RolloutResult.has_trajectory`) and ends after the first rollout whose result carries none
+(the caller's search goes on from there). Imports no ROS.
 """
 from __future__ import annotations
 
@@ -46,10 +60,18 @@ class ILCSettings:
     goal_gain: float = 1.0         # share of the hand's final miss taken off a learned goal point
     lead: float = 0.1              # s, how far ahead the feedback torque is taken
     patience: int = 10             # iterations in a row without a better reward before stopping
+    # past the first fulfilling rollout (module docstring): go on while each fulfilling rollout
+    # betters the best fulfilling one before it by more than this share of its magnitude ...
+    min_gain: float = 0.1
+    # ... unless the next step moves no entry by more than this, in the search's units
+    converged: float = 0.05
 
     def __post_init__(self):
         if self.iterations < 0 or self.patience < 1:
             raise ValueError('iterations must be >= 0 and patience >= 1')
+        if not (self.min_gain >= 0.0 and self.converged >= 0.0):
+            raise ValueError(f'min_gain and converged must be >= 0, got {self.min_gain} and '
+                             f'{self.converged}')
         if not 0.0 < self.gain <= 1.0 or self.lead < 0.0 or not 0.0 <= self.goal_gain <= 1.0:
             raise ValueError(f'gain must be in (0, 1], goal_gain in [0, 1] and lead >= 0, got '
                              f'{self.gain}, {self.goal_gain}, {self.lead}')
@@ -102,8 +124,11 @@ def corrects_orientation(policy: TaskPolicy) -> bool:
 
 
 def ilc_search(rollouts: Rollouts, tau: np.ndarray, start: np.ndarray,
-               settings: ILCSettings = ILCSettings()) -> SearchResult:
-    """ILC on theta_D from `start` for task instance tau; every rollout counted.
+               settings: ILCSettings = ILCSettings(),
+               scale: np.ndarray | None = None) -> SearchResult:
+    """ILC on theta_D from `start` for task instance tau; every rollout counted; `scale`
+    (F,): the search's units of theta (`psl_optimizer.learning.search_normalisation`), in
+    which a step is `converged` (None: no step counts as converged).
 
     Raises:
         ValueError: a task without feed-forward.
@@ -118,16 +143,26 @@ def ilc_search(rollouts: Rollouts, tau: np.ndarray, start: np.ndarray,
         result = rollouts.run(theta[None], tau)[0]
         reward = result.evaluation.reward
         rewards.append(reward)
-        if reward > best_reward:
+        if result.evaluation.fulfilled:
+            gained = reward > best_reward + settings.min_gain * abs(best_reward)
+            if not fulfilled or reward > best_reward:
+                best_theta, best_reward = theta, reward
+            if fulfilled and not gained:
+                break                       # the fulfilling rollouts have stopped gaining
+            fulfilled, idle = True, 0
+        elif fulfilled:
+            break                           # the step left the fulfilling ones: the best stays
+        elif reward > best_reward:
             best_theta, best_reward, idle = theta, reward, 0
         else:
             idle += 1
-        if result.evaluation.fulfilled:
-            best_theta, best_reward, fulfilled = theta, reward, True
-            break
         if idle >= settings.patience or not result.has_trajectory:
             break
-        theta = ilc_step(policy, theta, result, settings, tau)
+        step = ilc_step(policy, theta, result, settings, tau)
+        if fulfilled and scale is not None and (
+                np.abs((step - theta) / scale).max() < settings.converged):
+            break                           # converged: the next rollout would gain nothing
+        theta = step
     return SearchResult(theta=best_theta.copy(), reward=float(best_reward), fulfilled=fulfilled,
                         rollouts=len(rewards), start_theta=np.asarray(start, dtype=float),
                         rewards=rewards)

@@ -593,7 +593,7 @@ class Learner:
                           centre, scale, self.task.tau_low, self.task.tau_high, s.search,
                           seed=seed, alternatives=alternatives(tau))
         start = self.default_theta if s.strategy == 'scratch' else self.skill.query(tau)
-        ilc = ilc_search(self.rollouts, tau, start, s.ilc)
+        ilc = ilc_search(self.rollouts, tau, start, s.ilc, scale)
         # CMA-ES (any strategy) goes on from ILC's best theta: it is the start and the estimate
         left = s.search.max_rollouts - ilc.rollouts
         if ilc.fulfilled or left <= 0:

@@ -6,7 +6,7 @@ import pytest
 import yaml
 
 from psl_optimizer.batch_rollout import BatchRollouts
-from psl_optimizer.ilc import ILCSettings, ilc_search
+from psl_optimizer.ilc import ILCSettings, ilc_search, ilc_step
 from psl_optimizer.inverse_dynamics import inverse_dynamics_torque, oracle_theta
 from psl_optimizer.learning import (Learner, LearnSettings, search_normalisation,
                                     tracking_comparison)
@@ -87,6 +87,38 @@ def test_ilc_reaches_the_oracles_precision(task, batch):
     oracle = batch.run(oracle_theta(task, HEAVY, batch.policy.default_theta)[None],
                        HEAVY)[0].evaluation.components['tracking_error']
     assert learned < 1.5 * oracle
+
+
+def test_ilc_goes_on_past_the_first_fulfilling_rollout_to_its_fixed_point():
+    """point_reach_3d at its default instance (the hand's goal corrected too): ILC does not
+    stop at the first rollout past the success threshold; each fulfilling rollout after it
+    betters the best before it by more than min_gain, and the search ends on one that does
+    not, or on a fulfilling one whose next step is below `converged` in the search's units;
+    it returns the best fulfilling theta, which rolls out to its reward. So it ends within
+    GAIN (10 %) of where the rewards stop rising, whatever its settings say."""
+    GAIN = 0.1
+    task = load_task('point_reach_3d')
+    rollouts = BatchRollouts(task)
+    policy, settings = rollouts.policy, ILCSettings()
+    scale = search_normalisation(task, policy.default_theta)[1]
+    result = ilc_search(rollouts, task.tau_default, policy.default_theta, settings, scale)
+    rewards = np.array(result.rewards)
+    fulfils = rewards >= task.reward.success_threshold
+    first = int(np.argmax(fulfils))
+    assert result.fulfilled and fulfils[first] and not fulfils[:first].any()
+    assert len(rewards) > first + 1, 'ILC stopped at the first fulfilling rollout'
+    assert result.reward == rewards[fulfils].max() > rewards[first]
+    for k in range(first + 1, len(rewards) - 1):       # the ones it went on after
+        best = rewards[first:k][fulfils[first:k]].max()
+        assert fulfils[k] and rewards[k] > best + settings.min_gain * abs(best), k
+    last, before = rewards[-1], rewards[first:-1][fulfils[first:-1]].max()
+    run = rollouts.run(result.theta[None], task.tau_default)[0]
+    assert run.evaluation.reward == result.reward
+    assert settings.min_gain <= GAIN
+    if fulfils[-1] and last > before + GAIN * abs(before):
+        # it gained: it stopped because the step from it had converged
+        step = ilc_step(policy, result.theta, run, settings, task.tau_default)
+        assert np.abs((step - result.theta) / scale).max() < settings.converged
 
 
 def test_skill_interpolates_the_feedforward_between_trained_masses(task, batch, tmp_path,
