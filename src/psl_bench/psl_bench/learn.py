@@ -33,7 +33,11 @@ deviation, min, max):
   the leave-one-out error of the skill's mean on its own samples (`sample_consistency`), as a
   share of the samples' spread in that block. 0: every sample is what the others predict; 1:
   the others tell nothing about it (a sample's own noise, or a mix the neighbours do not
-  share). Samples that contradict each other make a skill that misses between them.
+  share). Samples that contradict each other make a skill that misses between them;
+- a task with a target: the hand's final miss on the held-out instances, the mean per seed,
+  and the median and 90th percentile of every seed's instances pooled; a task with a
+  feed-forward: the held-out tracking RMSE of PD only, the learned feed-forward and the
+  inverse-dynamics oracle (`psl_optimizer.learning.tracking_comparison`), mean per seed.
 Plain Python, no ROS.
 """
 from __future__ import annotations
@@ -62,6 +66,7 @@ HAND_ERRORS = {'held_out_goal_error': 'goal_error',                 # m
 METRICS = ('total_rollouts', 'late_rollouts', 'speedup', 'zero_shot_success',
            'zero_shot_reward', 'train_seconds', 'refused')
 CONSISTENCY = ('weights', 'goal', 'feedforward')     # the blocks of theta `sample_consistency`
+TRACKING = ('pd_only', 'learned', 'oracle')          # held-out tracking RMSE [rad]
 SPREAD_FLOOR = 1e-9      # unit coordinates: samples that spread less share the block
 
 
@@ -117,6 +122,10 @@ def read_run(folder: Path, after: int) -> dict:
         'refused': sum(t.refused for t in metrics.tasks),
         **{f'consistency_{block}': value
            for block, value in _run_consistency(folder).items()},
+        **({'held_out_goal_errors': list(summary.test_hand_errors['goal_error'])}
+           if 'goal_error' in (summary.test_hand_errors or {}) else {}),
+        **{f'tracking_{name}': float(value)
+           for name, value in (summary.tracking_rmse_mean or {}).items()},
     }
 
 
@@ -314,9 +323,16 @@ def _aggregate(runs: dict[int, dict[str, dict]], rows: dict[str, dict]) -> dict:
                                          runs[seed][name]['late_rollouts'] for seed in runs])
         row['fulfilled_tasks'] = over_seeds([r['fulfilled_tasks'] for r in records])
         for key in (*TIMINGS, *HAND_ERRORS,      # not for runs of old folders, nor without
-                    *(f'consistency_{b}' for b in CONSISTENCY)):    # IK, a target, a block
+                    *(f'consistency_{b}' for b in CONSISTENCY),     # IK, a target, a block,
+                    *(f'tracking_{t}' for t in TRACKING)):          # a feed-forward
             if all(key in r for r in records):
                 row[key] = over_seeds([r[key] for r in records])
+        if all('held_out_goal_errors' in r for r in records):
+            pooled = np.concatenate([r['held_out_goal_errors'] for r in records])
+            pooled = pooled[np.isfinite(pooled)]            # a refused rollout has none
+            if pooled.size:
+                row['held_out_goal_error_median'] = float(np.median(pooled))
+                row['held_out_goal_error_p90'] = float(np.percentile(pooled, 90))
         result[name] = row
     return result
 
@@ -376,9 +392,16 @@ def format_table(report: dict) -> str:
     if any('held_out_goal_error' in row for row in rows.values()):
         lines.append('the hand\'s final miss on the held-out instances (mean): ' + ', '.join(
             f"{name} {1000 * row['held_out_goal_error']['mean']:.1f} mm"
+            + (f" (median {1000 * row['held_out_goal_error_median']:.1f}, 90th percentile "
+               f"{1000 * row['held_out_goal_error_p90']:.1f} mm)"
+               if 'held_out_goal_error_median' in row else '')
             + (f", {row['held_out_orientation_error']['mean']:.3f} rad"
                if 'held_out_orientation_error' in row else '')
             for name, row in rows.items() if 'held_out_goal_error' in row))
+    if any('tracking_learned' in row for row in rows.values()):
+        lines.append('held-out tracking RMSE, PD only / learned feed-forward / oracle: ' + ', '.join(
+            f"{name} " + ' / '.join(f"{row[f'tracking_{t}']['mean']:.4f}" for t in TRACKING)
+            + ' rad' for name, row in rows.items() if 'tracking_learned' in row))
     consistent = {name: [b for b in CONSISTENCY if f'consistency_{b}' in row]
                   for name, row in rows.items()}
     if any(consistent.values()):

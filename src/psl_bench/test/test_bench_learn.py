@@ -169,6 +169,24 @@ def test_the_inverse_kinematics_share_is_reported_where_there_is_one(bench_run, 
     assert 'held_out_orientation_error' not in row
     assert 0.0 < row['held_out_goal_error']['mean'] < 0.5
     assert "final miss on the held-out" in bench_learn.format_table(report)
+    # of the one seed: the median and 90th percentile of its instances
+    assert row['held_out_goal_error_median'] == pytest.approx(np.median(errors['goal_error']))
+    assert row['held_out_goal_error_p90'] == pytest.approx(
+        np.percentile(errors['goal_error'], 90))
+    # a feed-forward: the session's held-out tracking RMSE, PD only / learned / oracle
+    tracking = json.loads((folder / 'metrics.json').read_text())['summary']
+    for name in bench_learn.TRACKING:
+        assert row[f'tracking_{name}']['mean'] == tracking[f'tracking_rmse_{name}_mean']
+    assert 'tracking RMSE' in bench_learn.format_table(report)
+    # the consistency of the run's samples, read from its memory file (the measure itself:
+    # test_sample_consistency_against_a_smooth_map_and_noise)
+    from psl_memory.skill_memory import SkillMemory
+    skill = SkillMemory.read(folder / 'memory.npz').get('point_reach_3d')
+    from psl_controller.policy import policy_for
+    policy = policy_for(load_task('point_reach_3d'))
+    index = np.arange(skill.theta_dim)
+    assert row['consistency_goal']['mean'] == bench_learn.sample_consistency(
+        skill, {'goal': index[policy.goal]})['goal']
 
 
 def test_sample_consistency_against_a_smooth_map_and_noise():
