@@ -22,7 +22,9 @@ approximation, so the reference velocity is not an input.
 The error-scaled part of the damping keeps steps bounded (<~ 0.7 rad along a singular
 direction) when the target is out of reach or the arm near-singular, and vanishes while
 tracking; ``damping`` is the floor that keeps J J^T + lam2 I invertible where rows of J are
-zero (the z row of a planar arm).
+zero (the z row of a planar arm). A step that makes the error worse (the linear model fails
+near a singular posture, e.g. at the edge of the reach) is halved back until it does not:
+no chatter across the stretched posture.
 
 Near a singular posture the error-scaled part is not enough: while the arm tracks, |e| is a
 few 1e-6 m, and a direction of the task space in which the arm can hardly move (a singular
@@ -41,9 +43,7 @@ a direction with sigma_i below ``singular_region`` (eps) gets the extra damping
 
 which rises continuously from 0 at eps to singular_damping^2 at a singular posture. A step
 whose smallest sigma is at least eps is the Cholesky solve above, unchanged (an arm far from
-its singular postures follows the very same path). A step that makes the error worse (the linear model fails
-near a singular posture, e.g. at the edge of the reach) is halved back until it does not:
-no chatter across the stretched posture.
+its singular postures follows the very same path).
 
 Joint limits (``jnt_range`` of limited joints, narrowed by ``limit_margin``) are hard: a step
 that would cross a bound moves that joint onto the bound and is solved again without it, so
