@@ -259,6 +259,8 @@ def format_evaluation(ev: dict) -> str:
     changed = ev['goal_change_time']
     lines.append(f'  goal at [{goal}] m' + ('' if changed is None
                                             else f', changed at {changed:g} s'))
+    if ev.get('failure'):
+        lines.append(f"  failed: {ev['failure']}")
     lines += [f'  {name:15s} {value:.6g}' for name, value in ev['components'].items()]
     return '\n'.join(lines)
 
@@ -552,6 +554,9 @@ def _learn_here(args, task, out: Path, stop: threading.Event, progress, workers,
             progress.finished(record.index, record.best_reward, record.fulfilled,
                               in_all=sum(done.rollouts for done in learner.done),
                               rollouts=record.rollouts)
+            if record.failed:
+                print(f'psl learn: warning: task {record.index + 1}: {record.failed} rollouts '
+                      f'not scored ({record.failure}); each got the penalty', file=sys.stderr)
         metrics = learner.run(progress=finished, should_stop=stop.is_set)
     except ValueError as exc:
         progress.close()
@@ -756,10 +761,13 @@ def cmd_check(args) -> int:
     from psl_task.task import load_task
 
     try:
-        report = check_robot(load_task(args.task))
+        task = load_task(args.task)
+        report = check_robot(task)
+        components = reward_component_lines(task)
     except ValueError as exc:                 # TaskError: the cause and the fix
         return fail('psl check', exc, 2)
     print(format_report(report))
+    print('\n'.join(components))
     if args.controller:
         why = controller_misfit(args.task, args.controller, args.command_interface,
                                 args.namespace)
@@ -767,6 +775,22 @@ def cmd_check(args) -> int:
             return fail('psl check', why, 1)
         print(f'controller {args.controller}: runs task {args.task!r}')
     return 1 if report.warnings and args.strict else 0
+
+
+def reward_component_lines(task) -> list[str]:
+    """psl check's list of the registered reward components (name, function, package), the
+    task's weight beside those it uses; each of those imported (ValueError if it cannot be)."""
+    from psl_task import reward_components
+
+    weights = task.reward.weights
+    for name in weights:
+        reward_components.load(name)
+    lines = [f'reward components (entry points {reward_components.GROUP}; weighted by this '
+             'task: *):']
+    for name, where in reward_components.registered().items():
+        mark = f'* {weights[name]:<8g}' if name in weights else '  ' + ' ' * 8
+        lines.append(f'  {mark} {name:18s} {where.target} ({where.package})')
+    return lines
 
 
 def _check_options(p: argparse.ArgumentParser) -> None:

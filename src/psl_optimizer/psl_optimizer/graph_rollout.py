@@ -149,8 +149,8 @@ class GraphRollouts(Rollouts):
             return aborted_result(result.aborted, ev.reward, ev.component_values[0])
         return RolloutResult(evaluation=RewardResult(
             reward=ev.reward, fulfilled=ev.fulfilled,
-            components=dict(zip(ev.component_names, ev.component_values))),
-            **trajectory_of(ev))
+            components=dict(zip(ev.component_names, ev.component_values)),
+            failure=ev.failure), **trajectory_of(ev))
 
 
 def trajectory_of(evaluation) -> dict:

@@ -542,7 +542,8 @@ class Learner:
             else:
                 tau = drawn if s.task_selection == 'random' else most_uncertain(
                     self.task, self.skill.variance, s.selection_candidates, s.seed, index)
-            start, refused = time.perf_counter(), self.rollouts.refused
+            start, refused, failed = (time.perf_counter(), self.rollouts.refused,
+                                      self.rollouts.failed)
             result = self._search(tau, index, centre, scale)
             confirmed, extra = self._confirm(tau, result)
             if confirmed or not s.add_only_fulfilled:
@@ -553,6 +554,9 @@ class Learner:
                                    start_reward=result.rewards[0],
                                    seconds=time.perf_counter() - start,
                                    refused=self.rollouts.refused - refused,
+                                   failed=self.rollouts.failed - failed,
+                                   failure=(self.rollouts.last_failure
+                                            if self.rollouts.failed > failed else ''),
                                    unconfirmed=result.fulfilled and not confirmed,
                                    confirm_rollouts=extra))
             self._save_checkpoint(done)

@@ -39,6 +39,10 @@ class TaskRecord:
     # did not enter the skill), and the confirming rollouts (counted in rollouts too)
     unconfirmed: bool = False
     confirm_rollouts: int = 0
+    # of the candidates, those a reward component could not score (it raised or its cost was
+    # not finite: the penalty), and the newest such reason
+    failed: int = 0
+    failure: str = ''
 
     @classmethod
     def from_dict(cls, data: dict) -> 'TaskRecord':
@@ -48,7 +52,8 @@ class TaskRecord:
                    start_reward=float(data['start_reward']), seconds=float(data['seconds']),
                    refused=int(data.get('refused', 0)),
                    unconfirmed=bool(data.get('unconfirmed', False)),
-                   confirm_rollouts=int(data.get('confirm_rollouts', 0)))
+                   confirm_rollouts=int(data.get('confirm_rollouts', 0)),
+                   failed=int(data.get('failed', 0)), failure=str(data.get('failure', '')))
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -29,7 +29,7 @@ class ReportedRollouts(Rollouts):
     """A session's rollouts, checked before each batch (`should_stop`: raise Stopped) and
     reported after it: a LearningProgress per rollout on `publisher`, stamped with `clock`,
     and the batch's points to `on_points` (e.g. an action's feedback). The counts of rollouts
-    run and refused are the inner rollouts' (the learner records the refusals per task)."""
+    run, refused and failed are the inner rollouts' (the learner records the refusals per task)."""
 
     def __init__(self, inner: Rollouts, learner: Learner, publisher, clock,
                  should_stop: Callable[[], bool] | None = None,
@@ -48,6 +48,14 @@ class ReportedRollouts(Rollouts):
     @property
     def checked(self) -> int:
         return self.inner.checked
+
+    @property
+    def failed(self) -> int:
+        return self.inner.failed
+
+    @property
+    def last_failure(self) -> str:
+        return self.inner.last_failure
 
     def run(self, thetas: np.ndarray, taus: np.ndarray):
         if self.should_stop is not None and self.should_stop():

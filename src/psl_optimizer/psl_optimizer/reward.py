@@ -7,20 +7,61 @@ fulfils its task instance when the reward reaches the task's success threshold. 
 scores graph-mode and batch-mode rollouts alike; the geometric components read the task's
 `psl_task.reward_geometry` (MuJoCo sensors, recorded by batch mode's rollout or evaluated on a
 kinematic replay of the measured joint angles in graph mode). Imports no ROS.
+
+Components come from one registry (`psl_task.reward_components`, the entry point group
+``psl.reward_components``): the seven built-ins below (the ``*_cost`` functions of a
+`RolloutData`, registered by this package's setup.cfg) and whatever a user's package
+registers. A component that raises, or returns a cost that is not finite, fails the rollouts
+it could not score: they get the task's penalty and the reason (`RewardResult.failure`); the
+others are scored.
 """
 from __future__ import annotations
 
 import dataclasses
+from typing import Mapping
 
 import mujoco
 import numpy as np
 
 from psl_controller import quaternion
+from psl_task import reward_components
+from psl_task.reward_components import ComponentFailed
 from psl_task.reward_geometry import Measurements, RewardGeometry
 from psl_task.task import TaskDefinition
 
+# psl's own components, each scored for every rollout (the evaluation message carries them,
+# weighted or not); in this order, then the task's other weighted components
 COMPONENTS = ('goal_error', 'penetration', 'clearance', 'smoothness', 'effort',
               'tracking_error', 'orientation_error')
+FAILED = 'component_failed'     # the one component of a rollout a component failed to score
+
+
+@dataclasses.dataclass(frozen=True)
+class RolloutData:
+    """What a reward component sees of a population of B rollouts of one task, T states each
+    (S_0 .. S_N, one per control period)."""
+
+    task: TaskDefinition            # its reward section, target, control period
+    q: np.ndarray                   # (B, T, n) measured joint angles [rad]
+    torque: np.ndarray              # (B, T, n) torque applied in the step before each state
+    q_ref: np.ndarray               # (B, T, n) the reference the controller tracked
+    measured: Measurements          # the reward geometry along the rollouts
+    taus: np.ndarray                # (B, E) task instances
+    goal_position: np.ndarray       # (B, 3) [m] each rollout's goal (after a goal change: the
+                                    # new goal's)
+    goal_rotation: np.ndarray       # (B, 3, 3) its orientation (identity without a target)
+    world: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    # body name -> (B, T, 7) pose per state: position [m], orientation (w, x, y, z), of each
+    # body the task observes (reward.observe); measured by MuJoCo in simulation, from the
+    # body's pose topic on a robot
+
+    @property
+    def dt(self) -> float:
+        """The control period [s] between two states."""
+        return self.task.control_period
+
+    def __len__(self) -> int:
+        return len(self.q)
 
 
 def _finite(name: str, array: np.ndarray, ndim: int) -> np.ndarray:
@@ -114,27 +155,90 @@ def tracking_error(q: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
     return np.sqrt(np.mean((q_ref - q) ** 2, axis=(1, 2)))
 
 
+# -- the built-in components: functions of RolloutData (psl_task.reward_components), registered
+#    under their names in setup.cfg ([options.entry_points] psl.reward_components)
+def goal_error_cost(r: RolloutData) -> np.ndarray:
+    """`goal_error` of the last state's end effector and each rollout's goal."""
+    return goal_error(r.measured.end_effector[:, -1], r.goal_position)
+
+
+def penetration_cost(r: RolloutData) -> np.ndarray:
+    """`penetration` of the arm-obstacle distance; zero for a task with no obstacle."""
+    distance = r.measured.distance
+    return penetration(distance) if distance is not None else np.zeros(len(r))
+
+
+def clearance_cost(r: RolloutData) -> np.ndarray:
+    """`clearance` below the task's ``reward.clearance_margin``; zero with no obstacle."""
+    distance = r.measured.distance
+    return (clearance(distance, r.task.reward.clearance_margin) if distance is not None
+            else np.zeros(len(r)))
+
+
+def smoothness_cost(r: RolloutData) -> np.ndarray:
+    """`smoothness` of the measured joint angles, or of the reference
+    (``reward.smoothness_of``)."""
+    return smoothness(r.q if r.task.reward.smoothness_of == 'measured' else r.q_ref, r.dt)
+
+
+def effort_cost(r: RolloutData) -> np.ndarray:
+    """`effort` of the applied torque."""
+    return effort(r.torque)
+
+
+def tracking_error_cost(r: RolloutData) -> np.ndarray:
+    """`tracking_error` of the measured joint angles to the reference."""
+    return tracking_error(r.q, r.q_ref)
+
+
+def orientation_error_cost(r: RolloutData) -> np.ndarray:
+    """`orientation_error` of the last state's hand frame to each goal orientation; zero for
+    a task without a target."""
+    if r.task.target is None:
+        return np.zeros(len(r))
+    return orientation_error(r.measured.end_effector_quat[:, -1], r.goal_rotation)
+
+
 @dataclasses.dataclass(frozen=True)
 class RewardResult:
     reward: float
     fulfilled: bool
-    components: dict[str, float]   # unweighted costs, in COMPONENTS order
+    components: dict[str, float]   # unweighted costs: COMPONENTS, then the task's others
+    failure: str = ''              # why a component could not score it (then: the penalty)
 
 
 def check_weights(weights: dict[str, float]) -> None:
-    """ValueError for a weight of a component that does not exist."""
-    unknown = set(weights) - set(COMPONENTS)
-    if unknown:
-        raise ValueError(f'unknown reward components {sorted(unknown)}; known: {COMPONENTS}')
+    """ValueError for a weight of a component no package registers (the nearest named)."""
+    reward_components.check_names(weights)
 
 
 def score(components: dict[str, float], weights: dict[str, float],
           success_threshold: float) -> RewardResult:
     """reward = -sum(weight * component); components without a weight count zero."""
-    check_weights(weights)
     reward = -sum(float(weights.get(name, 0.0)) * value for name, value in components.items())
     return RewardResult(reward=reward, fulfilled=bool(reward >= success_threshold),
                         components=dict(components))
+
+
+def failed(reason: str, penalty: float) -> RewardResult:
+    """The result of a rollout a component could not score: the task's penalty, not
+    fulfilled, the reason."""
+    return RewardResult(reward=float(penalty), fulfilled=False, components={FAILED: 1.0},
+                        failure=reason)
+
+
+def _one(rollouts: RolloutData, b: int) -> RolloutData:
+    """Rollout b of a population, as a population of one."""
+    m = rollouts.measured
+    row = slice(b, b + 1)
+    measured = Measurements(end_effector=m.end_effector[row],
+                            end_effector_quat=m.end_effector_quat[row],
+                            distance=None if m.distance is None else m.distance[row],
+                            world={k: v[row] for k, v in m.world.items()})
+    return dataclasses.replace(
+        rollouts, q=rollouts.q[row], torque=rollouts.torque[row], q_ref=rollouts.q_ref[row],
+        measured=measured, taus=rollouts.taus[row], goal_position=rollouts.goal_position[row],
+        goal_rotation=rollouts.goal_rotation[row], world=measured.world)
 
 
 class Reward:
@@ -153,6 +257,9 @@ class Reward:
         check_weights(task.reward.weights)
         self.task, self.geometry = task, geometry
         self.spec = task.reward
+        # every component this reward scores, each loaded once (a plugin imported here)
+        self.components = {name: reward_components.load(name)
+                           for name in dict.fromkeys(COMPONENTS + tuple(self.spec.weights))}
         self.ee_goal = geometry.end_effector_at(task.goal_posture)      # (3,)
         if task.target is None and self.spec.weights.get('orientation_error', 0.0):
             raise ValueError(f'task {task.name!r}: the orientation_error component needs a '
@@ -214,7 +321,8 @@ class Reward:
             goal_rotations: (B, 3, 3) goal orientations that replace those of `goals` for
                 ``orientation_error`` (a pose goal changed, `goal_of`); default: `goals`.
         Returns:
-            One RewardResult per rollout, with every component of COMPONENTS.
+            One RewardResult per rollout, with every component of COMPONENTS and the task's
+            other weighted ones; a rollout a component failed on: `failed`.
         Raises:
             ValueError: non-finite data or inconsistent shapes.
         """
@@ -231,21 +339,44 @@ class Reward:
             goal_position = _finite('goal_positions', goal_positions, 2)
         if goal_rotations is not None:
             goal_rotation = _finite('goal_rotations', goal_rotations, 3)
-        columns = {
-            'goal_error': goal_error(measured.end_effector[:, -1], goal_position),
-            'penetration': penetration(distance) if distance is not None else np.zeros(len(q)),
-            'clearance': (clearance(distance, self.spec.clearance_margin)
-                          if distance is not None else np.zeros(len(q))),
-            'smoothness': smoothness(q if self.spec.smoothness_of == 'measured' else q_ref,
-                                     self.task.control_period),
-            'effort': effort(torque),
-            'tracking_error': tracking_error(q, q_ref),
-            'orientation_error': (orientation_error(measured.end_effector_quat[:, -1],
-                                                    goal_rotation)
-                                  if self.task.target is not None else np.zeros(len(q))),
-        }
-        return [score({name: float(values[b]) for name, values in columns.items()},
-                      self.spec.weights, self.spec.success_threshold) for b in range(len(q))]
+        rollouts = RolloutData(task=self.task, q=q, torque=torque, q_ref=q_ref,
+                               measured=measured, taus=taus, goal_position=goal_position,
+                               goal_rotation=goal_rotation, world=measured.world)
+        columns, failures = {}, {}
+        for name, function in self.components.items():
+            columns[name] = self._column(name, function, rollouts, failures)
+        results = []
+        for b in range(len(q)):
+            if b in failures:
+                results.append(failed(failures[b], self.task.safety.penalty))
+            else:
+                results.append(score({name: float(values[b]) for name, values in columns.items()},
+                                     self.spec.weights, self.spec.success_threshold))
+        return results
+
+    @staticmethod
+    def _column(name: str, function, rollouts: RolloutData,
+                failures: dict[int, str]) -> np.ndarray:
+        """One component's costs (B,); a rollout it fails on (it raised on that rollout
+        alone, or its cost is not finite) is entered in `failures` with the reason (its cost
+        NaN) and the others are scored."""
+        try:
+            values = reward_components.evaluate(name, function, rollouts)
+        except ComponentFailed as population_failure:
+            if len(rollouts) == 1:
+                values = np.array([np.nan])
+                failures.setdefault(0, str(population_failure))
+            else:           # which rollouts: each alone
+                values = np.empty(len(rollouts))
+                for b in range(len(rollouts)):
+                    one = _one(rollouts, b)
+                    values[b] = Reward._column(name, function, one, sub := {})[0]
+                    if sub:
+                        failures.setdefault(b, sub[0])
+                return values
+        for b, reason in reward_components.failures(name, values).items():
+            failures.setdefault(b, reason)
+        return values
 
     def evaluate_replayed(self, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,
                           taus: np.ndarray, goal_positions: np.ndarray | None = None,

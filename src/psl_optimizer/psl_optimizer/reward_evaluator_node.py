@@ -200,7 +200,8 @@ class RewardEvaluator(Node):
         return RolloutEvaluation(
             stamp=ep.stamp, task=ep.task, tau=list(ep.tau), reward=score,
             fulfilled=fulfilled, component_names=names_, component_values=values,
-            tracking_error=result.components['tracking_error'], num_steps=ep.num_steps,
+            tracking_error=result.components.get('tracking_error', float('nan')),
+            failure=result.failure, num_steps=ep.num_steps,
             goal_position=np.asarray(goal_position).tolist(),
             goal_change_time=request.goal_change_time if changed else -1.0,
             control_period=ep.control_period, joint_names=list(select.joints),

@@ -77,18 +77,23 @@ def aborted_result(reason: str, reward: float, violation: float) -> RolloutResul
 
 class Rollouts(abc.ABC):
     """Rollouts of one task's policies on its task instances. `checked` counts the candidates
-    run (each one passed the safety check or was refused by it), `refused` those refused."""
+    run (each one passed the safety check or was refused by it), `refused` those refused,
+    `failed` those a reward component could not score (`last_failure`: the newest reason)."""
 
     def __init__(self, task: TaskDefinition):
         from psl_controller.policy import policy_for
 
         self.task = task
         self.policy: TaskPolicy = policy_for(task)
-        self.checked = self.refused = 0
+        self.checked = self.refused = self.failed = 0
+        self.last_failure = ''
 
     def _count(self, results: list[RolloutResult]) -> list[RolloutResult]:
         self.checked += len(results)
         self.refused += sum(1 for r in results if r.refused)
+        failures = [r.evaluation.failure for r in results if r.evaluation.failure]
+        self.failed += len(failures)
+        self.last_failure = failures[-1] if failures else self.last_failure
         return results
 
     @abc.abstractmethod

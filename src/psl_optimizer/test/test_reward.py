@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from psl_controller.policy import TaskPolicy
-from psl_optimizer.reward import (COMPONENTS, Reward, clearance, effort, goal_error,
+from psl_optimizer.reward import (COMPONENTS, Reward, check_weights, clearance, effort, goal_error,
                                   penetration, score, smoothness, tracking_error)
 from psl_task.arm_model import ArmModel
 from psl_task.reward_geometry import RewardGeometry
@@ -218,9 +218,10 @@ def test_score_component_without_weight_counts_zero():
     assert result.reward == pytest.approx(-0.02, abs=TOL)
 
 
-def test_score_unknown_weight_raises():
-    with pytest.raises(ValueError, match='goal_eror'):
-        score(COMPONENTS_EXAMPLE, {'goal_eror': 1.0}, -1.0)
+def test_an_unregistered_weight_is_refused_with_the_nearest_name():
+    with pytest.raises(ValueError, match=r"'goal_eror' \(did you mean goal_error\?\)"):
+        check_weights({'goal_error': 1.0, 'goal_eror': 1.0})
+    check_weights(dict.fromkeys(COMPONENTS, 1.0))      # psl's own are all registered
 
 
 def test_components_nonnegative_and_reward_nonpositive_on_random_data():

@@ -69,7 +69,14 @@ def test_psl_check_prints_the_table():
                            'point_reach_3d'], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert 'shoulder_flexion' in done.stdout and 'site palm' in done.stdout
-    assert done.stdout.strip() == format_report(check_robot(load_task('point_reach_3d')))
+    task = load_task('point_reach_3d')
+    report, components = done.stdout.strip().split('\nreward components ')
+    assert report == format_report(check_robot(task))
+    # then every registered component, the task's weight beside those it uses
+    listed = {line.split()[-4]: line.split() for line in components.splitlines()[1:]}
+    assert set(listed) >= set(task.reward.weights) | {'orientation_error', 'clearance'}
+    for name, weight in task.reward.weights.items():
+        assert listed[name][:3] == ['*', f'{weight:g}', name], listed[name]
 
 
 def test_gravity_compensation_removes_the_sag(tmp_path):

@@ -517,6 +517,7 @@ def evaluation_dict(evaluation: RolloutEvaluation) -> dict:
         'fulfilled': evaluation.fulfilled,
         'components': dict(zip(evaluation.component_names, evaluation.component_values)),
         'tracking_error': evaluation.tracking_error,
+        'failure': evaluation.failure,
         'num_steps': evaluation.num_steps,
         'goal_position': [float(x) for x in evaluation.goal_position],
         'goal_change_time': (None if evaluation.goal_change_time < 0

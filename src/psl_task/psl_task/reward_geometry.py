@@ -32,6 +32,9 @@ class Measurements:
     end_effector_quat: np.ndarray   # (B, T, 4) its orientation (w, x, y, z) per state
     distance: np.ndarray | None     # (B, T) smallest arm-obstacle signed distance; None when
                                     # the task names no obstacle
+    world: dict = dataclasses.field(default_factory=dict)   # body -> (B, T, 7) pose per state
+                                    # (position, quaternion w x y z) of the bodies the task
+                                    # observes (reward.observe)
 
 
 class RewardGeometry:

@@ -141,7 +141,9 @@ class RewardSpec:
     """The ``reward`` section: weights of the named components (`psl_optimizer.reward`), the
     success threshold and what the geometric components measure."""
 
-    weights: dict[str, float]       # component name -> weight; missing components count zero
+    weights: dict[str, Finite]      # component name -> weight; missing components count zero;
+                                    # a name registered as a reward component (a plugin's too:
+                                    # psl_task.reward_components)
     success_threshold: float        # fulfilled when reward >= this
     clearance_margin: NonNegative = 0.0   # m; closer than this to an obstacle costs
     obstacle_geoms: tuple[str, ...] = ()  # geoms the arm must keep clear of
@@ -282,6 +284,8 @@ def parse_task_file(data: Any) -> tuple[TaskFile, list[Binding]]:
     except ValidationError as exc:
         raise ValueError('; '.join(_describe(error, TaskFile) for error in exc.errors())) \
             from None
+    from psl_task import reward_components    # its names come from the packages' metadata
+    reward_components.check_names(task_file.reward.weights)
     bindings = []
     for i, entry in enumerate(task_file.task_parameters):
         where = f'task_parameters[{i}] ({entry.name}).binds'

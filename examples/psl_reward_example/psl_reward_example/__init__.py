@@ -1,0 +1,1 @@
+"""An example package of reward components for psl (registered in pyproject.toml)."""
