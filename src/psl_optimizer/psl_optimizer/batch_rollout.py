@@ -314,13 +314,23 @@ class BatchRollouts(Rollouts):
         # torque applied in step k: the law on state k (the actuator's force, clipped alike)
         u = self.law.torque(q, qd, q_ref, qd_ref, u_ffwd)
         torque = np.concatenate([np.zeros((count, 1, n)), u[:, :-1]], axis=1)
-        if noise is not None:
-            evaluations = self.reward.evaluate_replayed(q, torque, q_ref, taus)
-        else:
-            evaluations = self.reward.evaluate(q, torque, q_ref, self.geometry.read(sensors),
-                                               taus)
+        evaluations, world = self._evaluate(q, torque, q_ref, taus, sensors, noise is not None)
         return [RolloutResult(evaluation=evaluations[b], q=q[b], torque=torque[b],
-                              reference=references[b]) for b in range(len(references))]
+                              reference=references[b],
+                              world={k: v[b] for k, v in world.items()})
+                for b in range(len(references))]
+
+    def _evaluate(self, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,
+                  taus: np.ndarray, sensors: np.ndarray, noisy: bool):
+        """The rewards of the rollouts from their sensors, and the observed bodies' poses
+        ({body: (B, T, 7)}); with measurement noise, the arm's geometry replayed from the
+        measured angles (as graph mode scores joint states), the bodies as the sensors saw
+        them."""
+        measured = self.geometry.read(sensors)
+        if noisy:
+            return (self.reward.evaluate_replayed(q, torque, q_ref, taus, world=measured.world),
+                    measured.world)
+        return self.reward.evaluate(q, torque, q_ref, measured, taus), measured.world
 
     def _run_held(self, references: list[Reference], taus: np.ndarray,
                   q_ref: np.ndarray) -> list[RolloutResult]:
@@ -360,10 +370,8 @@ class BatchRollouts(Rollouts):
                 if k + 1 < n_steps:
                     torque[b, k + 1] = u
         self.simulation_seconds += time.perf_counter() - start
-        if noise is not None:
-            evaluations = self.reward.evaluate_replayed(q, torque, q_ref, taus)
-        else:
-            evaluations = self.reward.evaluate(q, torque, q_ref, self.geometry.read(sensors),
-                                               taus)
+        evaluations, world = self._evaluate(q, torque, q_ref, taus, sensors, noise is not None)
         return [RolloutResult(evaluation=evaluations[b], q=q[b], torque=torque[b],
-                              reference=references[b]) for b in range(len(taus))]
+                              reference=references[b],
+                              world={k: v[b] for k, v in world.items()})
+                for b in range(len(taus))]

@@ -380,8 +380,10 @@ class Reward:
 
     def evaluate_replayed(self, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,
                           taus: np.ndarray, goal_positions: np.ndarray | None = None,
-                          goal_rotations: np.ndarray | None = None) -> list[RewardResult]:
+                          goal_rotations: np.ndarray | None = None,
+                          world: dict | None = None) -> list[RewardResult]:
         """`evaluate` with the geometry from a kinematic replay of q on the task instances
-        taus (B, E): graph mode, where only joint states were measured."""
-        return self.evaluate(q, torque, q_ref, self.geometry.replay(q, taus), taus,
+        taus (B, E): graph mode, where the joint states were measured, and the observed
+        bodies' poses `world` ({body: (B, T, 7)}, `RewardGeometry.replay`)."""
+        return self.evaluate(q, torque, q_ref, self.geometry.replay(q, taus, world), taus,
                              goal_positions, goal_rotations)

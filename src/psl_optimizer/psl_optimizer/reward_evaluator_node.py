@@ -19,6 +19,15 @@ taken on the grid, the states interpolated from the robot's stamps
 answer). States are read by joint name (`psl_task.joint_selection`: the robot's order, extra
 joints ignored); a robot that reports no effort is scored with zero torque (a warning says so).
 
+The bodies of the world a task observes (``reward.observe``: a ball) are measured apart from
+the arm: their poses come on ``world/<body>/pose`` (geometry_msgs/PoseStamped; psl's simulator
+publishes them, a robot's motion capture or detector can, remapped), subscribed at the task's
+first announced episode and kept by stamp like the joint states (a reader that joins late gets
+the episode's poses from the publisher's history: `psl_ros.qos.WORLD_POSES`); at the
+evaluation they are taken on the control grid the same way (the poses themselves on the grid,
+else interpolated and the orientation normalised) and the reward's components read them
+(`RolloutData.world`).
+
 A goal change the executor made: the episode is scored against the new goal's position (and,
 for a pose, orientation: `Reward.goal_of`). An episode the controller aborted (its tracking
 error beyond the path tolerance) is scored as the task's penalty minus the excess error,
@@ -30,6 +39,8 @@ import threading
 import time
 
 import numpy as np
+from geometry_msgs.msg import PoseStamped
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
@@ -42,7 +53,7 @@ from psl_ros import names
 from psl_ros.hot_path import HotPath
 from psl_ros.matching import MatchReport
 from psl_ros.node_main import run_node
-from psl_ros.qos import LATCHED, WHOLE_EPISODE
+from psl_ros.qos import LATCHED, WHOLE_EPISODE, WORLD_POSES
 from psl_ros.service import create_service
 from psl_ros.stamps import to_ns
 from psl_task.arm_model import ArmModel
@@ -71,6 +82,10 @@ class RewardEvaluator(Node):
         self._cv = threading.Condition()            # guards the states
         self.states: dict[int, JointState] = {}     # by stamp [ns]
         self.newest = -1                            # the newest state's stamp [ns]
+        # observed bodies: name -> {stamp [ns]: pose (7,)}, each body's newest stamp
+        self.poses: dict[str, dict[int, np.ndarray]] = {}
+        self.newest_pose: dict[str, int] = {}
+        self._pose_group = ReentrantCallbackGroup()   # not behind an evaluation's wait
         self.matches = MatchReport(self)        # what the loop's endpoints matched
         self.pub = self.matches.create_publisher(RolloutEvaluation, names.ROLLOUT_EVALUATION,
                                                  WHOLE_EPISODE)
@@ -84,15 +99,43 @@ class RewardEvaluator(Node):
         self.get_logger().info('evaluating the episodes the executor asks for')
 
     def on_task(self, msg: TaskInstance) -> None:
-        """An episode begins: the states from a little before its start on are kept."""
+        """An episode begins: the states from a little before its start on are kept; the
+        bodies its task observes are listened to from now on."""
+        try:
+            self._observe(load_task(msg.task).reward.observe)
+        except (TaskError, ValueError) as exc:      # said again when it is to be evaluated
+            self.get_logger().warning(f'task {msg.task!r}: {exc}', throttle_duration_sec=5.0)
         if msg.homing:          # the executor drives the arm to the start: nothing to score
             return
         self._forget_before(to_ns(msg.stamp) - KEEP_BEFORE)
+
+    def _observe(self, bodies) -> None:
+        for body in bodies:
+            if body not in self.poses:
+                self.poses[body], self.newest_pose[body] = {}, -1
+                self.create_subscription(
+                    PoseStamped, names.world_pose(body),
+                    lambda msg, body=body: self.on_pose(body, msg), WORLD_POSES,
+                    callback_group=self._pose_group)
+
+    def on_pose(self, body: str, msg: PoseStamped) -> None:
+        t = to_ns(msg.header.stamp)
+        p, o = msg.pose.position, msg.pose.orientation
+        with self._cv:
+            poses = self.poses[body]
+            poses[t] = np.array([p.x, p.y, p.z, o.w, o.x, o.y, o.z])
+            self.newest_pose[body] = max(self.newest_pose[body], t)
+            if len(poses) > BUFFER:
+                del poses[min(poses)]
+            self._cv.notify_all()
 
     def _forget_before(self, t_ns: int) -> None:
         with self._cv:
             for t in [t for t in self.states if t < t_ns]:
                 del self.states[t]
+            for poses in self.poses.values():
+                for t in [t for t in poses if t < t_ns]:
+                    del poses[t]
 
     def on_state(self, msg: JointState) -> None:
         t = to_ns(msg.header.stamp)
@@ -136,6 +179,34 @@ class RewardEvaluator(Node):
             for t in [t for t in self.states if t < end]:
                 del self.states[t]          # the state at the end may start the next episode
         return states
+
+    def _episode_world(self, ep: TaskInstance, bodies) -> dict[str, np.ndarray]:
+        """The observed bodies' poses on the episode's control grid, {body: (1, T, 7)}
+        (the poses themselves when published on it, else interpolated: `on_grid`, the
+        quaternion normalised); TimeoutError when a body's poses of the end do not come."""
+        self._observe(bodies)
+        t0, period = to_ns(ep.stamp), int(round(ep.control_period * 1e9))
+        times = grid(t0, period, ep.num_steps)
+        end = int(times[-1])
+        deadline = time.monotonic() + PATIENCE
+        world = {}
+        with self._cv:
+            for body in bodies:
+                while self.newest_pose[body] < end:
+                    if not self._cv.wait(timeout=max(0.0, deadline - time.monotonic())):
+                        raise TimeoutError(f'no pose of {body!r} of the episode\'s end came on '
+                                           f'{self.resolve_topic_name(names.world_pose(body))}')
+                poses = self.poses[body]
+                if all(int(t) in poses for t in times):
+                    rows = np.array([poses[int(t)] for t in times])
+                else:
+                    stamps = np.array(sorted(poses), dtype=np.int64)
+                    rows = on_grid(stamps, np.array([poses[t] for t in stamps]), times, MAX_GAP)
+                    rows[:, 3:] /= np.linalg.norm(rows[:, 3:], axis=1, keepdims=True)
+                world[body] = rows[None]
+                for t in [t for t in poses if t < end]:
+                    del poses[t]
+        return world
 
     def _interpolated(self, ep: TaskInstance, times: np.ndarray) -> list[JointState]:
         """The episode's states on the control grid, interpolated from the robot's stamps
@@ -186,9 +257,11 @@ class RewardEvaluator(Node):
         changed = request.goal_change_time >= 0.0 and len(request.goal_change) > 0
         goal_position, goal_rotation = (reward.goal_of(np.asarray(request.goal_change))
                                         if changed else (reward.goals(taus)[0][0], None))
+        observed = reward.task.reward.observe
+        world = self._episode_world(ep, observed) if observed else None
         result = reward.evaluate_replayed(
             q, torque, q_ref[None], taus, goal_position[None],
-            None if goal_rotation is None else goal_rotation[None])[0]
+            None if goal_rotation is None else goal_rotation[None], world=world)[0]
         names_, values = list(result.components), list(result.components.values())
         score, fulfilled = result.reward, result.fulfilled
         if request.path_tolerance > 0.0:    # the controller aborted it: the penalty

@@ -42,6 +42,8 @@ class RolloutResult:
     reference: Reference | None = None     # the commanded trajectory on the same grid
     refused: str = ''                      # the safety check's reason: nothing was executed
     aborted: str = ''                      # the controller's reason: the episode was stopped
+    world: dict | None = None              # {body: (N+1, 7)} poses of the bodies the task
+                                           # observes (reward.observe), when measured
 
     @property
     def has_trajectory(self) -> bool:

@@ -22,6 +22,13 @@ CLOCK = '/clock'
 DIAGNOSTICS = '/diagnostics'
 WORLD_FRAME = 'world'                   # frame_id of ee_pose and of the scene's markers
 
+
+def world_pose(body: str) -> str:
+    """geometry_msgs/PoseStamped of a body of the world a task observes (reward.observe: a
+    ball): the simulator publishes it; on a robot, remap it to a motion capture's topic."""
+    return f'world/{body}/pose'
+
+
 # services and actions
 RESET = 'sim/reset'                     # psl_msgs/ResetTask, the simulator's ~/reset
 EXECUTE_ROLLOUT = 'execute_rollout'     # psl_msgs/ExecuteRollout, the executor

@@ -55,7 +55,7 @@ from psl_ros.hot_path import HotPath
 from psl_ros.matching import MatchReport
 from psl_ros.node_main import run_node
 from psl_ros.parameters import check_update, declare
-from psl_ros.qos import LATCHED, RELIABLE
+from psl_ros.qos import LATCHED, RELIABLE, WORLD_POSES
 from psl_ros.service import create_service
 from psl_ros.stamps import NS_PER_S, time_msg
 from psl_ros.step_timing import StepTiming
@@ -145,6 +145,11 @@ class SimNode(Node):
         self.pub_clock = self.matches.create_publisher(Clock, names.CLOCK, RELIABLE)
         self.pub_diag = self.matches.create_publisher(DiagnosticArray, names.DIAGNOSTICS, 10)
         self.pub_scene = self.matches.create_publisher(MarkerArray, names.SCENE, LATCHED)
+        # the bodies the current task observes: name -> (body id, publisher), made once
+        self._world_publishers: dict[str, object] = {}
+        self._rng = np.random.default_rng()     # the motion capture's noise (world_pose_noise)
+        for body in self.arm.task.reward.observe:      # there from the start (psl record)
+            self._world_publisher(body)
         self.hot_path = HotPath(self)
         # a command answers the state published last (lockstep) or one of this episode's
         # (realtime): one the controller published before that state answers an older one
@@ -398,13 +403,22 @@ class SimNode(Node):
         if self.pub_clock.get_subscription_count():
             self.pub_clock.publish(Clock(clock=t))
         if self.pub_pose.get_subscription_count():
-            pose = PoseStamped()
-            pose.header.stamp, pose.header.frame_id = t, names.WORLD_FRAME
             pos, quat = arm.end_effector_pose()
-            pose.pose.position.x, pose.pose.position.y, pose.pose.position.z = pos.tolist()
-            (pose.pose.orientation.w, pose.pose.orientation.x,
-             pose.pose.orientation.y, pose.pose.orientation.z) = quat.tolist()
-            self.pub_pose.publish(pose)
+            self.pub_pose.publish(pose_stamped(t, np.concatenate([pos, quat])))
+        # the observed bodies, as a motion capture sees them (every state: the evaluator
+        # scores with them, and keeps what it missed while joining: WORLD_POSES)
+        noise = self.get_parameter('world_pose_noise').value
+        for body in arm.task.reward.observe:
+            pose = arm.body_pose(arm.body(body))
+            if noise > 0.0:
+                pose[:3] += self._rng.normal(0.0, noise, 3)
+            self._world_publisher(body).publish(pose_stamped(t, pose))
+
+    def _world_publisher(self, body: str):
+        if body not in self._world_publishers:
+            self._world_publishers[body] = self.create_publisher(
+                PoseStamped, names.world_pose(body), WORLD_POSES)
+        return self._world_publishers[body]
 
     def _scene_tick(self, always: bool) -> None:
         """A scene sample: note the end effector on the path, schedule the next sample, and
@@ -434,6 +448,15 @@ class SimNode(Node):
             self._stop.set()
             self._thread.join(timeout=1.0)
         super().destroy_node()
+
+
+def pose_stamped(stamp, pose: np.ndarray) -> PoseStamped:
+    """A PoseStamped in the world frame of a pose (7,): position, quaternion (w, x, y, z)."""
+    msg = PoseStamped()
+    msg.header.stamp, msg.header.frame_id = stamp, names.WORLD_FRAME
+    p, o = msg.pose.position, msg.pose.orientation
+    p.x, p.y, p.z, o.w, o.x, o.y, o.z = pose.tolist()
+    return msg
 
 
 def main(args=None):

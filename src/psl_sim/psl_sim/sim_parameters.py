@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import field
 
 from psl_ros.graph import SIM_MODES
@@ -24,6 +25,9 @@ class SimParameters:
     scene_rate: float = field(default=30.0, metadata={'dynamic': True, 'doc': (
         'scene markers per second of simulated time while someone subscribes [Hz]; 0 = only '
         'at resets and episode ends')})
+    world_pose_noise: float = field(default=0.0, metadata={'dynamic': True, 'doc': (
+        'standard deviation [m] of Gaussian noise on the published positions of the bodies a '
+        'task observes (world/<body>/pose), as a motion capture measures them; 0 = exact')})
     realtime_priority: int = field(default=0, metadata={'doc': (
         'realtime: SCHED_FIFO priority of the control loop (1..99) if the machine allows it; '
         '0 = normal scheduling')})
@@ -38,6 +42,8 @@ class SimParameters:
             raise ValueError('episode_duration must be >= 0 seconds')
         if not 0.0 < self.max_episode_duration < 1e6:
             raise ValueError('max_episode_duration must be in (0, 1e6) s')
+        if not (math.isfinite(self.world_pose_noise) and self.world_pose_noise >= 0.0):
+            raise ValueError('world_pose_noise must be a finite number of metres >= 0')
         if not self.scene_rate >= 0.0:
             raise ValueError('scene_rate must be >= 0 Hz')
         if not self.spin_margin >= 0.0:

@@ -218,9 +218,22 @@ class ArmModel:
 
     def place(self, tau: np.ndarray) -> np.ndarray:
         """The task instance placed around the arm as it is (no teleport: a real arm's next
-        episode starts where the last one ended); tau validated first. Returns it."""
+        episode starts where the last one ended), the bodies the reward observes back at their
+        model pose at rest (the ball back in the hand, as a person puts it there); tau
+        validated first. Returns it."""
         tau = self.apply_tau(self.task.validate_tau(tau))
-        mujoco.mj_forward(self.model, self.data)
+        model, data = self.model, self.data
+        for name in self.task.reward.observe:
+            body = self.body(name)
+            for j in range(model.body_jntadr[body],
+                           model.body_jntadr[body] + model.body_jntnum[body]):
+                size = {int(mujoco.mjtJoint.mjJNT_FREE): 7,
+                        int(mujoco.mjtJoint.mjJNT_BALL): 4}.get(int(model.jnt_type[j]), 1)
+                dofs = {7: 6, 4: 3}.get(size, 1)
+                qpos, dof = model.jnt_qposadr[j], model.jnt_dofadr[j]
+                data.qpos[qpos:qpos + size] = model.qpos0[qpos:qpos + size]
+                data.qvel[dof:dof + dofs] = 0.0
+        mujoco.mj_forward(model, data)
         return tau
 
     def take_state(self, other: 'ArmModel') -> None:
@@ -258,6 +271,14 @@ class ArmModel:
         quat = np.empty(4)
         mujoco.mju_mat2Quat(quat, self.data.site_xmat[self.ee_site])
         return self.data.site_xpos[self.ee_site].copy(), quat
+
+
+    def body_pose(self, body: int) -> np.ndarray:
+        """The pose (7,) of body `body`'s frame in the current state: position, quaternion
+        (w, x, y, z) — what a framepos and a framequat sensor of the body read
+        (`psl_task.reward_geometry`). Runs a kinematics pass first, as `end_effector_pose`."""
+        mujoco.mj_kinematics(self.model, self.data)
+        return np.concatenate([self.data.xpos[body], self.data.xquat[body]])
 
 
 def substeps(task: TaskDefinition, timestep: float) -> int:

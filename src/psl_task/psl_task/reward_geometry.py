@@ -5,7 +5,10 @@ the smallest signed distance between the arm's geoms and the obstacles' (``rewar
 ``reward.obstacle_geoms`` of the task), and the end-effector frame's orientation.
 `RewardGeometry` defines them as sensors, appended after any sensors of the task's own model:
 one ``geomdist`` per (arm geom, obstacle geom) pair, one ``framepos`` and one ``framequat`` of
-the end-effector site. Batch mode adds them to its rollout model
+the end-effector site, then one ``framepos`` and one ``framequat`` of each body of the world the
+task observes (``reward.observe``: a ball, a puck; its frame, as `ArmModel.body_pose` gives it).
+A replay moves the arm only: the observed bodies' poses come from the simulation (batch mode's
+sensors) or, in graph mode, from their pose topics (`psl_optimizer.reward_evaluator_node`). Batch mode adds them to its rollout model
 (`add_sensors`) and `read`s what ``mujoco.rollout`` recorded; graph mode gets the same sensors
 evaluated on a kinematic replay of the measured joint angles (`replay`). Either way the
 numbers come from the same sensors of the same model at the same joint angles.
@@ -46,6 +49,7 @@ class RewardGeometry:
         self.pairs = [(arm.geom(g1), arm.geom(g2)) for g1 in arm.arm_geoms
                       for g2 in reward.obstacle_geoms]        # (arm geom id, obstacle geom id)
         self.first = arm.model.nsensordata      # ours follow the model's own sensors
+        self.observed = {name: arm.body(name) for name in reward.observe}   # TaskError: none
         spec = task_spec(arm.task)
         self.add_sensors(spec)
         self.model = spec.compile()             # the arm's model with the reward sensors
@@ -60,11 +64,14 @@ class RewardGeometry:
             sensor.objtype = sensor.reftype = mujoco.mjtObj.mjOBJ_GEOM
             sensor.objname, sensor.refname = model.geom(g1).name, model.geom(g2).name
             sensor.cutoff = CUTOFF
-        for kind in (mujoco.mjtSensor.mjSENS_FRAMEPOS, mujoco.mjtSensor.mjSENS_FRAMEQUAT):
-            sensor = spec.add_sensor()
-            sensor.type = kind
-            sensor.objtype = mujoco.mjtObj.mjOBJ_SITE
-            sensor.objname = self.arm.task.end_effector_site
+        frames = [(mujoco.mjtObj.mjOBJ_SITE, self.arm.task.end_effector_site)]
+        frames += [(mujoco.mjtObj.mjOBJ_XBODY, name) for name in self.observed]
+        for objtype, name in frames:
+            for kind in (mujoco.mjtSensor.mjSENS_FRAMEPOS, mujoco.mjtSensor.mjSENS_FRAMEQUAT):
+                sensor = spec.add_sensor()
+                sensor.type = kind
+                sensor.objtype = objtype
+                sensor.objname = name
 
     def read(self, sensordata: np.ndarray) -> Measurements:
         """The measurements in sensor data (B, T, nsensordata) of a model with the sensors."""
@@ -74,14 +81,19 @@ class RewardGeometry:
             column = sensordata[:, :, pair]
             distance = column.copy() if distance is None else np.minimum(distance, column)
         ee = first + n_pairs
+        world = {name: sensordata[:, :, ee + 7 * (i + 1):ee + 7 * (i + 2)]
+                 for i, name in enumerate(self.observed)}
         return Measurements(end_effector=sensordata[:, :, ee:ee + 3],
                             end_effector_quat=sensordata[:, :, ee + 3:ee + 7],
-                            distance=distance)
+                            distance=distance, world=world)
 
-    def replay(self, q: np.ndarray, taus: np.ndarray) -> Measurements:
+    def replay(self, q: np.ndarray, taus: np.ndarray, world: dict | None = None
+               ) -> Measurements:
         """The sensors on a kinematic replay: joint angles q (B, T, n) of rollouts on the task
         instances taus (B, E). Only the task parameters that move things (mocap bodies) are
-        applied; the replay has its own data and changes nothing of the arm's simulation.
+        applied; the replay has its own data and changes nothing of the arm's simulation. The
+        observed bodies' poses are not the replay's: `world` ({body: (B, T, 7)}, measured; the
+        task's observed bodies exactly), or None: none (a component that reads them fails).
 
         Raises:
             ValueError: q not (B, T, n) or not finite; TaskError: a tau the task refuses.
@@ -94,6 +106,7 @@ class RewardGeometry:
                              f'{len(taus)}')
         if not np.all(np.isfinite(q)):
             raise ValueError('q must be finite')
+        world = {} if world is None else self.check_world(world, q.shape[:2])
         model, data = self.model, self._data
         sensordata = np.empty(q.shape[:2] + (model.nsensordata,))
         for b, tau in enumerate(taus):
@@ -103,7 +116,26 @@ class RewardGeometry:
                 mujoco.mj_fwdPosition(model, data)
                 mujoco.mj_sensorPos(model, data)
                 sensordata[b, k] = data.sensordata
-        return self.read(sensordata)
+        replayed = self.read(sensordata)
+        return Measurements(end_effector=replayed.end_effector,
+                            end_effector_quat=replayed.end_effector_quat,
+                            distance=replayed.distance, world=world)
+
+    def check_world(self, world: dict, shape: tuple[int, int]) -> dict:
+        """The measured poses of the observed bodies, {body: (B, T, 7)} (`shape` = (B, T)),
+        as arrays; ValueError for a body missing or not observed, a wrong shape, a value that
+        is not finite."""
+        if set(world) != set(self.observed):
+            raise ValueError(f'the poses of {sorted(world)} were measured, the task observes '
+                             f'{sorted(self.observed)}')
+        out = {}
+        for name, poses in world.items():
+            poses = np.asarray(poses, dtype=float)
+            if poses.shape != tuple(shape) + (7,) or not np.all(np.isfinite(poses)):
+                raise ValueError(f'the poses of {name!r} must be {tuple(shape) + (7,)} finite '
+                                 f'values, got shape {poses.shape}')
+            out[name] = poses
+        return out
 
     def end_effector_at(self, q: np.ndarray) -> np.ndarray:
         """End-effector position (3,) at joint angles q (n,) (the task's default instance)."""

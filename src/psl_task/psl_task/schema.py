@@ -152,6 +152,10 @@ class RewardSpec:
     # commanded reference (a noisy robot: 1 mrad of noise at 2 ms adds about 6 sigma^2/dt^4 =
     # 4e5 rad^2/s^4 to the measured one, more than any motion, docs/benchmarks.md)
     smoothness_of: Literal['measured', 'reference'] = 'measured'
+    # bodies of the world the arm does not drive (a ball, a puck) whose poses the reward's
+    # components read (RolloutData.world): in simulation MuJoCo's, on a robot the poses
+    # published on world/<body>/pose (geometry_msgs/PoseStamped; remap it to a motion capture)
+    observe: tuple[str, ...] = ()
 
 
 @with_config(SECTION)

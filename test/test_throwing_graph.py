@@ -1,0 +1,130 @@
+"""The throwing task in the graph: the ball's pose comes from a topic another process publishes
+(psl's simulator, as a motion capture would: world/ball/pose), the evaluator scores where it
+lands; without noise the reward equals batch mode's for the same rollout, with noise it
+differs by what the noise can move the landing point, and a session learns on it."""
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+
+from psl_controller.policy import policy_for
+from psl_optimizer.batch_rollout import BatchRollouts
+from psl_optimizer.landing import landing_points
+from psl_ros.qos import WORLD_POSES
+from psl_task.task import load_task
+
+TASK = 'ball_throw'
+NOISE = 0.003       # m, the motion capture's standard deviation on the ball's position
+
+
+@pytest.fixture(scope='module')
+def graph_task():
+    return TASK
+
+
+@pytest.fixture(scope='module')
+def task():
+    return load_task(TASK)
+
+
+def set_noise(client, value: float) -> None:
+    service = client.node.create_client(SetParameters, 'sim/set_parameters')
+    try:
+        assert service.wait_for_service(timeout_sec=10)
+        request = SetParameters.Request(parameters=[Parameter(
+            name='world_pose_noise', value=ParameterValue(
+                type=ParameterType.PARAMETER_DOUBLE, double_value=float(value)))])
+        response = client.wait(service.call_async(request), 10, 'set_parameters')
+        assert all(r.successful for r in response.results), response.results
+    finally:
+        client.node.destroy_client(service)
+
+
+def test_the_reward_of_a_throw_equals_batch_modes(task, graph_matches_batch):
+    theta = policy_for(task).default_theta
+    for tau in (task.tau_low, task.tau_high):
+        evaluation, batch = graph_matches_batch(task, tau, theta)   # every component agrees
+        landing = dict(zip(evaluation.component_names,
+                           evaluation.component_values))['landing_error']
+        assert landing == pytest.approx(batch.evaluation.components['landing_error'],
+                                        rel=1e-9, abs=1e-12)
+        assert 0.0 < landing < 1.5
+
+
+def test_the_ball_is_published_as_the_batch_sensors_saw_it(task, client, wait_until):
+    """The poses on world/ball/pose of one episode are batch mode's sensor readings of the
+    ball, and the ball comes down where the evaluator says it lands."""
+    theta = policy_for(task).default_theta
+    poses = {}
+    sub = client.node.create_subscription(
+        PoseStamped, 'world/ball/pose',
+        lambda m: poses.__setitem__(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, m),
+        WORLD_POSES)
+    try:
+        result = client.rollout(TASK, task.tau_default, theta)
+        assert result.success, result.message
+        stamp = result.evaluation.stamp
+        t0 = stamp.sec * 10**9 + stamp.nanosec
+        episode = [t0 + k * task.control_period_ns for k in range(task.num_steps + 1)]
+        assert wait_until(lambda: all(t in poses for t in episode), 10.0), \
+            f'{sum(t in poses for t in episode)} of {len(episode)} poses'
+    finally:
+        client.node.destroy_subscription(sub)
+    graph = np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z,
+                       p.pose.orientation.w, p.pose.orientation.x, p.pose.orientation.y,
+                       p.pose.orientation.z] for p in (poses[t] for t in episode)])
+    batch = BatchRollouts(task).run(theta[None], task.tau_default)[0].world['ball']
+    # the same physics; the arm's law adds in another order (1e-9 rad), the ball's contacts
+    # carry that on
+    assert np.abs(graph - batch).max() < 1e-6
+    assert graph[0, 2] > 0.8 and graph[:, 2].max() > 1.2      # in the cup, then thrown
+    point, landed = landing_points(graph[None], np.array([task.target.position[2]]))
+    assert landed[0]
+    target = task.target_of(task.tau_default)[0]
+    components = dict(zip(result.evaluation.component_names,
+                          result.evaluation.component_values))
+    assert components['landing_error'] == pytest.approx(
+        np.linalg.norm(point[0, :2] - target[:2]), abs=1e-6)
+
+
+def test_a_noisy_motion_capture_moves_the_landing_point_by_its_noise(task, client):
+    theta = policy_for(task).default_theta
+    batch = BatchRollouts(task).run(theta[None], task.tau_default)[0].evaluation
+    try:
+        set_noise(client, NOISE)
+        results = [client.rollout(TASK, task.tau_default, theta) for _ in range(3)]
+    finally:
+        set_noise(client, 0.0)
+    landing = []
+    for result in results:
+        assert result.success, result.message
+        components = dict(zip(result.evaluation.component_names,
+                              result.evaluation.component_values))
+        landing.append(components['landing_error'])
+    differences = np.abs(np.array(landing) - batch.components['landing_error'])
+    # the noise moves the measured crossing: by about the noise, never by a throw's length
+    assert differences.max() > 0.0
+    assert differences.max() < 10 * NOISE, differences
+
+
+def test_a_session_learns_on_the_motion_captures_poses(task, client):
+    out = Path(tempfile.gettempdir()) / f'psl-throwing-graph-{os.getpid()}'
+    try:
+        set_noise(client, NOISE)
+        result = client.learn(timeout=900, task=TASK, strategy='bootstrap', num_tasks=2,
+                              max_rollouts_per_task=40, seed=2, num_test=2, mode='graph',
+                              output_dir=str(out))
+        assert result.success, result.message
+        tasks = json.loads(Path(result.metrics_path).read_text())['tasks']
+        assert len(tasks) == 2 and all(t['failed'] == 0 for t in tasks)
+        assert any(t['fulfilled'] for t in tasks)
+    finally:
+        set_noise(client, 0.0)
+        shutil.rmtree(out, ignore_errors=True)
