@@ -6,7 +6,9 @@ only while a viewer watches it; a viewer receives the very bytes the graph publi
 with the test's own ROS subscriptions) and decodes them with the advertised schemas; the
 learning progress of a graph-mode session arrives rollout by rollout and agrees with the
 session's metrics; a viewer joining later gets the latched scene; the shipped layout names
-topics and fields the graph has."""
+topics and fields the graph has. A viewer offering either name of the subprotocol
+(``foxglove.websocket.v1``: Lichtblick, clients of foxglove_bridge; ``foxglove.sdk.v1``: the
+Foxglove app) is served the same; one offering neither is refused."""
 import json
 import re
 import subprocess
@@ -14,13 +16,16 @@ import threading
 from pathlib import Path
 
 import pytest
+from websockets.exceptions import InvalidStatus
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from psl_bench.foxglove_client import SUBPROTOCOLS, FoxgloveClient
+from psl_controller.policy import policy_for
 from psl_ros import names
 from psl_ros.bag_recorder import import_message_class
 from psl_ros.foxglove_layout import layout_json
 from psl_ros.graph import find_executable
+from psl_task.task import load_task
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED_LAYOUT = ROOT / 'docs' / 'foxglove' / 'psl.layout.json'
@@ -199,6 +204,53 @@ def test_a_viewer_sees_the_session_as_the_graph_published_it(url, client, graph,
         for subscription in published.subscriptions:
             client.node.destroy_subscription(subscription)
     nobody_watches(client, wait_until)
+
+
+@pytest.mark.parametrize('subprotocol', SUBPROTOCOLS)
+def test_a_viewer_of_either_subprotocol_decodes_what_the_graph_published(url, client, graph,
+                                                                         wait_until,
+                                                                         subprotocol):
+    """The old name (Lichtblick, clients of foxglove_bridge) and the SDK's name alike: a
+    rollout's evaluation arrives as the very bytes the evaluator published, and decodes."""
+    nobody_watches(client, wait_until)
+    evaluation = '/' + names.ROLLOUT_EVALUATION
+    assert wait_until(lambda: evaluation in dict(client.node.get_topic_names_and_types()),
+                      WAIT)
+    published = Published(client.node, [evaluation])
+    viewer = None
+    try:
+        assert wait_until(published.matched, WAIT)
+        viewer = FoxgloveClient(url, subprotocols=[subprotocol])
+        assert viewer.subprotocol == subprotocol and viewer.server_info['name'] == 'psl'
+        assert viewer.wait_channels([evaluation], WAIT)
+        viewer.subscribe([evaluation])
+        assert wait_until(lambda: view_subscribes(client, evaluation), WAIT)
+        task = load_task(TASK)
+        result = client.rollout(TASK, task.tau_default, policy_for(task).default_theta)
+        assert result.success, result.message
+        assert wait_until(lambda: len(published.of(evaluation)) == 1, WAIT)
+        assert viewer.pump(lambda: viewer.messages.get(evaluation), WAIT)
+        assert [data for _, data in viewer.messages[evaluation]] == published.of(evaluation)
+        [decoded] = viewer.decoded(evaluation)
+        assert (decoded.task, list(decoded.tau)) == (TASK, task.tau_default.tolist())
+        assert decoded.reward == result.evaluation.reward
+        assert decoded.num_steps == result.evaluation.num_steps
+    finally:
+        if viewer is not None:
+            viewer.close()
+        for subscription in published.subscriptions:
+            client.node.destroy_subscription(subscription)
+    # the viewer gone, its connection to the SDK's server behind the front door went too: the
+    # view no longer subscribes in ROS
+    nobody_watches(client, wait_until)
+
+
+@pytest.mark.parametrize('offered', [['foxglove.websocket.v2'], None],
+                         ids=['unknown', 'none'])
+def test_a_viewer_offering_no_known_subprotocol_is_refused(url, offered):
+    with pytest.raises(InvalidStatus) as refused:
+        FoxgloveClient(url, subprotocols=offered).close()
+    assert refused.value.response.status_code == 400
 
 
 def test_the_shipped_layout_is_generated_and_names_what_the_graph_publishes(client,

@@ -4,7 +4,8 @@ from the SDK the view serves with: JSON
 text frames (``serverInfo``, ``advertise``, ``unadvertise``; ``subscribe``, ``unsubscribe``)
 and binary frames (opcode 1, message data: uint32 subscription id, uint64 log time in ns, both
 little-endian, then the message's bytes). The subprotocol is offered under both names it has
-had, ``foxglove.websocket.v1`` and ``foxglove.sdk.v1``; which one the server took is kept.
+had, ``foxglove.websocket.v1`` and ``foxglove.sdk.v1`` (or under those given); which one the
+server took is kept.
 
 Messages are decoded with a typestore built only from the schemas the server advertised
 (``ros2msg``: a type's definition, then ``MSG: <type>`` sections of its dependencies), so a
@@ -43,12 +44,14 @@ class FoxgloveClient:
     thread: the caller's). A context manager; `close` ends the connection.
 
     Raises:
-        TimeoutError: no ``serverInfo`` within `timeout` s; OSError: no server at `url`.
+        TimeoutError: no ``serverInfo`` within `timeout` s; OSError: no server at `url`;
+        websockets.exceptions.InvalidStatus: the server refused the handshake (e.g. HTTP 400:
+        none of `subprotocols`).
     """
 
-    def __init__(self, url: str, timeout: float = 10.0):
-        self.ws = connect(url, subprotocols=list(SUBPROTOCOLS), open_timeout=timeout,
-                          max_size=None).__enter__()
+    def __init__(self, url: str, timeout: float = 10.0, subprotocols=SUBPROTOCOLS):
+        self.ws = connect(url, subprotocols=list(subprotocols) if subprotocols else None,
+                          open_timeout=timeout, max_size=None, proxy=None).__enter__()
         self.subprotocol = self.ws.subprotocol
         self.server_info: dict | None = None
         self.channels: dict[str, dict] = {}          # topic -> advertised channel

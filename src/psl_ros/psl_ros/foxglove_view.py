@@ -21,7 +21,10 @@ worth whole (a token bucket: the learner's progress, a few messages at once, arr
 the joint states of a lockstep loop, thousands a second, are thinned).
 
 The SDK's server speaks the Foxglove WebSocket protocol under its current subprotocol name,
-``foxglove.sdk.v1`` (before: ``foxglove.websocket.v1``; the same messages).
+``foxglove.sdk.v1`` (before: ``foxglove.websocket.v1``; the same messages), and refuses the old
+name. It therefore listens on a loopback port of its own, behind `FrontDoor`
+(`psl_ros.foxglove_front_door`) on the public port, which serves both names (Lichtblick and
+the clients of foxglove_bridge offer only the old one).
 """
 from __future__ import annotations
 
@@ -35,6 +38,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from psl_ros.bag_recorder import (EXCLUDED_TOPICS, import_message_class, is_hidden,
                                   make_typestore, register_msgtype)
+from psl_ros.foxglove_front_door import FrontDoor
 from psl_ros.hot_path import HotPath
 from psl_ros.view_parameters import ViewParameters
 
@@ -43,7 +47,7 @@ DISCOVERY_PERIOD = 0.5      # [s] between two looks for new topics
 SUBSCRIPTION_DEPTH = 10     # keep-last depth of the view's ROS subscriptions
 TAKE_PAUSE = 0.01           # [s] between two takes: a fast topic's older messages are dropped
                             # by the middleware meanwhile (keep last), not taken in Python
-SUBPROTOCOL = 'foxglove.sdk.v1'
+SDK_HOST = '127.0.0.1'      # the SDK's own server: this machine only, a free port
 
 
 def ros2msg_schema(typestore, msgtype: str) -> foxglove.Schema:
@@ -70,9 +74,9 @@ class _Topic:
 
 
 class FoxgloveView:
-    """A Foxglove WebSocket server (``host``:``port``) offering the graph's topics to viewers,
-    run by a node: its timer looks for new topics, its executor makes and removes the ROS
-    subscriptions, a `HotPath` thread forwards their messages.
+    """A Foxglove WebSocket server (``host``:``port``: its front door) offering the graph's
+    topics to viewers, run by a node: its timer looks for new topics, its executor makes and
+    removes the ROS subscriptions, a `HotPath` thread forwards their messages.
 
     Raises:
         RuntimeError: the server cannot listen (e.g. the port is taken).
@@ -91,14 +95,20 @@ class FoxgloveView:
         self._burst = max(1.0, parameters.max_rate)        # a second's worth
         self._changed = node.create_guard_condition(self._apply)
         self._loop = HotPath(node, 'view_take', pause=TAKE_PAUSE)
+        where = f'{parameters.host}:{parameters.port}'
         try:
-            self.server = foxglove.start_server(name=SERVER_NAME, host=parameters.host,
-                                                port=parameters.port, server_listener=self,
-                                                context=self.context)
+            self.server = foxglove.start_server(name=SERVER_NAME, host=SDK_HOST, port=0,
+                                                server_listener=self, context=self.context)
         except Exception as exc:    # noqa: BLE001 - the SDK raises its own error types
-            raise RuntimeError(f'cannot serve Foxglove on {parameters.host}:'
-                               f'{parameters.port}: {exc}') from None
-        self.port = self.server.port
+            raise RuntimeError(f'cannot serve Foxglove on {where}: {exc}') from None
+        try:
+            self.front_door = FrontDoor(parameters.host, parameters.port,
+                                        f'ws://{SDK_HOST}:{self.server.port}',
+                                        warn=node.get_logger().warning)
+        except OSError as exc:
+            self.server.stop()
+            raise RuntimeError(f'cannot serve Foxglove on {where}: {exc}') from None
+        self.port = self.front_door.port
         self._loop.start()
         self.discover()
         self._timer = node.create_timer(DISCOVERY_PERIOD, self.discover)
@@ -211,8 +221,9 @@ class FoxgloveView:
         entry.channel.log(data, log_time=now)
 
     def close(self) -> None:
-        """Stop the server (the viewers are disconnected) and the subscriptions."""
+        """Stop the servers (the viewers are disconnected) and the subscriptions."""
         self._timer.cancel()
+        self.front_door.close()
         self.server.stop()
         self._loop.stop()
         for entry in list(self._topics.values()):
