@@ -87,14 +87,18 @@ class Replay:
     commanded_path: np.ndarray      # (P, 3) end effector along the reference
     tau: np.ndarray
     evaluation: RewardResult
+    world: dict = dataclasses.field(default_factory=dict)  # {body: (N+1, 7)} observed poses
 
     def frames(self) -> Iterator[int]:
-        """Puts the arm's data at each frame's state (mj_forward) and yields the step."""
+        """Puts the arm's data at each frame's state (mj_forward), the bodies the task
+        observes where they were measured (a thrown ball in flight), and yields the step."""
         import mujoco
 
         data = self.arm.data
         for step in self.steps:
             data.qpos[self.arm.qpos_adr] = self.q[step]
+            for body, poses in self.world.items():
+                self.arm.set_body_pose(body, poses[step])
             mujoco.mj_forward(self.arm.model, data)
             yield step
 
@@ -126,7 +130,7 @@ def replay_rollout(task: TaskDefinition, tau: np.ndarray, theta: np.ndarray, fps
     arm.reset(tau)                          # the task instance's bodies placed
     return Replay(arm=arm, steps=frame_steps(task.num_steps_of(tau), task.control_rate, fps),
                   q=result.q, commanded_path=commanded, tau=tau,
-                  evaluation=result.evaluation)
+                  evaluation=result.evaluation, world=result.world or {})
 
 
 def scene_bounds(replay: Replay) -> tuple[np.ndarray, float]:

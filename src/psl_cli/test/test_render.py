@@ -121,3 +121,20 @@ def test_bad_input_is_refused_with_one_line_and_exit_code_2(tmp_path, capsys, ar
     assert words in captured.err and 'Traceback' not in captured.err
     assert captured.out == ''
     assert not list(tmp_path.glob('rollout.*'))
+
+
+def test_a_thrown_ball_is_drawn_where_it_was_measured():
+    """ball_throw: each frame puts the observed ball at the pose the rollout measured (its
+    flight), not where a kinematic replay of the arm would leave it (in the cup)."""
+    task = load_task('ball_throw')
+    from psl_controller.policy import policy_for
+
+    replay = render.replay_rollout(task, task.tau_default, policy_for(task).default_theta,
+                                   fps=10.0)
+    body = replay.arm.body('ball')
+    heights = []
+    for step in replay.frames():
+        np.testing.assert_array_equal(replay.arm.data.xpos[body],
+                                      replay.world['ball'][step, :3])
+        heights.append(replay.arm.data.xpos[body][2])
+    assert max(heights) > 1.2 and heights[-1] < 0.03         # up in the air, then down

@@ -273,6 +273,19 @@ class ArmModel:
         return self.data.site_xpos[self.ee_site].copy(), quat
 
 
+    def set_body_pose(self, name: str, pose: np.ndarray) -> None:
+        """Put body `name`, moved by a free joint (a thrown ball), at the pose (7,): position,
+        quaternion (w, x, y, z) — the inverse of `body_pose` for a body whose frame is its
+        free joint's (a replay of measured poses). ValueError for a body without one."""
+        model, body = self.model, self.body(name)
+        free = [j for j in range(model.body_jntadr[body],
+                                 model.body_jntadr[body] + model.body_jntnum[body])
+                if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
+        if not free:
+            raise ValueError(f'body {name!r} has no free joint to place it by')
+        adr = model.jnt_qposadr[free[0]]
+        self.data.qpos[adr:adr + 7] = pose
+
     def body_pose(self, body: int) -> np.ndarray:
         """The pose (7,) of body `body`'s frame in the current state: position, quaternion
         (w, x, y, z) — what a framepos and a framequat sensor of the body read
