@@ -85,6 +85,10 @@ def test_the_ball_is_published_as_the_batch_sensors_saw_it(task, client, wait_un
     # carry that on
     assert np.abs(graph - batch).max() < 1e-6
     assert graph[0, 2] > 0.8 and graph[:, 2].max() > 1.2      # in the cup, then thrown
+    # the evaluation carries the poses it scored: those published
+    carried = np.asarray(result.evaluation.observed_poses).reshape(-1, 7)
+    assert list(result.evaluation.observed_bodies) == ['ball']
+    np.testing.assert_array_equal(carried, graph)
     point, landed = landing_points(graph[None], np.array([task.target.position[2]]))
     assert landed[0]
     target = task.target_of(task.tau_default)[0]
@@ -128,3 +132,18 @@ def test_a_session_learns_on_the_motion_captures_poses(task, client):
     finally:
         set_noise(client, 0.0)
         shutil.rmtree(out, ignore_errors=True)
+
+
+def test_graph_rollouts_carry_the_balls_poses_as_batch_mode_does(task, client):
+    """GraphRollouts (the learner's rollouts through the graph) give the ball's poses with
+    the result (RolloutResult.world), as batch mode does."""
+    from psl_optimizer.graph_rollout import trajectory_of
+
+    theta = policy_for(task).default_theta
+    result = client.rollout(TASK, task.tau_high, theta)
+    assert result.success, result.message
+    world = trajectory_of(result.evaluation)['world']
+    batch = BatchRollouts(task).run(theta[None], task.tau_high)[0].world
+    assert set(world) == set(batch) == {'ball'}
+    assert world['ball'].shape == batch['ball'].shape == (task.num_steps + 1, 7)
+    assert np.abs(world['ball'] - batch['ball']).max() < 1e-6

@@ -154,8 +154,9 @@ class GraphRollouts(Rollouts):
 
 
 def trajectory_of(evaluation) -> dict:
-    """q, torque and reference (`RolloutResult` fields) of a psl_msgs/RolloutEvaluation: its
-    rows reshaped to (num_steps + 1, joints); {} when it carries none or they do not fit."""
+    """q, torque, reference and the observed bodies' poses (`RolloutResult` fields) of a
+    psl_msgs/RolloutEvaluation: its rows reshaped to (num_steps + 1, joints) and
+    (num_steps + 1, 7) per body; {} when it carries no trajectory or it does not fit."""
     n, rows = len(evaluation.joint_names), evaluation.num_steps + 1
     fields = ('position', 'velocity', 'effort', 'reference_position', 'reference_velocity',
               'reference_effort')
@@ -164,5 +165,9 @@ def trajectory_of(evaluation) -> dict:
         return {}
     q, _, torque, q_ref, qd_ref, u_ffwd = (a.reshape(rows, n) for a in arrays)
     t = np.arange(rows) * evaluation.control_period
-    return {'q': q, 'torque': torque,
+    bodies = list(evaluation.observed_bodies)
+    poses = np.asarray(evaluation.observed_poses, dtype=float)
+    world = ({body: block for body, block in zip(bodies, poses.reshape(len(bodies), rows, 7))}
+             if poses.size == len(bodies) * rows * 7 else None)
+    return {'q': q, 'torque': torque, 'world': world,
             'reference': Reference(t=t, q=q_ref, qd=qd_ref, u_ffwd=u_ffwd)}

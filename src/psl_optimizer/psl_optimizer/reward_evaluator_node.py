@@ -281,7 +281,10 @@ class RewardEvaluator(Node):
             position=q[0].ravel().tolist(), velocity=qd.ravel().tolist(),
             effort=torque[0].ravel().tolist(), reference_position=q_ref.ravel().tolist(),
             reference_velocity=qd_ref.ravel().tolist(),
-            reference_effort=u_ffwd.ravel().tolist())
+            reference_effort=u_ffwd.ravel().tolist(),
+            observed_bodies=list(world or {}),
+            observed_poses=(np.concatenate([w[0].ravel() for w in world.values()]).tolist()
+                            if world else []))
 
     def destroy_node(self):
         self.hot_path.stop()
