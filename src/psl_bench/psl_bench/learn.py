@@ -52,6 +52,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from psl_bench import sessions
 from psl_bench.stats import over_seeds
 from psl_optimizer.metrics import METRICS_FILE, read_metrics
 from psl_task import DEFAULT_TASK
@@ -180,7 +181,8 @@ def run(task_name: str = DEFAULT_TASK, strategies: Sequence[str] | None = None,
         seeds: Sequence[int] = (0, 1, 2, 3, 4), num_tasks: int = 30, budget: int = 300,
         num_test: int = 20, after: int = 20, out: str | Path | None = None,
         readout: str | None = None, skill_maps: Sequence[str] = ('elm',),
-        progress: Callable[[str], None] | None = None) -> dict:
+        progress: Callable[[str], None] | None = None, runner: str = 'serial',
+        address: str | None = None) -> dict:
     """Learn `task_name` with each strategy for each seed and compare them.
 
     Args:
@@ -195,20 +197,23 @@ def run(task_name: str = DEFAULT_TASK, strategies: Sequence[str] | None = None,
         skill_maps: what fills the skill slot (`LearnSettings.skill_map`), each a session per
             strategy and seed: 'elm' (the skill memory) and/or the baselines 'library', 'gp'.
         progress: called with one line of text per finished run.
+        runner: 'serial' (one session after the other, here) or 'ray' (each session a Ray
+            task: `psl_bench.sessions`); the same seeds give the same records either way.
+        address: the Ray cluster (``HOST:PORT``); None: $RAY_ADDRESS, else this machine's.
 
     Returns:
         JSON-able dict: ``settings``, ``rows`` (per row name, `row_name`: its strategy and
         skill map), ``runs`` (per seed and row, see `read_run`), ``strategies`` (per row:
         each metric of `METRICS` as mean/sd/min/max/values), ``targets`` (the targets and
-        whether they are met).
+        whether they are met), ``runner``, ``nodes`` (sessions per node) and ``missing``
+        (the sessions that failed twice, with why: their seeds' rows are left out).
 
     Raises:
         ValueError: bad settings, or a run folder holding another session.
-        RuntimeError: strategies of one seed saw different task instances.
+        RuntimeError: strategies of one seed saw different task instances; no session
+            finished.
     """
-    from psl_controller.policy import policy_for
-    from psl_optimizer.batch_rollout import BatchRollouts
-    from psl_optimizer.learning import SKILL_MAPS, Learner, LearnSettings
+    from psl_optimizer.learning import SKILL_MAPS, LearnSettings
     from psl_optimizer.policy_search import STRATEGIES, SearchSettings
     from psl_task.task import load_task
 
@@ -229,68 +234,97 @@ def run(task_name: str = DEFAULT_TASK, strategies: Sequence[str] | None = None,
                          f'num_test={num_test}')
     base = LearnSettings()
     skill = base.skill if readout is None else dataclasses.replace(base.skill, readout=readout)
-    importlib.import_module('cma')    # policy_search imports it on first use: not in a session
     task = load_task(task_name)
-    rollouts = BatchRollouts(task)
     temporary = tempfile.TemporaryDirectory(prefix='psl-bench-learn-') if out is None else None
     root = Path(temporary.name if temporary else out)
     rows = {row_name(strategy, skill_map): {'strategy': strategy, 'skill_map': skill_map}
             for strategy in strategies for skill_map in skill_maps}
-    runs: dict[int, dict[str, dict]] = {}
+    plan = []
+    for seed in seeds:
+        for name, row in rows.items():
+            settings = LearnSettings(strategy=row['strategy'], num_tasks=num_tasks,
+                                     seed=seed, num_test=num_test, skill=skill,
+                                     search=SearchSettings(max_rollouts=budget),
+                                     skill_map=row['skill_map'])
+            folder = run_folder(root, task.name, row['strategy'], seed, readout,
+                                row['skill_map'])
+            _reusable(folder, settings, resumable=False)   # refused before any work
+            plan.append(sessions.Session(
+                key=(seed, name), label=f"seed {seed} {row['strategy']} ({row['skill_map']})",
+                function=learn_session,
+                kwargs=dict(task_name=task_name, settings=settings, folder=str(folder),
+                            after=after)))
     try:
-        for seed in seeds:
-            runs[seed] = {}
-            for name, row in rows.items():
-                settings = LearnSettings(strategy=row['strategy'], num_tasks=num_tasks,
-                                         seed=seed, num_test=num_test, skill=skill,
-                                         search=SearchSettings(max_rollouts=budget),
-                                         skill_map=row['skill_map'])
-                folder = run_folder(root, task.name, row['strategy'], seed, readout,
-                                    row['skill_map'])
-                reused = _reusable(folder, settings)
-                if not reused:
-                    policy = policy_for(task)
-                    start, simulated = time.perf_counter(), rollouts.simulation_seconds
-                    solving, paths = policy.ik_seconds, policy.ik_paths
-                    Learner(task, settings, folder, rollouts=rollouts).run()
-                    session = time.perf_counter() - start
-                    # the session's wall time and its shares spent simulating and in the
-                    # inverse kinematics, kept beside its metrics for a later reuse
-                    timing = {'session_seconds': session, 'simulation_share': (
-                        rollouts.simulation_seconds - simulated) / session}
-                    if policy.ik_paths > paths:
-                        timing.update(ik_share=(policy.ik_seconds - solving) / session,
-                                      ik_ms_per_path=1e3 * (policy.ik_seconds - solving)
-                                      / (policy.ik_paths - paths))
-                    (folder / SESSION_FILE).write_text(json.dumps(timing))
-                record = read_run(folder, after)
-                record['reused'] = reused
-                runs[seed][name] = record
-                if progress is not None:
-                    progress(f"seed {seed} {row['strategy']} ({row['skill_map']}): "
-                             f"{record['total_rollouts']} rollouts, "
-                             f"zero-shot {100 * record['zero_shot_success']:.0f} %, "
-                             f"{record['train_seconds']:.1f} s"
-                             f"{' (reused)' if reused else ''}")
-            _check_same_instances(seed, runs[seed])
+        swept = sessions.run(plan, runner, address, progress)
     finally:
         if temporary is not None:
             temporary.cleanup()
+    runs: dict[int, dict[str, dict]] = {}
+    for seed in seeds:
+        runs[seed] = {name: swept.records[(seed, name)] for name in rows
+                      if (seed, name) in swept.records}
+        if runs[seed]:
+            _check_same_instances(seed, runs[seed])
+        else:
+            del runs[seed]
+    if not runs:
+        raise RuntimeError('no session of the sweep finished: ' + '; '.join(swept.missing()))
     report = {'settings': {'task': task.name, 'strategies': list(strategies),
                            'seeds': list(seeds), 'num_tasks': num_tasks, 'budget': budget,
                            'num_test': num_test, 'after': after,
                            'readout': skill.readout, 'skill_maps': list(skill_maps),
                            'out': None if out is None else str(out)},
               'rows': rows,
-              'runs': {str(seed): by_row for seed, by_row in runs.items()}}
+              'runs': {str(seed): by_row for seed, by_row in runs.items()},
+              'runner': swept.runner, 'nodes': swept.nodes,
+              'missing': swept.missing()}
     report['strategies'] = _aggregate(runs, rows)
     report['targets'] = _targets(report['strategies'])
     return report
 
 
-def _reusable(folder: Path, settings) -> bool:
+def learn_session(task_name: str, settings, folder: str, after: int) -> dict:
+    """One session of the sweep (`psl_bench.sessions.Session`), wherever it runs: the
+    `Learner` in batch mode into `folder` (or the complete session found there reused; a
+    retry resumes from the checkpoint its first attempt left), its timing beside its
+    metrics; returns `read_run` of the folder, with ``reused`` and a ``summary`` line."""
+    from psl_optimizer.batch_rollout import BatchRollouts
+    from psl_optimizer.learning import Learner
+    from psl_task.task import load_task
+
+    importlib.import_module('cma')    # policy_search imports it on first use: not in a session
+    folder = Path(folder)
+    reused = _reusable(folder, settings, resumable=True)
+    if not reused:
+        task = load_task(task_name)
+        rollouts = BatchRollouts(task)
+        policy = rollouts.policy        # whose references the rollouts solve (their IK)
+        start, simulated = time.perf_counter(), rollouts.simulation_seconds
+        solving, paths = policy.ik_seconds, policy.ik_paths
+        Learner(task, settings, folder, rollouts=rollouts).run()
+        session = time.perf_counter() - start
+        # the session's wall time and its shares spent simulating and in the inverse
+        # kinematics, kept beside its metrics for a later reuse
+        timing = {'session_seconds': session,
+                  'simulation_share': (rollouts.simulation_seconds - simulated) / session}
+        if policy.ik_paths > paths:
+            timing.update(ik_share=(policy.ik_seconds - solving) / session,
+                          ik_ms_per_path=1e3 * (policy.ik_seconds - solving)
+                          / (policy.ik_paths - paths))
+        (folder / SESSION_FILE).write_text(json.dumps(timing))
+    record = read_run(folder, after)
+    record['reused'] = reused
+    record['summary'] = (f"{record['total_rollouts']} rollouts, zero-shot "
+                         f"{100 * record['zero_shot_success']:.0f} %, "
+                         f"{record['train_seconds']:.1f} s{' (reused)' if reused else ''}")
+    return record
+
+
+def _reusable(folder: Path, settings, resumable: bool = False) -> bool:
     """True if folder holds a complete session with exactly these settings; False if it holds
-    nothing yet. Anything else is refused (a partial or different session would mix in)."""
+    nothing yet, or (`resumable`: a session's retry) an unfinished one whose checkpoint the
+    learner resumes (it refuses one of other settings). Anything else is refused (a partial
+    or different session would mix in)."""
     metrics_path, checkpoint = folder / METRICS_FILE, folder / 'checkpoint.json'
     if not metrics_path.is_file() and not checkpoint.is_file():
         return False
@@ -299,6 +333,8 @@ def _reusable(folder: Path, settings) -> bool:
         stored = {'skill_map': 'elm', **metrics.settings}     # runs from before the option
         if metrics.complete and stored == _settings_json(settings):
             return True
+    if resumable and not (metrics_path.is_file() and read_metrics(folder).complete):
+        return False
     raise ValueError(f'{folder} holds another or an unfinished learning session; remove it or '
                      f'give another --out')
 
@@ -376,6 +412,11 @@ def format_table(report: dict) -> str:
                      f"{cell(row, 'zero_shot_reward', 3)} | {cell(row, 'train_seconds', 1)} |")
     t, rows = report['targets'], report['strategies']
     lines.append('')
+    if 'runner' in report:
+        lines.append(f"sessions run {report['runner']}; per node: " + ', '.join(
+            f'{node} {count}' for node, count in report['nodes'].items()))
+    for missing in report.get('missing', []):
+        lines.append(f'MISSING (failed twice, left out of its rows): {missing}')
     lines.append('training wall time per rollout: ' + ', '.join(
         f"{name} {1e3 * row['train_seconds']['mean'] / max(row['total_rollouts']['mean'], 1):.1f} ms"
         for name, row in rows.items() if 'train_seconds' in row and 'total_rollouts' in row))

@@ -48,6 +48,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             p.add_argument('--after', type=non_negative_int, default=20,
                            help='rollouts per task are averaged over the tasks after this many')
 
+    def spread(p) -> None:
+        """The options of a sweep whose sessions run as Ray tasks (psl_bench.sessions)."""
+        p.add_argument('--serial', action='store_true',
+                       help='one session after the other in this process (default: each a '
+                       "Ray task, on this machine's cores or the cluster of --address)")
+        p.add_argument('--address', metavar='HOST:PORT',
+                       help='a Ray cluster to run the sessions on (ray start --head; '
+                       'default: $RAY_ADDRESS, else a local cluster for the sweep)')
+
     p = bench('graph', 'lockstep steps/s, DDS round trip, realtime misses')
     p.add_argument('--rollouts', type=positive_int, default=10)
     p.add_argument('--round-trips', type=positive_int, default=2000)
@@ -115,6 +124,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    'baselines library (k nearest solved instances) and gp (Gaussian-process '
                    'regression)')
     options.add_out(p, RUN_FOLDERS)
+    spread(p)
     p = bench('dynamics', 'learned feed-forward on held-out payloads: tracking error of PD '
               'only, learned and the inverse-dynamics oracle', task='payload_transport')
     p.add_argument('--optimisers', nargs='+', choices=OPTIMISERS, default=list(OPTIMISERS),
@@ -282,7 +292,8 @@ def _learn(args) -> tuple[dict, str]:
                        after=args.after, out=_folder(args.out), readout=args.readout,
                        skill_maps=[name for arg in args.skill_maps
                                    for name in arg.split(',') if name],
-                       progress=_progress)
+                       progress=_progress, runner='serial' if args.serial else 'ray',
+                       address=args.address)
     return report, learn.format_table(report)
 
 
