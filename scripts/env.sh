@@ -32,6 +32,9 @@ export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
 # Fast DDS participant defaults (lease 4 s): a client notices a server that has gone in seconds
 export FASTRTPS_DEFAULT_PROFILES_FILE="${FASTRTPS_DEFAULT_PROFILES_FILE:-$_psl_root/src/psl_ros/config/fastdds_profile.xml}"
 export PSL_ROOT="$_psl_root"
+# Ray (psl bench sweeps): every node and driver of a cluster authenticates with the token in
+# ~/.ray/auth_token (Ray reads this when it is imported)
+export RAY_AUTH_MODE="${RAY_AUTH_MODE:-token}"
 # small matrices (hidden layers of ~100): one BLAS thread is faster and leaves the second core
 # to the other nodes (batch ridge at N=100: 8 ms with threads, 0.3 ms without)
 export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}"

@@ -180,6 +180,12 @@ def test_recorded_bag_reads_back(client, task, theta, tmp_path, reference_result
     try:
         client.wait_for_subscribers(topics, extra=2,           # the recorder and the probes
                                     subscriptions=probes)
+        # the latched announcement of the episode before has reached both (matched is not
+        # delivered: on a busy machine the next announcement would replace it in the
+        # publisher's history of one before it arrived)
+        assert wait_until(lambda: delivered.get('/task_instance') == 1
+                          and so_far.get('/task_instance') == 1, DELIVERY_TIMEOUT), \
+            (delivered, so_far)
         result = client.rollout(TASK, task.tau_default, theta)
         # the rollout is over, its last messages may still be on their way (a reliable
         # reader that missed a sample gets it on the writer's next heartbeat): stop the

@@ -29,6 +29,7 @@ from typing import Any, Callable, Sequence
 RUNNERS = ('ray', 'serial')
 RETRIES = 1                 # a failed session is run once more
 ADDRESS_VARIABLE = 'RAY_ADDRESS'    # Ray's own: the cluster to join when --address is not given
+LIVENESS_PERIOD = 10.0      # [s] between checks that the cluster is there while sessions run
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,13 +58,9 @@ def where() -> dict:
     """This process's node (a Ray node's id when run as a Ray task, else the host name) and
     its process id."""
     node = socket.gethostname()
-    try:
-        import ray
-        if ray.is_initialized():
-            context = ray.get_runtime_context()
-            node = f'{node}:{context.get_node_id()[:8]}'
-    except ImportError:       # Ray is a dependency of psl_bench; serial runs need it not
-        pass
+    ray = sys.modules.get('ray')          # not imported here: a serial run needs no Ray
+    if ray is not None and ray.is_initialized():
+        node = f'{node}:{ray.get_runtime_context().get_node_id()[:8]}'
     return {'node': node, 'pid': os.getpid()}
 
 
@@ -125,11 +122,12 @@ def _ray(sessions: Sequence[Session], address: str | None, done) -> SweepResult:
     import ray
     from ray.exceptions import RayError
 
-    address = address or os.environ.get(ADDRESS_VARIABLE) or None
+    # the given cluster, or a new one of this machine's cores ('local': not whatever cluster
+    # `ray start` left on this machine, which may be gone); on a local cluster the workers
+    # inherit this process's environment (psl's, scripts/env.sh)
+    address = address or os.environ.get(ADDRESS_VARIABLE) or 'local'
     started = not ray.is_initialized()
     if started:
-        # a local cluster of this machine's cores, or the given cluster; the workers inherit
-        # this process's environment (psl's, scripts/env.sh) on a local cluster
         ray.init(address=address, include_dashboard=False, log_to_driver=False,
                  configure_logging=False, ignore_reinit_error=True)
     try:
@@ -137,7 +135,12 @@ def _ray(sessions: Sequence[Session], address: str | None, done) -> SweepResult:
         pending = {task.remote(s.function, s.kwargs): s for s in sessions}
         records, failed = {}, {}
         while pending:
-            ready, _ = ray.wait(list(pending), num_returns=1)
+            ready, _ = ray.wait(list(pending), num_returns=1, timeout=LIVENESS_PERIOD)
+            if not ready:           # a long session, or a cluster that has gone
+                if not any(node['Alive'] for node in ray.nodes()):
+                    raise RuntimeError(f'the Ray cluster has gone; {len(pending)} sessions '
+                                       'did not finish')
+                continue
             session = pending.pop(ready[0])
             try:
                 records[session.key] = ray.get(ready[0])

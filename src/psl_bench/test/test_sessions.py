@@ -92,8 +92,10 @@ def test_a_worker_killed_mid_session_is_run_again_and_the_table_is_complete(seri
             if running and any((f / 'checkpoint.json').is_file() and
                                not (f / 'metrics.json').is_file()
                                for f in tmp_path.glob('*-seed*')):
-                killed = running[0]
-                os.kill(killed, signal.SIGKILL)
+                # still that worker (a PID is reused once its process has gone): then kill
+                if running[0] in ray_workers_running():
+                    killed = running[0]
+                    os.kill(killed, signal.SIGKILL)
             time.sleep(0.002)
     finally:
         thread.join(timeout=300)
@@ -131,3 +133,4 @@ def test_a_session_that_fails_twice_is_named_and_the_rest_comes_out(runner):
     assert any('session 1: FAILED (RuntimeError: this session always fails)' == line
                for line in lines)
     assert sum(swept.nodes.values()) == 2
+
