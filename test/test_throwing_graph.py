@@ -147,3 +147,49 @@ def test_graph_rollouts_carry_the_balls_poses_as_batch_mode_does(task, client):
     assert set(world) == set(batch) == {'ball'}
     assert world['ball'].shape == batch['ball'].shape == (task.num_steps + 1, 7)
     assert np.abs(world['ball'] - batch['ball']).max() < 1e-6
+
+
+def test_a_recording_has_the_balls_flight(task, client, tmp_path, wait_until):
+    """psl record's recorder (psl_ros.bag_recorder.record, every topic by default) keeps the
+    ball's poses: one of each state of the episode, with its stamp."""
+    import threading
+
+    from rosbags.rosbag2 import Reader
+
+    from psl_ros.bag_recorder import make_typestore, read_bag_summary, record
+
+    bag, stop, recordings, so_far = tmp_path / 'throw_bag', threading.Event(), [], {}
+    recorder = threading.Thread(target=lambda: recordings.append(record(
+        bag, ['world/ball/pose'], stop=stop, discovery_timeout=2.0,
+        progress=lambda recording: so_far.update(recording.counts))))
+    # this test's own reader beside it, of the same durability (the publisher's history)
+    mine = {}
+    own = client.node.create_subscription(
+        PoseStamped, 'world/ball/pose',
+        lambda m: mine.__setitem__(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, m),
+        WORLD_POSES)
+    before = client.node.count_subscribers('world/ball/pose')
+    recorder.start()
+    try:
+        assert wait_until(lambda: client.node.count_subscribers('world/ball/pose') > before,
+                          30.0)
+        result = client.rollout(TASK, task.tau_default, policy_for(task).default_theta)
+        assert result.success, result.message
+        stamp = result.evaluation.stamp
+        t0 = stamp.sec * 10**9 + stamp.nanosec
+        episode = {t0 + k * task.control_period_ns for k in range(task.num_steps + 1)}
+        # every pose has reached this reader, and as many the recorder
+        assert wait_until(lambda: episode <= set(mine), 30.0)
+        assert wait_until(lambda: so_far.get('/world/ball/pose', 0) >= len(mine), 30.0)
+    finally:
+        stop.set()
+        recorder.join(timeout=30)
+        client.node.destroy_subscription(own)
+    assert recordings, 'record() raised'
+    assert read_bag_summary(bag)['/world/ball/pose'][0] == 'geometry_msgs/msg/PoseStamped'
+    store, stamps = make_typestore(), set()
+    with Reader(bag) as reader:
+        for connection, _, data in reader.messages():
+            msg = store.deserialize_cdr(data, connection.msgtype)
+            stamps.add(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
+    assert episode <= stamps, f'{len(episode - stamps)} states of the episode not in the bag'
