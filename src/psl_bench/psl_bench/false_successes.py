@@ -28,6 +28,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from psl_bench import sessions
 from psl_task import DEFAULT_TASK
 
 REALISTIC = 'position=0.001,velocity=0.01'
@@ -96,16 +97,25 @@ def measure(task_name: str, noise: str, confirm: tuple[int, int], seed: int = 21
             temporary.cleanup()
 
 
+def measure_session(**kwargs) -> dict:
+    """`measure` as a session of the sweep (`psl_bench.sessions`): its row and a summary."""
+    row = measure(**kwargs)
+    return {**row, 'summary': f"{row['added']} added, {row['false_successes']} false"}
+
+
 def run(tasks: Sequence[str] = tuple(NOISE_LEVELS), noise: Sequence[str] | None = None,
         confirms: Sequence[tuple[int, int]] = CONFIRMS, seed: int = 21, num_tasks: int = 20,
         num_test: int = 20, budget: int = 200, reruns: int = 10,
         out: str | Path | None = None,
-        progress: Callable[[str], None] | None = None) -> dict:
+        progress: Callable[[str], None] | None = None, runner: str = 'serial',
+        address: str | None = None) -> dict:
     """Every task x noise level x confirmation; the report of `format_table`.
 
     Args:
         noise: the levels (`MeasurementNoise.parse` text) for every task; None: each task's
             of `NOISE_LEVELS` (a task not named there: the realistic level only).
+        runner, address: where the sessions run (`psl_bench.sessions.run`); rows in the same
+            order either way, a session that failed twice under ``missing``.
 
     Raises:
         ValueError: bad sizes, no noise, a confirmation that is not k <= n.
@@ -125,18 +135,20 @@ def run(tasks: Sequence[str] = tuple(NOISE_LEVELS), noise: Sequence[str] | None 
         if MeasurementNoise.parse(level).is_off:
             raise ValueError(f'noise level {level!r} is no noise')
     importlib.import_module('cma')
-    rows = []
-    for task in tasks:
-        for level in (noise or NOISE_LEVELS.get(task, (REALISTIC,))):
-            for confirm in confirms:
-                row = measure(task, level, tuple(confirm), seed, num_tasks, num_test, budget,
-                              reruns, out)
-                rows.append(row)
-                if progress is not None:
-                    progress(f"{task} {level} confirm {confirm[0]}/{confirm[1]}: "
-                             f"{row['added']} added, {row['false_successes']} false")
+    plan = [sessions.Session(
+        key=(task, level, tuple(confirm)),
+        label=f'{task} {level} confirm {confirm[0]}/{confirm[1]}', function=measure_session,
+        kwargs=dict(task_name=task, noise=level, confirm=tuple(confirm), seed=seed,
+                    num_tasks=num_tasks, num_test=num_test, budget=budget, reruns=reruns,
+                    out=None if out is None else str(out)))
+        for task in tasks for level in (noise or NOISE_LEVELS.get(task, (REALISTIC,)))
+        for confirm in confirms]
+    swept = sessions.run(plan, runner, address, progress)
+    rows = [{k: v for k, v in swept.records[s.key].items() if k not in ('summary', 'ran_on')}
+            for s in plan if s.key in swept.records]
     return {'seed': seed, 'num_tasks': num_tasks, 'num_test': num_test, 'budget': budget,
-            'reruns': reruns, 'rows': rows}
+            'reruns': reruns, 'rows': rows, 'runner': swept.runner, 'nodes': swept.nodes,
+            'missing': swept.missing()}
 
 
 def format_table(report: dict) -> str:
@@ -154,4 +166,6 @@ def format_table(report: dict) -> str:
                      f"{r['rollouts']} | {r['confirm_rollouts']} | {r['fulfilled_tasks']} | "
                      f"{r['unconfirmed']} | {r['added']} | {r['false_successes']} | "
                      f"{r['fails_noise_free']} | {100 * r['zero_shot_success']:.0f} % |")
+    for missing in report.get('missing', []):
+        lines.append(f'MISSING (failed twice): {missing}')
     return '\n'.join(lines) + '\n'

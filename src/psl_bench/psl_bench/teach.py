@@ -29,6 +29,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from psl_bench import sessions
 from psl_task import DEFAULT_TASK
 
 COUNTS = (0, 3, 5, 10)
@@ -200,44 +201,60 @@ def session(task_name: str, taught: list, seed: int, num_tasks: int, num_test: i
             'zero_shot_success': float(metrics.summary.zero_shot_success_rate)}
 
 
+def teach_seed(task: str, seed: int, counts: Sequence[int], num_tasks: int, num_test: int,
+               budget: int, noise: str, folder: str, through: str, robot: str) -> dict:
+    """One task and seed of the sweep (`psl_bench.sessions`): the demonstrations shown once,
+    then a session per count; ``rows`` and a ``summary``."""
+    folder = Path(folder)
+    if not max(counts):
+        taught, refused = [], 0
+    elif through == 'batch':
+        taught, refused = demonstrations(task, max(counts), seed, noise, folder)
+    else:
+        taught, refused = demonstrations_through_graph(task, max(counts), seed, noise, folder,
+                                                       robot)
+    rows = []
+    for count in counts:
+        row = session(task, taught[:count], seed, num_tasks, num_test, budget,
+                      folder / f'taught{count}')
+        row.update(task=task, seed=seed, count=count, refused=refused)
+        rows.append(row)
+    return {'rows': rows, 'summary': ', '.join(
+        f"{r['count']} taught: {r['total_rollouts']} rollouts, zero-shot "
+        f"{100 * r['zero_shot_success']:.0f} %" for r in rows)}
+
+
 def run(tasks: Sequence[str] = TASKS, counts: Sequence[int] = COUNTS,
         seeds: Sequence[int] = (0, 1, 2), num_tasks: int = 30, num_test: int = 20,
         budget: int = 300, noise: str = NOISE, out: str | Path | None = None,
         progress: Callable[[str], None] | None = None, through: str = 'batch',
-        robot: str = 'standard') -> dict:
-    """Every task x count x seed (module docstring); the report of `format_table`."""
+        robot: str = 'standard', runner: str = 'serial', address: str | None = None) -> dict:
+    """Every task x count x seed (module docstring); the report of `format_table`. Each task
+    and seed is a session of `psl_bench.sessions` (`runner`, `address`); demonstrations shown
+    through the graph run here, one after the other (Ray stays out of the ROS graph)."""
     if through not in THROUGH:
         raise ValueError(f'through must be one of {", ".join(THROUGH)}, got {through!r}')
     if robot not in ('standard', 'sim'):
         raise ValueError(f"robot must be 'standard' or 'sim', got {robot!r}")
 
-    def show(task, count, seed, noise, folder):
-        if through == 'batch':
-            return demonstrations(task, count, seed, noise, folder)
-        return demonstrations_through_graph(task, count, seed, noise, folder, robot)
     if not counts or min(counts) < 0 or len(set(counts)) != len(counts):
         raise ValueError(f'counts must be distinct and >= 0, got {list(counts)}')
     if num_tasks <= LATE:
         raise ValueError(f'num_tasks must exceed {LATE} (the late tasks), got {num_tasks}')
     importlib.import_module('cma')
-    rows = []
     with tempfile.TemporaryDirectory() as scratch:
         base = Path(out) if out is not None else Path(scratch)
-        for task in tasks:
-            for seed in seeds:
-                folder = base / f'{Path(task).stem}-seed{seed}'
-                taught, refused = show(task, max(counts), seed, noise,
-                                       folder) if max(counts) else ([], 0)
-                for count in counts:
-                    row = session(task, taught[:count], seed, num_tasks, num_test, budget,
-                                  folder / f'taught{count}')
-                    row.update(task=task, seed=seed, count=count, refused=refused)
-                    rows.append(row)
-                    if progress is not None:
-                        progress(f"{task} seed {seed}, {count} taught: "
-                                 f"{row['total_rollouts']} rollouts, zero-shot "
-                                 f"{100 * row['zero_shot_success']:.0f} %")
-    return {'tasks': list(tasks), 'counts': list(counts), 'seeds': list(seeds),
+        plan = [sessions.Session(
+            key=(task, seed), label=f'{task} seed {seed}', function=teach_seed,
+            kwargs=dict(task=task, seed=seed, counts=list(counts), num_tasks=num_tasks,
+                        num_test=num_test, budget=budget, noise=noise,
+                        folder=str(base / f'{Path(task).stem}-seed{seed}'), through=through,
+                        robot=robot))
+            for task in tasks for seed in seeds]
+        swept = sessions.run(plan, runner if through == 'batch' else 'serial', address,
+                             progress)
+    rows = [row for s in plan if s.key in swept.records for row in swept.records[s.key]['rows']]
+    return {'runner': swept.runner, 'nodes': swept.nodes, 'missing': swept.missing(), 'tasks': list(tasks), 'counts': list(counts), 'seeds': list(seeds),
             'num_tasks': num_tasks, 'num_test': num_test, 'budget': budget,
             'noise': noise if through == 'batch' or robot == 'standard' else 'none',
             'through': through if through == 'batch' else f'graph ({robot} robot)',
@@ -265,4 +282,6 @@ def format_table(report: dict) -> str:
                          f"{cell('zero_shot_success', 100.0, 0, ' %')} |")
     refused = sum(r['refused'] for r in report['rows'] if r['count'] == max(report['counts']))
     lines.append(f'\ndemonstrations refused by psl teach\'s checks on the way: {refused}')
+    for missing in report.get('missing', []):
+        lines.append(f'MISSING (failed twice): {missing}')
     return '\n'.join(lines) + '\n'

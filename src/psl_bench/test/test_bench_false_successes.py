@@ -5,12 +5,19 @@ import pytest
 from psl_bench import false_successes
 
 
+TINY = dict(tasks=['reach_over_obstacle'], noise=['position=0.00022,velocity=0.02'],
+            confirms=[(1, 1), (2, 3)], num_tasks=3, num_test=2, budget=20, reruns=3)
+
+
 @pytest.fixture(scope='module')
 def tiny(tmp_path_factory):
-    return false_successes.run(tasks=['reach_over_obstacle'],
-                               noise=['position=0.00022,velocity=0.02'],
-                               confirms=[(1, 1), (2, 3)], num_tasks=3, num_test=2, budget=20,
-                               reruns=3, out=tmp_path_factory.mktemp('false'))
+    return false_successes.run(**TINY, out=tmp_path_factory.mktemp('false'))
+
+
+def test_its_sessions_as_ray_tasks_give_the_same_rows(tiny, tmp_path):
+    on_ray = false_successes.run(**TINY, out=tmp_path, runner='ray')
+    assert on_ray['runner'].startswith('ray') and tiny['runner'] == 'serial'
+    assert on_ray['missing'] == [] and on_ray['rows'] == tiny['rows']
 
 
 def test_the_counts_add_up(tiny):

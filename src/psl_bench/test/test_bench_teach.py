@@ -25,3 +25,12 @@ def test_a_taught_session_starts_from_its_demonstrations(tmp_path):
         assert row['total_rollouts'] == sum(t['rollouts'] for t in metrics['tasks'])
         assert row['zero_shot_success'] == metrics['summary']['zero_shot_success_rate']
     assert '| reach_over_obstacle | 3 |' in teach.format_table(report)
+
+
+def test_its_sessions_as_ray_tasks_give_the_same_rows(tmp_path):
+    settings = dict(tasks=['reach_over_obstacle'], counts=[0, 2], seeds=[0, 1], num_tasks=21,
+                    num_test=3, budget=40)
+    serial = teach.run(**settings, out=tmp_path / 'serial')
+    on_ray = teach.run(**settings, out=tmp_path / 'ray', runner='ray')
+    assert serial['runner'] == 'serial' and on_ray['runner'].startswith('ray')
+    assert on_ray['missing'] == [] and on_ray['rows'] == serial['rows']

@@ -205,6 +205,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="with --through graph: psl's standard robot on the wall clock "
                    "(default) or psl's lockstep simulator (exact measurements, no noise)")
     options.add_out(p, RUN_FOLDERS)
+    spread(p)        # --through graph: one after the other here, whatever is asked
     p = bench('false-successes', 'a noisy robot (measurement noise): samples added on a lucky '
               'rollout, with and without confirming a success (k of n)', task=None)
     p.add_argument('--tasks', nargs='+', default=list(NOISE_LEVELS),
@@ -222,6 +223,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument('--reruns', type=positive_int, default=10,
                    help='noisy re-runs of every added sample')
     options.add_out(p, RUN_FOLDERS)
+    spread(p)
 
 
 def _progress(line: str) -> None:
@@ -345,7 +347,8 @@ def _false_successes(args) -> tuple[dict, str]:
         tasks=args.tasks, noise=args.noise,
         confirms=[false_successes.parse_confirm(c) for c in args.confirms], seed=args.seed,
         num_tasks=args.tasks_per_session, num_test=args.test_tasks, budget=args.budget,
-        reruns=args.reruns, out=_folder(args.out), progress=_progress)
+        reruns=args.reruns, out=_folder(args.out), progress=_progress,
+        runner='serial' if args.serial else 'ray', address=args.address)
     return report, false_successes.format_table(report)
 
 
@@ -355,7 +358,8 @@ def _teach(args) -> tuple[dict, str]:
                        num_tasks=args.tasks_per_session, num_test=args.test_tasks,
                        budget=args.budget, noise=args.noise, out=_folder(args.out),
                        progress=_progress, through=args.through,
-                       robot=args.robot)
+                       robot=args.robot, runner='serial' if args.serial else 'ray',
+                       address=args.address)
     return report, teach.format_table(report)
 
 
