@@ -31,6 +31,8 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
+import sys
 from importlib import metadata
 from typing import Any, Callable
 
@@ -55,6 +57,13 @@ class Registration:
 
 
 def _entry_points() -> dict[str, list[metadata.EntryPoint]]:
+    return _scan(tuple(sys.path))
+
+
+@functools.lru_cache(maxsize=8)
+def _scan(path: tuple[str, ...]) -> dict[str, list[metadata.EntryPoint]]:
+    """The group's entry points on the Python path `path` (a scan of every installed
+    package's metadata: tens of milliseconds, so kept per path)."""
     found: dict[str, list[metadata.EntryPoint]] = {}
     for entry in metadata.entry_points(group=GROUP):
         if all(e.value != entry.value for e in found.get(entry.name, [])):
@@ -64,7 +73,7 @@ def _entry_points() -> dict[str, list[metadata.EntryPoint]]:
 
 def registered() -> dict[str, Registration]:
     """Every registered component by name, read from the installed packages' metadata (no
-    plugin is imported). Read anew each call: a package installed meanwhile counts.
+    plugin is imported); read once per Python path (a package put on the path counts).
 
     Raises:
         ValueError: a name registered by two packages, naming both.
