@@ -83,3 +83,22 @@ def test_the_balls_sensor_is_its_frame_as_the_simulator_publishes_it():
     assert sensed[:, 2].max() > 1.2 and sensed[-1, 2] < 0.03      # thrown, and landed
     assert np.allclose(np.linalg.norm(sensed[:, 3:], axis=1), 1.0, atol=1e-9)
     assert mujoco.mj_name2id(arm.model, mujoco.mjtObj.mjOBJ_BODY, 'ball') == body
+
+
+def test_a_drive_reset_puts_the_observed_ball_back_in_the_cup():
+    """ArmModel.place (a drive reset: the arm stays where it is) puts the bodies the reward
+    observes back at their model pose, at rest; a teleport reset does the same."""
+    from psl_task.arm_model import ArmModel
+
+    task = load_task('ball_throw')
+    arm = ArmModel(task)
+    arm.reset(task.tau_default)
+    rest = arm.body_pose(arm.body('ball')).copy()
+    arm.set_body_pose('ball', np.array([1.2, 0.1, 0.025, 1.0, 0.0, 0.0, 0.0]))   # landed
+    arm.data.qvel[:] = 0.5
+    arm.place(task.tau_default)
+    np.testing.assert_array_equal(arm.body_pose(arm.body('ball')), rest)
+    ball = arm.model.body('ball')
+    dofs = slice(arm.model.jnt_dofadr[ball.jntadr[0]], arm.model.jnt_dofadr[ball.jntadr[0]] + 6)
+    assert not arm.data.qvel[dofs].any()
+    assert (arm.data.qvel[arm.dof_adr] == 0.5).all()       # the arm itself is left as it is
