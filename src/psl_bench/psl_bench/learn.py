@@ -253,7 +253,7 @@ def run(task_name: str = DEFAULT_TASK, strategies: Sequence[str] | None = None,
                 key=(seed, name), label=f"seed {seed} {row['strategy']} ({row['skill_map']})",
                 function=learn_session,
                 kwargs=dict(task_name=task_name, settings=settings, folder=str(folder),
-                            after=after)))
+                            after=after, threads=1 if runner == 'ray' else 2)))
     try:
         swept = sessions.run(plan, runner, address, progress)
     finally:
@@ -283,11 +283,13 @@ def run(task_name: str = DEFAULT_TASK, strategies: Sequence[str] | None = None,
     return report
 
 
-def learn_session(task_name: str, settings, folder: str, after: int) -> dict:
+def learn_session(task_name: str, settings, folder: str, after: int, threads: int = 2) -> dict:
     """One session of the sweep (`psl_bench.sessions.Session`), wherever it runs: the
     `Learner` in batch mode into `folder` (or the complete session found there reused; a
     retry resumes from the checkpoint its first attempt left), its timing beside its
-    metrics; returns `read_run` of the folder, with ``reused`` and a ``summary`` line."""
+    metrics; returns `read_run` of the folder, with ``reused`` and a ``summary`` line.
+    `threads`: of `mujoco.rollout` for a population (2: a serial sweep's sessions use both
+    cores; 1: as a Ray task, the cores are the sweep's); the same results either way."""
     from psl_optimizer.batch_rollout import BatchRollouts
     from psl_optimizer.learning import Learner
     from psl_task.task import load_task
@@ -297,7 +299,7 @@ def learn_session(task_name: str, settings, folder: str, after: int) -> dict:
     reused = _reusable(folder, settings, resumable=True)
     if not reused:
         task = load_task(task_name)
-        rollouts = BatchRollouts(task)
+        rollouts = BatchRollouts(task, n_threads=threads)
         policy = rollouts.policy        # whose references the rollouts solve (their IK)
         start, simulated = time.perf_counter(), rollouts.simulation_seconds
         solving, paths = policy.ik_seconds, policy.ik_paths
