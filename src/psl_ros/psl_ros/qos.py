@@ -43,9 +43,11 @@ WHOLE_EPISODE = QoSProfile(depth=20000, reliability=ReliabilityPolicy.RELIABLE)
 NEWEST = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
-# the poses of an observed body (names.world_pose): an episode's worth kept for a reader that
-# subscribes once the episode has begun (the evaluator, at its first episode of the task)
-WORLD_POSES = QoSProfile(depth=20000, reliability=ReliabilityPolicy.RELIABLE,
+# the poses of an observed body (names.world_pose): the last 2000 (4 s at 500 Hz) kept for a
+# reader that subscribes once an episode has begun (the evaluator, at its first episode of the
+# task: within a second); more would be more than a keep-all reader takes at once (a recorder
+# joining after a long session got part of 20000 and never the rest)
+WORLD_POSES = QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
 SERVICES = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
