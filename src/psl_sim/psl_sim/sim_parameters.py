@@ -2,11 +2,12 @@
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import field
 
 from psl_ros.graph import SIM_MODES
 from psl_task import DEFAULT_TASK
+
+MAX_POSE_NOISE = 1.0    # m: a motion capture's noise beyond this is a units error
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,8 +43,9 @@ class SimParameters:
             raise ValueError('episode_duration must be >= 0 seconds')
         if not 0.0 < self.max_episode_duration < 1e6:
             raise ValueError('max_episode_duration must be in (0, 1e6) s')
-        if not (math.isfinite(self.world_pose_noise) and self.world_pose_noise >= 0.0):
-            raise ValueError('world_pose_noise must be a finite number of metres >= 0')
+        if not 0.0 <= self.world_pose_noise <= MAX_POSE_NOISE:
+            raise ValueError(f'world_pose_noise must be in [0, {MAX_POSE_NOISE:g}] m, got '
+                             f'{self.world_pose_noise!r}')
         if not self.scene_rate >= 0.0:
             raise ValueError('scene_rate must be >= 0 Hz')
         if not self.spin_margin >= 0.0:
