@@ -48,6 +48,7 @@ from psl_task.task import TaskDefinition
 
 KINDS = ('dmp', 'gmr')     # how theta_K encodes the joint trajectory
 THETA_SPREADS = 1000.0     # a rollout's theta entries lie within this many default spreads
+HAND_PATHS_KEPT = 64       # end-effector space: joint paths kept for a theta_K seen again
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,8 +80,10 @@ class TaskPolicy:
         dt = task.control_period
         t, y = demonstration_from_waypoints(task.demo_times, task.demo_positions, dt)
         self.ik = None
-        # wall time spent in the inverse kinematics and the paths it solved (benchmarks)
-        self.ik_seconds, self.ik_paths = 0.0, 0
+        # wall time spent in the inverse kinematics, the paths it solved and the paths
+        # reused from `_hand_path`'s (benchmarks)
+        self.ik_seconds, self.ik_paths, self.ik_reused = 0.0, 0, 0
+        self._hand_paths: dict[tuple, tuple] = {}     # `_hand_path`'s, oldest first
         quat = None
         if spec.space == 'end_effector':
             self.ik = end_effector_ik(task)
@@ -242,10 +245,39 @@ class TaskPolicy:
         theta = self.check_theta(theta)
         duration = self.task.duration_of(tau)
         movement, feedforward = self._for_duration(duration)
-        movement.set_theta(theta[self.kinematics])
         dt = self.task.control_period
-        traj = movement.integrate(dt, self.task.num_steps_of(tau) * dt)
-        return self._reference_of(traj, theta, feedforward, dt)
+        num_steps = self.task.num_steps_of(tau)
+        if self.ik is None:
+            movement.set_theta(theta[self.kinematics])
+            return self._reference_of(movement.integrate(dt, num_steps * dt), theta,
+                                      feedforward, dt)
+        t, q, qd = self._hand_path(movement, theta[self.kinematics], duration, num_steps, dt)
+        u_ffwd = (feedforward.signal(theta[self.dynamics], t)
+                  if feedforward is not None else np.zeros_like(q))
+        return Reference(t=t, q=q, qd=qd, u_ffwd=u_ffwd)
+
+    def _hand_path(self, movement, theta_k: np.ndarray, duration: float, num_steps: int,
+                   dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(t, q, qd) of the hand path theta_K commands over num_steps periods, in joint
+        space (the inverse kinematics), read-only; the last `HAND_PATHS_KEPT` are kept by
+        (theta_K, duration, num_steps), which determine them: a theta_K seen again (ILC or
+        CMA-ES changing only theta_D, the summary's feed-forward variants of one path) gives
+        the very arrays of its first solve."""
+        key = (theta_k.tobytes(), duration, num_steps)
+        kept = self._hand_paths.pop(key, None)
+        if kept is None:
+            movement.set_theta(theta_k)
+            traj = movement.integrate(dt, num_steps * dt)
+            q, qd = self._joint_path(traj, dt)
+            t = np.array(traj.t)
+            t.setflags(write=False)
+            kept = (t, q, qd)
+            if len(self._hand_paths) >= HAND_PATHS_KEPT:
+                self._hand_paths.pop(next(iter(self._hand_paths)))
+        else:
+            self.ik_reused += 1
+        self._hand_paths[key] = kept                   # the most recent last
+        return kept
 
     def references(self, thetas: np.ndarray, taus: np.ndarray) -> list[Reference]:
         """`reference` of each row of thetas (B, F) on its task instance taus (B, E), within
@@ -334,14 +366,11 @@ class TaskPolicy:
 
     def _reference_of(self, traj, theta: np.ndarray, feedforward: FeedForward | None,
                       dt: float) -> Reference:
-        """The Reference of an integrated movement: its joint path (through the inverse
-        kinematics in end-effector space) and theta_D's feed-forward on the same grid."""
-        q, qd = traj.y, traj.yd
-        if self.ik is not None:
-            q, qd = self._joint_path(traj, dt)
+        """The Reference of a movement integrated in joint space and theta_D's feed-forward
+        on the same grid (end-effector space: `_hand_path`)."""
         u_ffwd = (feedforward.signal(theta[self.dynamics], traj.t)
-                  if feedforward is not None else np.zeros_like(q))
-        return Reference(t=traj.t, q=q, qd=qd, u_ffwd=u_ffwd)
+                  if feedforward is not None else np.zeros_like(traj.y))
+        return Reference(t=traj.t, q=traj.y, qd=traj.yd, u_ffwd=u_ffwd)
 
     def _joint_path(self, traj, dt: float, start: np.ndarray | None = None, first: int = 0
                     ) -> tuple[np.ndarray, np.ndarray]:

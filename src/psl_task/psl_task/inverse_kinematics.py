@@ -685,7 +685,8 @@ class _Step:
         else:
             mujoco.mju_mulMatVec(r, jac, z)
             mujoco.mju_sub(r, e, r)
-        if self.region2 > 0.0 and self._eigen(a) < self.region2:
+        if (self.region2 > 0.0 and not self._clear_of_region(a)
+                and self._eigen(a) < self.region2):
             # in J J^T's eigenbasis (columns of basis): each direction's own damping
             extra = self.damping2 * np.maximum(0.0, 1.0 - self.sigma2 / self.region2)
             np.matmul(self.basis, (self.basis.T @ r) / (self.sigma2 + lam2 + extra), out=y)
@@ -696,6 +697,23 @@ class _Step:
         mujoco.mju_mulMatTVec(dq, jac, y)
         if z is not None:
             mujoco.mju_addTo(dq, z)
+
+    def _clear_of_region(self, a: np.ndarray) -> bool:
+        """Whether J J^T = a (3, 3) certainly has no eigenvalue below region^2, without its
+        eigen-decomposition (which costs more than the rest of a step): the smallest
+        eigenvalue of a positive definite matrix is at least 1 / trace(a^-1) = det(a) / (the
+        sum of its principal 2 x 2 minors), the bound here, with a margin of 1e-9 trace(a)
+        for the rounding of both. True only where `_eigen` would find the smallest
+        eigenvalue >= region^2 too: the step is the one it would be. False (decide by
+        `_eigen`) near a singular posture and for m = 6."""
+        if len(a) != 3:
+            return False
+        (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = a.tolist()
+        m0, m1, m2 = a11 * a22 - a12 * a21, a00 * a22 - a02 * a20, a00 * a11 - a01 * a10
+        det = a00 * m0 - a01 * (a10 * a22 - a12 * a20) + a02 * (a10 * a21 - a11 * a20)
+        minors = m0 + m1 + m2
+        return (det > 0.0 and minors > 0.0
+                and det >= (self.region2 + 1e-9 * (a00 + a11 + a22)) * minors)
 
     def _eigen(self, a: np.ndarray) -> float:
         """J J^T = a (m, m) into sigma2 (its eigenvalues, the squared singular values of J)
