@@ -150,6 +150,7 @@ SINGULAR_DAMPING = 0.02  # m: that damping at a singular posture (module docstri
 _KNOT_PASSES = 3     # passes over a path with knots before every sample is solved
 _ONE_DOF_JOINTS = (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)
 _HALVINGS = 8        # a step that makes the error worse is halved back at most this often
+_TINY = np.finfo(float).tiny   # a Cholesky pivot below this counts as not positive
 _WORSE = 1.0 + 1e-9  # "worse": a squared error above this factor times the one before; the
                      # factor lets the tiny steps that leave an exactly singular posture pass
                      # (their gain is below the roundoff of |e|^2)
@@ -673,6 +674,9 @@ class _Step:
         self.r = np.empty(m)
         self.y = np.empty(m)
         self.region2, self.damping2 = region * region, damping * damping
+        self.clear = self.region2 * (1.0 + 1e-6)       # `_clear_of_region`'s shift
+        self.shifted = np.empty((m, m))
+        self.shifted_flat = self.shifted.reshape(m * m)          # a view
         self.sigma2, self.basis = np.empty(m), np.empty((m, m))   # J J^T's eigen-pairs
         self._quat = np.empty(4)                                  # mju_eig3's by-product
 
@@ -699,21 +703,15 @@ class _Step:
             mujoco.mju_addTo(dq, z)
 
     def _clear_of_region(self, a: np.ndarray) -> bool:
-        """Whether J J^T = a (3, 3) certainly has no eigenvalue below region^2, without its
-        eigen-decomposition (which costs more than the rest of a step): the smallest
-        eigenvalue of a positive definite matrix is at least 1 / trace(a^-1) = det(a) / (the
-        sum of its principal 2 x 2 minors), the bound here, with a margin of 1e-9 trace(a)
-        for the rounding of both. True only where `_eigen` would find the smallest
-        eigenvalue >= region^2 too: the step is the one it would be. False (decide by
-        `_eigen`) near a singular posture and for m = 6."""
-        if len(a) != 3:
-            return False
-        (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = a.tolist()
-        m0, m1, m2 = a11 * a22 - a12 * a21, a00 * a22 - a02 * a20, a00 * a11 - a01 * a10
-        det = a00 * m0 - a01 * (a10 * a22 - a12 * a20) + a02 * (a10 * a21 - a11 * a20)
-        minors = m0 + m1 + m2
-        return (det > 0.0 and minors > 0.0
-                and det >= (self.region2 + 1e-9 * (a00 + a11 + a22)) * minors)
+        """Whether J J^T = a (m, m) certainly has no eigenvalue below region^2, without its
+        eigen-decomposition (which costs more than the rest of a step): a - c I is positive
+        definite (its Cholesky factorisation has m positive pivots) exactly when every
+        eigenvalue of a exceeds c; c = region^2 (1 + 1e-6), the margin far above the
+        rounding of either computation. True only where `_eigen` would find the smallest
+        eigenvalue >= region^2 too: the step is the one it would be."""
+        np.copyto(self.shifted, a)
+        mujoco.mju_addToScl(self.shifted_flat, self.eye_flat, -self.clear)
+        return mujoco.mju_cholFactor(self.shifted, _TINY) == len(a)
 
     def _eigen(self, a: np.ndarray) -> float:
         """J J^T = a (m, m) into sigma2 (its eigenvalues, the squared singular values of J)
