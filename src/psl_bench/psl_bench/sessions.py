@@ -20,11 +20,12 @@ session here is a batch-mode session. Imports no ROS.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import socket
 import sys
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 RUNNERS = ('ray', 'serial')
 RETRIES = 1                 # a failed session is run once more
@@ -118,19 +119,37 @@ def _serial(sessions: Sequence[Session], done) -> SweepResult:
     return SweepResult(records, failed, 'serial', _nodes(records))
 
 
+@contextlib.contextmanager
+def cluster(runner: str, address: str | None = None) -> Iterator[None]:
+    """The Ray cluster of the sweeps run inside (runner 'ray'; 'serial': nothing): joined
+    once, left after, so a sweep of stages (`psl_bench.sim_to_real`: the nominal sessions,
+    then those that continue them) starts one local cluster, not one per stage. The given
+    cluster, or a new one of this machine's cores ('local': not whatever cluster `ray start`
+    left on this machine, which may be gone); on a local cluster the workers inherit this
+    process's environment (psl's, scripts/env.sh). Inside an already joined cluster: that
+    one."""
+    if runner != 'ray':
+        yield
+        return
+    import ray
+
+    started = not ray.is_initialized()
+    if started:
+        ray.init(address=address or os.environ.get(ADDRESS_VARIABLE) or 'local',
+                 include_dashboard=False, log_to_driver=False, configure_logging=False,
+                 ignore_reinit_error=True)
+    try:
+        yield
+    finally:
+        if started:
+            ray.shutdown()
+
+
 def _ray(sessions: Sequence[Session], address: str | None, done) -> SweepResult:
     import ray
     from ray.exceptions import RayError
 
-    # the given cluster, or a new one of this machine's cores ('local': not whatever cluster
-    # `ray start` left on this machine, which may be gone); on a local cluster the workers
-    # inherit this process's environment (psl's, scripts/env.sh)
-    address = address or os.environ.get(ADDRESS_VARIABLE) or 'local'
-    started = not ray.is_initialized()
-    if started:
-        ray.init(address=address, include_dashboard=False, log_to_driver=False,
-                 configure_logging=False, ignore_reinit_error=True)
-    try:
+    with cluster('ray', address):
         task = ray.remote(num_cpus=1, max_retries=RETRIES, retry_exceptions=True)(_run)
         pending = {task.remote(s.function, s.kwargs): s for s in sessions}
         records, failed = {}, {}
@@ -148,11 +167,8 @@ def _ray(sessions: Sequence[Session], address: str | None, done) -> SweepResult:
             except RayError as exc:        # raised twice, or its worker died twice
                 failed[session.key] = _reason(exc)
                 done(session, None, failed[session.key])
-        cluster = ray.get_runtime_context().gcs_address
-    finally:
-        if started:
-            ray.shutdown()
-    return SweepResult(records, failed, f'ray ({cluster})', _nodes(records))
+        joined = ray.get_runtime_context().gcs_address
+    return SweepResult(records, failed, f'ray ({joined})', _nodes(records))
 
 
 def _reason(exc: Exception) -> str:

@@ -23,7 +23,10 @@ Method, per task:
   success), and the continued skills' learned feed-forward (zero-shot, `Learner.summary`).
 Every session of a seed reads the same training instances and the same held-out instances; the
 rollouts on the robot of each session are what the table calls "rollouts on the robot".
-Plain Python, no ROS.
+Each session has rollouts of its own on the robot (its noise draws count its own rollouts), so
+a session's result does not depend on which ran before it: once the nominal session has run,
+the sessions of the robot seeds are independent, each a `psl_bench.sessions` session (in this
+process, or a Ray task). Plain Python, no ROS.
 """
 from __future__ import annotations
 
@@ -34,6 +37,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from psl_bench import sessions
+from psl_bench.sessions import Session
 from psl_task import DEFAULT_TASK
 
 # the stand-in "real" robot of the measurements (docs/benchmarks.md)
@@ -87,96 +92,124 @@ def robot_task(task, folder: Path, gains: float) -> Path:
     return path
 
 
-def measure_task(task_name: str, model_error: str = REAL_ROBOT, nominal_seed: int = 3,
-                 nominal_tasks: int = 30, seeds: Sequence[int] = SEEDS, num_tasks: int = 10,
-                 num_test: int = 20, budget: int = 200, ilc_iterations: int = 10,
-                 continuations: Sequence[str] = ('residual', 'samples'),
-                 measurement_noise: str = '', robot_gains: float = 1.0,
-                 out: str | Path | None = None,
-                 progress: Callable[[str], None] | None = None) -> dict:
-    """The sessions of one task (module docstring); a JSON-able dict."""
-    from psl_optimizer.batch_rollout import MeasurementNoise
-    from psl_optimizer.learning import (CONTINUATIONS, InProcessSkill, Learner, LearnSettings,
-                                        feedforward_variants)
-    from psl_optimizer.policy_search import SearchSettings
-    from psl_optimizer.rollout_modes import make_rollouts
-    from psl_optimizer.task_selection import held_out_tasks
+def _robot(task_ref: str, model_error: str, measurement_noise: str, threads: int):
+    """Batch rollouts on the robot: the task `task_ref` (a name or a YAML path) with the model
+    error and measurement noise; each session has its own (its noise draws count its own
+    rollouts, `MeasurementNoise`: a session's result does not depend on what ran before).
+    `threads`: of `mujoco.rollout` (the same results with any)."""
+    from psl_optimizer.batch_rollout import BatchRollouts, MeasurementNoise
     from psl_task.model_error import ModelError
     from psl_task.task import load_task
 
-    if ModelError.parse(model_error).is_identity:
-        raise ValueError('sim to real needs a model error (the robot is the model otherwise)')
-    MeasurementNoise.parse(measurement_noise)        # ValueError naming what is wrong
-    unknown = [c for c in continuations if c not in CONTINUATIONS]
-    if unknown or len(set(continuations)) != len(continuations):
-        raise ValueError(f'continuations: each of {", ".join(CONTINUATIONS)} at most once, '
-                         f'got {list(continuations)}')
+    task = load_task(task_ref)
+    return task, BatchRollouts(task, n_threads=threads,
+                               model_error=ModelError.parse(model_error),
+                               measurement_noise=MeasurementNoise.parse(measurement_noise))
+
+
+def learn_session(task_ref: str, folder: str, settings, model_error: str = '',
+                  measurement_noise: str = '', threads: int = 2) -> dict:
+    """One `Learner` session (`psl_bench.sessions.Session`): on the task's model, or with a
+    model error on the robot; its row of the table, and a ``summary`` line."""
+    from psl_optimizer.learning import Learner
+
     importlib.import_module('cma')
+    task, rollouts = _robot(task_ref, model_error, measurement_noise, threads)
+    s = Learner(task, settings, Path(folder), rollouts).run().summary
+    row = {'rollouts': s.total_rollouts, 'rollouts_per_task': s.rollouts_per_task,
+           'fulfilled_tasks': s.fulfilled_tasks,
+           'zero_shot_success': s.zero_shot_success_rate,
+           'zero_shot_reward': s.zero_shot_mean_reward,
+           'tracking_learned': (None if s.tracking_rmse_mean is None
+                                else s.tracking_rmse_mean['learned'])}
+    return {**row, 'summary': f"{row['rollouts']} rollouts, zero-shot "
+                              f"{100 * row['zero_shot_success']:.0f} %"}
+
+
+def simulated_skill_on_robot(task_ref: str, memory: str, seed: int, num_test: int,
+                             ilc_iterations: int, model_error: str,
+                             measurement_noise: str, threads: int = 2) -> dict:
+    """PS_sim (the nominal session's memory) on the robot (`psl_bench.sessions.Session`):
+    ``before``, its zero-shot success on the seed's held-out instances, and with feed-forward
+    the ``tracking`` errors of its paths (module docstring)."""
+    from psl_optimizer.learning import InProcessSkill, LearnSettings, feedforward_variants
+    from psl_optimizer.task_selection import held_out_tasks
+
+    task, robot = _robot(task_ref, model_error, measurement_noise, threads)
+    sim = InProcessSkill(task, LearnSettings().skill, robot.policy.default_theta, 'samples')
+    sim.start(memory)
+    test = held_out_tasks(task, num_test, seed)
+    thetas = np.array([sim.query(tau) for tau in test])
+    rewards, fulfilled = robot.evaluate(thetas, test)
+    record = {'before': {'zero_shot_success': float(np.mean(fulfilled)),
+                         'zero_shot_reward': float(np.mean(rewards))}}
+    if robot.policy.has_feedforward:
+        variants = feedforward_variants(task, test, thetas)
+        tracking = {'pd_only': _tracking_error(robot, test, variants['pd_only']),
+                    'simulated': _tracking_error(robot, test, variants['learned']),
+                    'oracle': _tracking_error(robot, test, variants['oracle']),
+                    'ilc': _tracking_error(robot, test, _ilc(robot, test, thetas,
+                                                             ilc_iterations))}
+        record['tracking'] = {name: {'mean': float(np.mean(v)), 'values': v}
+                              for name, v in tracking.items()}
+    record['summary'] = (f"zero-shot on the robot "
+                         f"{100 * record['before']['zero_shot_success']:.0f} %")
+    return record
+
+
+def _plans(task_name: str, model_error: str, nominal_seed: int, nominal_tasks: int,
+           seeds: Sequence[int], num_tasks: int, num_test: int, budget: int,
+           ilc_iterations: int, continuations: Sequence[str], measurement_noise: str,
+           robot_gains: float, root: Path, threads: int = 2
+           ) -> tuple[Session, list[Session], dict]:
+    """The sessions of one task (module docstring): the nominal one (the others continue its
+    skill), those of the robot seeds (independent of each other once it has run), and the
+    report's settings."""
+    from psl_optimizer.learning import LearnSettings
+    from psl_optimizer.policy_search import SearchSettings
+    from psl_task.task import load_task, task_id
+
     task = load_task(task_name)
-    temporary = tempfile.TemporaryDirectory(prefix='psl-bench-s2r-') if out is None else None
-    root = Path(temporary.name if temporary else out) / task.name
+    root = root / task.name
     search = SearchSettings(max_rollouts=budget)
     # the robot's task: the task itself, or its copy with the robot controller's gains
-    real = task if robot_gains == 1.0 else load_task(str(robot_task(task, root, robot_gains)))
-    nominal = make_rollouts('batch', task)
-    robot = make_rollouts('batch', real, model_error=model_error,
-                          measurement_noise=measurement_noise)
+    real = task_name if robot_gains == 1.0 else str(robot_task(task, root, robot_gains))
+    memory = str(root / 'nominal' / 'memory.npz')
     on_robot = {'model_error': model_error, 'measurement_noise': measurement_noise}
+    nominal = Session(
+        key=(task.name, 'nominal'), label=f'{task.name} nominal', function=learn_session,
+        kwargs=dict(task_ref=task_id(task), folder=str(root / 'nominal'), threads=threads,
+                    settings=LearnSettings(search=search, num_test=num_test,
+                                           seed=nominal_seed, num_tasks=nominal_tasks)))
+    robot = []
+    for seed in seeds:
+        robot.append(Session(
+            key=(task.name, seed, 'before'), label=f'{task.name} seed{seed}/sim skill',
+            function=simulated_skill_on_robot,
+            kwargs=dict(task_ref=real, memory=memory, seed=seed, num_test=num_test,
+                        ilc_iterations=ilc_iterations, threads=threads, **on_robot)))
+        for way in ('scratch', *continuations):
+            continued = {} if way == 'scratch' else dict(continue_from=memory,
+                                                         continuation=way)
+            name = 'scratch' if way == 'scratch' else f'continued-{way}'
+            robot.append(Session(
+                key=(task.name, seed, way), label=f'{task.name} seed{seed}/{name}',
+                function=learn_session,
+                kwargs=dict(task_ref=real, folder=str(root / f'seed{seed}' / name),
+                            settings=LearnSettings(search=search, num_test=num_test,
+                                                   seed=seed, num_tasks=num_tasks,
+                                                   **on_robot, **continued),
+                            threads=threads, **on_robot)))
+    report = {'task': task.name, 'model_error': model_error,
+              'measurement_noise': measurement_noise, 'robot_gains': robot_gains,
+              'nominal_seed': nominal_seed, 'nominal_tasks': nominal_tasks,
+              'seeds': list(seeds), 'num_tasks': num_tasks, 'num_test': num_test,
+              'budget': budget, 'ilc_iterations': ilc_iterations, 'runs': {}}
+    return nominal, robot, report
 
-    def session(name, on, rollouts, **changes) -> dict:
-        settings = LearnSettings(search=search, num_test=num_test, **changes)
-        learner = Learner(on, settings, root / name, rollouts)
-        metrics = learner.run()
-        s = metrics.summary
-        row = {'rollouts': s.total_rollouts, 'rollouts_per_task': s.rollouts_per_task,
-               'fulfilled_tasks': s.fulfilled_tasks,
-               'zero_shot_success': s.zero_shot_success_rate,
-               'zero_shot_reward': s.zero_shot_mean_reward,
-               'tracking_learned': (None if s.tracking_rmse_mean is None
-                                    else s.tracking_rmse_mean['learned'])}
-        if progress is not None:
-            progress(f'{task.name} {name}: {row["rollouts"]} rollouts, zero-shot '
-                     f'{100 * row["zero_shot_success"]:.0f} %')
-        return row
 
-    try:
-        report = {'task': task.name, 'model_error': model_error,
-                  'measurement_noise': measurement_noise, 'robot_gains': robot_gains,
-                  'nominal_seed': nominal_seed, 'nominal_tasks': nominal_tasks,
-                  'seeds': list(seeds), 'num_tasks': num_tasks, 'num_test': num_test,
-                  'budget': budget, 'ilc_iterations': ilc_iterations, 'runs': {}}
-        report['nominal'] = session('nominal', task, nominal, seed=nominal_seed,
-                                    num_tasks=nominal_tasks)
-        memory = root / 'nominal' / 'memory.npz'
-        sim = InProcessSkill(task, LearnSettings().skill, robot.policy.default_theta, 'samples')
-        sim.start(str(memory))
-        for seed in seeds:
-            run = report['runs'][str(seed)] = {'sessions': {}}
-            test = held_out_tasks(real, num_test, seed)
-            thetas = np.array([sim.query(tau) for tau in test])
-            rewards, fulfilled = robot.evaluate(thetas, test)
-            run['before'] = {'zero_shot_success': float(np.mean(fulfilled)),
-                             'zero_shot_reward': float(np.mean(rewards))}
-            run['sessions']['scratch'] = session(f'seed{seed}/scratch', real, robot,
-                                                 seed=seed, num_tasks=num_tasks, **on_robot)
-            for way in continuations:
-                run['sessions'][way] = session(
-                    f'seed{seed}/continued-{way}', real, robot, seed=seed,
-                    num_tasks=num_tasks, continue_from=str(memory), continuation=way,
-                    **on_robot)
-            if robot.policy.has_feedforward:
-                variants = feedforward_variants(real, test, thetas)
-                tracking = {'pd_only': _tracking_error(robot, test, variants['pd_only']),
-                            'simulated': _tracking_error(robot, test, variants['learned']),
-                            'oracle': _tracking_error(robot, test, variants['oracle']),
-                            'ilc': _tracking_error(robot, test, _ilc(robot, test, thetas,
-                                                                     ilc_iterations))}
-                run['tracking'] = {name: {'mean': float(np.mean(v)), 'values': v}
-                                   for name, v in tracking.items()}
-        return report
-    finally:
-        if temporary is not None:
-            temporary.cleanup()
+def _row(record: dict) -> dict:
+    return {k: v for k, v in record.items() if k not in ('summary', 'ran_on')}
 
 
 def run(tasks: Sequence[str] = TASKS, model_error: str = REAL_ROBOT, nominal_seed: int = 3,
@@ -184,13 +217,22 @@ def run(tasks: Sequence[str] = TASKS, model_error: str = REAL_ROBOT, nominal_see
         num_test: int = 20, budget: int = 200, ilc_iterations: int = 10,
         continuations: Sequence[str] = ('residual', 'samples'), measurement_noise: str = '',
         robot_gains: float = 1.0, out: str | Path | None = None,
-        progress: Callable[[str], None] | None = None) -> dict:
-    """`measure_task` for each task; the report of `format_table`.
+        progress: Callable[[str], None] | None = None, runner: str = 'serial',
+        address: str | None = None) -> dict:
+    """The sessions of each task (module docstring), run by `psl_bench.sessions` (serially
+    here, or each a Ray task: first the nominal sessions, then every robot seed's); the
+    report of `format_table`, with ``runner``, ``nodes`` and ``missing`` (the sessions that
+    failed twice: their task's or seed's rows are left out).
 
     Raises:
         ValueError: no model error, an unknown task or continuation, bad sizes, seeds, noise
             or gains.
+        RuntimeError: no session finished.
     """
+    from psl_optimizer.batch_rollout import MeasurementNoise
+    from psl_optimizer.learning import CONTINUATIONS
+    from psl_task.model_error import ModelError
+
     if not tasks or len(set(tasks)) != len(tasks):
         raise ValueError('give each task once, at least one')
     if not seeds or len(set(seeds)) != len(seeds):
@@ -204,10 +246,53 @@ def run(tasks: Sequence[str] = TASKS, model_error: str = REAL_ROBOT, nominal_see
     if not (np.isfinite(robot_gains) and robot_gains > 0.0):
         raise ValueError(f'robot_gains must be a finite share > 0 of the task\'s gains, got '
                          f'{robot_gains}')
-    return {'tasks': {name: measure_task(
-        name, model_error, nominal_seed, nominal_tasks, seeds, num_tasks, num_test, budget,
-        ilc_iterations, continuations, measurement_noise, robot_gains, out, progress)
-        for name in tasks}}
+    if ModelError.parse(model_error).is_identity:
+        raise ValueError('sim to real needs a model error (the robot is the model otherwise)')
+    MeasurementNoise.parse(measurement_noise)        # ValueError naming what is wrong
+    unknown = [c for c in continuations if c not in CONTINUATIONS]
+    if unknown or len(set(continuations)) != len(continuations):
+        raise ValueError(f'continuations: each of {", ".join(CONTINUATIONS)} at most once, '
+                         f'got {list(continuations)}')
+    temporary = tempfile.TemporaryDirectory(prefix='psl-bench-s2r-') if out is None else None
+    root = Path(temporary.name if temporary else out)
+    try:
+        plans = [_plans(name, model_error, nominal_seed, nominal_tasks, seeds, num_tasks,
+                        num_test, budget, ilc_iterations, continuations, measurement_noise,
+                        robot_gains, root, threads=1 if runner == 'ray' else 2)
+                 for name in tasks]
+        with sessions.cluster(runner, address):      # one cluster for both stages
+            first = sessions.run([nominal for nominal, _, _ in plans], runner, address,
+                                 progress)
+            later = sessions.run([s for nominal, robot, _ in plans
+                                  if nominal.key in first.records for s in robot],
+                                 runner, address, progress)
+    finally:
+        if temporary is not None:
+            temporary.cleanup()
+    records = {**first.records, **later.records}
+    reports = {}
+    for nominal, robot, report in plans:
+        if nominal.key not in records:
+            continue
+        report['nominal'] = _row(records[nominal.key])
+        for seed in seeds:
+            keys = [s.key for s in robot if s.key[1] == seed]
+            if all(key in records for key in keys):
+                before = records[keys[0]]
+                run = report['runs'][str(seed)] = {
+                    'before': before['before'],
+                    'sessions': {key[2]: _row(records[key]) for key in keys[1:]}}
+                if 'tracking' in before:
+                    run['tracking'] = before['tracking']
+        if report['runs']:
+            reports[report['task']] = report
+    if not reports:
+        raise RuntimeError('no session of the sweep finished: '
+                           + '; '.join(first.missing() + later.missing()))
+    return {'tasks': reports, 'runner': later.runner,
+            'nodes': {node: first.nodes.get(node, 0) + later.nodes.get(node, 0)
+                      for node in {**first.nodes, **later.nodes}},
+            'missing': first.missing() + later.missing()}
 
 
 def _percent(share: float) -> str:
@@ -275,4 +360,9 @@ def format_table(report: dict) -> str:
                          f"{tracking('oracle'):.4f} | {tracking('ilc'):.4f} "
                          f"({r['ilc_iterations']} steps) | "
                          + ' | '.join(f'{learned(w):.4f}' for w in ways) + ' |')
+    if 'runner' in report:
+        lines += ['', f"sessions run {report['runner']}; per node: " + ', '.join(
+            f'{node} {count}' for node, count in report['nodes'].items())]
+    for missing in report.get('missing', []):
+        lines.append(f'MISSING (failed twice, left out of its rows): {missing}')
     return '\n'.join(lines) + '\n'

@@ -9,13 +9,40 @@ from psl_optimizer.metrics import read_metrics
 from psl_task.task import load_task
 
 
+TINY = dict(tasks=['payload_transport'], nominal_tasks=2, num_tasks=2, num_test=2, budget=20,
+            ilc_iterations=2, seeds=[11, 12], robot_gains=0.5,
+            measurement_noise='velocity=0.01')
+
+
 @pytest.fixture(scope='module')
 def tiny(tmp_path_factory):
     out = tmp_path_factory.mktemp('s2r')
-    report = sim_to_real.run(tasks=['payload_transport'], nominal_tasks=2, num_tasks=2,
-                             num_test=2, budget=20, ilc_iterations=2, seeds=[11, 12],
-                             robot_gains=0.5, measurement_noise='velocity=0.01', out=out)
-    return report, out
+    return sim_to_real.run(**TINY, out=out), out
+
+
+def test_its_sessions_as_ray_tasks_give_the_same_report(tiny, tmp_path):
+    """Each session has its own noisy robot: run in any order, on other processes, the same
+    numbers (noise included)."""
+    report, _ = tiny
+    on_ray = sim_to_real.run(**TINY, out=tmp_path, runner='ray')
+    assert on_ray['runner'].startswith('ray') and report['runner'] == 'serial'
+    assert on_ray['missing'] == [] and on_ray['tasks'] == report['tasks']
+    # one local cluster (a node) for both stages: the nominal session, then 4 per robot seed
+    assert list(on_ray['nodes'].values()) == [1 + 2 * 4]
+
+
+def test_a_session_alone_gives_its_row_of_the_sweep(tiny, tmp_path):
+    """A robot seed's session run by itself, without the sessions before it in the sweep:
+    the same row (its noise draws do not depend on what ran before)."""
+    report, out = tiny
+    nominal, robot, _ = sim_to_real._plans(
+        'payload_transport', sim_to_real.REAL_ROBOT, 3, 2, [12], 2, 2, 20, 2, ['samples'],
+        TINY['measurement_noise'], 0.5, tmp_path)
+    sim_to_real.learn_session(**nominal.kwargs)
+    alone = sim_to_real.learn_session(**robot[-1].kwargs)
+    assert robot[-1].key == ('payload_transport', 12, 'samples')
+    assert sim_to_real._row(alone) == report['tasks']['payload_transport']['runs']['12'][
+        'sessions']['samples']
 
 
 def test_the_sessions_run_on_the_robot_and_the_continued_ones_from_the_simulated_skill(tiny):

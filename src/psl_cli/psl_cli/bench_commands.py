@@ -182,6 +182,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help='ways of continuing the simulated skill, each a session: residual '
                    '(the default of continue_from) and/or samples')
     options.add_out(p, RUN_FOLDERS)
+    spread(p)
     p = bench('teach', 'a skill taught with 3, 5, 10 demonstrations (psl teach) against the '
               'YAML demonstration alone: rollouts for the training tasks, zero-shot after',
               task=None)
@@ -337,7 +338,8 @@ def _sim_to_real(args) -> tuple[dict, str]:
                              continuations=args.continuations,
                              measurement_noise=args.measurement_noise,
                              robot_gains=args.robot_gains, out=_folder(args.out),
-                             progress=_progress)
+                             progress=_progress, runner='serial' if args.serial else 'ray',
+                             address=args.address)
     return report, sim_to_real.format_table(report)
 
 
