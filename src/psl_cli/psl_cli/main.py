@@ -431,6 +431,7 @@ def cmd_learn(args) -> int:
         map_part = '' if args.skill_map == 'elm' else f'-{args.skill_map}'
         out = options.output_folder(args.out or f'runs/{task.name}-{args.strategy}{map_part}'
                                     f'-seed{args.seed}')
+        _check_session_folder(args, out)
     except ValueError as exc:          # TaskError too
         return fail('psl learn', exc, 2)
     stop = threading.Event()
@@ -442,6 +443,27 @@ def cmd_learn(args) -> int:
     finally:
         progress.close()
         signal.signal(signal.SIGINT, previous)
+
+
+def _check_session_folder(args, out: Path) -> None:
+    """ValueError (one line naming the folder and --out) when `out` holds a finished session
+    of at least --tasks tasks (a run would do nothing), or is the folder of the
+    --continue-from memory (the session would write over the skill it continues). A folder
+    of another session's checkpoint is refused by the learner (`SessionFolderError`)."""
+    from psl_optimizer.metrics import read_metrics
+
+    if args.continue_from and Path(args.continue_from).expanduser().resolve().parent == out:
+        raise ValueError(f'--continue-from {args.continue_from} lies in the session folder '
+                         f'{out}: the session would write over the skill it continues; give '
+                         'another --out')
+    if (out / 'metrics.json').is_file():
+        try:
+            metrics = read_metrics(out)
+        except (OSError, ValueError, KeyError):
+            return                  # not a session's metrics: the learner says what it is
+        if metrics.complete and len(metrics.tasks) >= args.tasks:
+            raise ValueError(f'{out} holds a finished session ({len(metrics.tasks)} tasks, '
+                             f'its metrics.json): give another --out (or psl plot {out})')
 
 
 def _learner(args) -> str:
@@ -521,7 +543,7 @@ def _learn_here(args, task, out: Path, stop: threading.Event, progress, workers,
                 instances=None, node=None) -> int:
     """The session in this process; with the graph's `node` (graph mode, instances from a
     topic) it publishes its learning curve on the graph as the learner node does."""
-    from psl_optimizer.learning import Learner, LearnSettings
+    from psl_optimizer.learning import Learner, LearnSettings, SessionFolderError
     from psl_optimizer.policy_search import SearchSettings
     from psl_optimizer.rollout_modes import make_rollouts
     from psl_optimizer.rollouts import Stopped
@@ -558,6 +580,9 @@ def _learn_here(args, task, out: Path, stop: threading.Event, progress, workers,
                 print(f'psl learn: warning: task {record.index + 1}: {record.failed} rollouts '
                       f'not scored ({record.failure}); each got the penalty', file=sys.stderr)
         metrics = learner.run(progress=finished, should_stop=stop.is_set)
+    except SessionFolderError as exc:
+        progress.close()
+        return fail('psl learn', f'{exc} (--out)', 2)
     except ValueError as exc:
         progress.close()
         return fail('psl learn', exc, 2)

@@ -6,6 +6,7 @@ The memory-node cases start one skill_memory process (the session's ROS_DOMAIN_I
 and a namespace of its own; ended by PID); the no-graph cases use a namespace nothing serves;
 the recorder case publishes from a node of its own in this process (its own rclpy context).
 """
+import json
 import os
 import re
 import signal
@@ -115,6 +116,37 @@ def test_budget_zero_is_the_default_budget(tmp_path):
     zero, default = runs.values()
     assert zero['settings']['search']['max_rollouts'] == SearchSettings.max_rollouts
     assert zero['settings'] == default['settings']
+
+
+def test_learn_never_does_nothing_in_a_folder_of_another_or_a_finished_session(tmp_path):
+    """psl learn run twice with the same --out: a finished session is refused (not reprinted
+    with exit 0); another session's checkpoint (another seed, a continuation) is refused in
+    one line naming what differs; a memory to continue inside the session's own folder is
+    refused; more tasks than the session holds go on from its checkpoint."""
+    out = tmp_path / 'run'
+    quick = ['--test-tasks', '1', '--budget', '5', '-o', out]
+    done = run(['learn', '--tasks', '2'] + quick, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    before = (out / 'metrics.json').read_text()
+    for args, words in (
+            (['--tasks', '2'], [str(out), 'finished session', '--out']),
+            (['--tasks', '1'], [str(out), 'finished session', '--out']),
+            (['--tasks', '3', '--seed', '1'], [str(out), 'another session',
+                                               'seed 0 there, 1 here', '--out']),
+            (['--tasks', '3', '--continue-from', out / 'memory.npz'],
+             ['lies in the session folder', '--out']),
+            (['--tasks', '3', '--continue-from', tmp_path / 'elsewhere.npz'],
+             ['another session', 'continue_from none there', '--out'])):
+        if 'elsewhere.npz' in str(args):
+            (tmp_path / 'elsewhere.npz').write_bytes((out / 'memory.npz').read_bytes())
+        refused = run(['learn'] + args + quick, cwd=tmp_path)
+        assert refused.returncode == 2, refused
+        assert_one_line(refused, 'psl learn', *words)
+        assert (out / 'metrics.json').read_text() == before     # nothing changed
+    longer = run(['learn', '--tasks', '3'] + quick, cwd=tmp_path)
+    assert longer.returncode == 0, longer.stderr
+    assert 'rollouts over 3 tasks' in longer.stdout
+    assert len(json.loads((out / 'metrics.json').read_text())['tasks']) == 3
 
 
 def test_learn_progress_is_one_plain_line_per_task_when_stderr_is_no_terminal(tmp_path):

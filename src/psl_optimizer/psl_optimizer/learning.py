@@ -416,6 +416,18 @@ def _plain(value):
     return json.loads(json.dumps(value))
 
 
+class SessionFolderError(ValueError):
+    """A session's folder holds another session (its checkpoint's settings differ), or more
+    tasks than this session has: it is not resumed."""
+
+
+def _brief(value, width: int = 60) -> str:
+    """A setting's value for a one-line message ('' as 'none'), at most `width` characters."""
+    text = json.dumps(value, sort_keys=True) if not isinstance(value, str) else (value
+                                                                                 or 'none')
+    return text if len(text) <= width else text[:width - 3] + '...'
+
+
 class Learner:
     """Runs one learning session of one task, checkpointing into `out`.
 
@@ -482,6 +494,7 @@ class Learner:
         return {'task': self.task.name, 'strategy': s.strategy, 'seed': s.seed,
                 'task_selection': s.task_selection, 'model_error': s.model_error,
                 'measurement_noise': s.measurement_noise, 'confirm': list(s.confirm),
+                'continue_from': s.continue_from, 'continuation': s.continuation,
                 **{key: _plain(getattr(s, key)) for key in RESUMED_SETTINGS}}
 
     def _load_checkpoint(self) -> list[TaskRecord]:
@@ -492,11 +505,20 @@ class Learner:
         mine = self._identity()
         state.setdefault('task_selection', 'random')      # checkpoints from before the option
         for key, value in (('model_error', ''), ('measurement_noise', ''), ('confirm', [1, 1]),
+                           ('continue_from', mine['continue_from']),
+                           ('continuation', mine['continuation']),
                            *((key, mine[key]) for key in RESUMED_SETTINGS)):
             state.setdefault(key, value)                   # checkpoints from before them
-        if any(state.get(k) != v for k, v in mine.items()):
-            raise ValueError(f'{self.out} holds a checkpoint of another session '
-                             f'({ {k: state.get(k) for k in mine} }); use another folder')
+        differ = [key for key, value in mine.items() if state.get(key) != value]
+        if differ:
+            raise SessionFolderError(
+                f'{self.out} holds a checkpoint of another session ('
+                + '; '.join(f'{key} {_brief(state.get(key))} there, {_brief(mine[key])} here'
+                            for key in differ) + '): use another folder')
+        if len(state['tasks']) > self.settings.num_tasks:
+            raise SessionFolderError(
+                f"{self.out} holds a session of {len(state['tasks'])} tasks done, more than "
+                f'the {self.settings.num_tasks} of this one: use another folder')
         # the memory of the checkpoint's moment: the file it names if a kill left it there,
         # else memory.npz, which it replaced
         named = self.out / Path(str(state.get('memory', self.memory_path.name))).name
