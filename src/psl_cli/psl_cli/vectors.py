@@ -11,10 +11,11 @@ NPY_MAGIC = b'\x93NUMPY'        # the first bytes of an .npy file (numpy.lib.for
 
 
 def load_vector(path: str | Path) -> np.ndarray:
-    """A flat vector of finite floats from a file: an .npy array (any shape, flattened), a
-    .json list (nested lists are flattened) or, under any other name, whitespace-separated
-    text (``#`` starts a comment). What the content is, not the name, decides between .npy and
-    the others: an .npz archive (several named arrays, `np.savez`) is refused.
+    """A flat vector of finite floats from a file: an .npy array (any shape, flattened); JSON
+    (a list, nested lists flattened, or an object with a ``theta`` list: what ``psl query
+    --json`` prints); ``psl query``'s text (its ``theta: [...]`` line); or whitespace-separated
+    numbers (``#`` starts a comment). What the content is, not the name, decides: an .npz
+    archive (several named arrays, `np.savez`) is refused.
 
     Raises:
         ValueError: the file is missing, a directory, unreadable, an .npz archive, not of its
@@ -38,11 +39,8 @@ def load_vector(path: str | Path) -> np.ndarray:
             vector = np.load(file, allow_pickle=False)
         elif file.suffix == '.npy':
             raise ValueError('not an .npy file (no NumPy header)')
-        elif file.suffix == '.json':
-            vector = json.loads(data.decode())
         else:
-            vector = [float(word) for line in data.decode().splitlines()
-                      for word in line.split('#', 1)[0].split()]
+            vector = _from_text(data.decode())
         vector = np.asarray(vector, dtype=float).ravel()
     except UnicodeDecodeError:
         raise ValueError(f'{file} is not text (and not an .npy file)') from None
@@ -53,3 +51,21 @@ def load_vector(path: str | Path) -> np.ndarray:
     if not np.all(np.isfinite(vector)):
         raise ValueError(f'{file} holds values that are not finite (NaN or inf)')
     return vector
+
+
+def _from_text(text: str):
+    """The numbers of a text file (`load_vector`): JSON, psl query's ``theta:`` line, or
+    whitespace-separated numbers."""
+    stripped = text.strip()
+    if stripped[:1] in ('[', '{'):
+        value = json.loads(stripped)
+        if isinstance(value, dict):
+            if 'theta' not in value:
+                raise ValueError(f"a JSON object without 'theta' (keys: {', '.join(value)})")
+            value = value['theta']
+        return value
+    for line in text.splitlines():
+        if line.startswith('theta:'):                 # psl query's text answer
+            return json.loads(line.split(':', 1)[1])
+    return [float(word) for line in text.splitlines()
+            for word in line.split('#', 1)[0].split()]
