@@ -26,8 +26,9 @@ deviation, min, max):
   held-out tasks) and the share of it spent in the simulation
   (`BatchRollouts.simulation_seconds`), kept in the run folder (``bench_session.json``);
   ``ik_share`` and ``ik_ms_per_path``: of an end-effector-space task, the share spent in the
-  differential inverse kinematics and its wall time per candidate's path
-  (`TaskPolicy.ik_seconds`, ``ik_paths``);
+  differential inverse kinematics and its wall time per candidate's path it solved
+  (`TaskPolicy.ik_seconds`, ``ik_paths``); ``ik_paths`` and ``ik_reused``: the paths it
+  solved and those it took again (a theta_K seen before, `TaskPolicy._hand_path`);
 - ``consistency_<block>`` (a skill of the skill memory): how well the skill's samples agree
   with each other, per block of theta (the DMP weights, a learned goal, the feed-forward):
   the leave-one-out error of the skill's mean on its own samples (`sample_consistency`), as a
@@ -59,7 +60,8 @@ from psl_task import DEFAULT_TASK
 
 TARGETS = {'speedup': 5.0, 'zero_shot_success': 0.8}   # bootstrap vs scratch; every strategy
 SESSION_FILE = 'bench_session.json'   # a run folder's session and simulation time
-TIMINGS = ('session_seconds', 'simulation_share', 'ik_share', 'ik_ms_per_path')
+TIMINGS = ('session_seconds', 'simulation_share', 'ik_share', 'ik_ms_per_path',
+           'ik_paths', 'ik_reused')
 # a task with a target: the hand's final miss on the held-out instances, mean over them (the
 # orientation where the reward scores it)
 HAND_ERRORS = {'held_out_goal_error': 'goal_error',                 # m
@@ -302,7 +304,7 @@ def learn_session(task_name: str, settings, folder: str, after: int, threads: in
         rollouts = BatchRollouts(task, n_threads=threads)
         policy = rollouts.policy        # whose references the rollouts solve (their IK)
         start, simulated = time.perf_counter(), rollouts.simulation_seconds
-        solving, paths = policy.ik_seconds, policy.ik_paths
+        solving, paths, reused = policy.ik_seconds, policy.ik_paths, policy.ik_reused
         Learner(task, settings, folder, rollouts=rollouts).run()
         session = time.perf_counter() - start
         # the session's wall time and its shares spent simulating and in the inverse
@@ -312,7 +314,9 @@ def learn_session(task_name: str, settings, folder: str, after: int, threads: in
         if policy.ik_paths > paths:
             timing.update(ik_share=(policy.ik_seconds - solving) / session,
                           ik_ms_per_path=1e3 * (policy.ik_seconds - solving)
-                          / (policy.ik_paths - paths))
+                          / (policy.ik_paths - paths),
+                          ik_paths=policy.ik_paths - paths,
+                          ik_reused=policy.ik_reused - reused)
         (folder / SESSION_FILE).write_text(json.dumps(timing))
     record = read_run(folder, after)
     record['reused'] = reused
@@ -430,7 +434,10 @@ def format_table(report: dict) -> str:
     if any('ik_share' in row for row in rows.values()):
         lines.append('of it in the differential inverse kinematics (per candidate\'s path): '
                      + ', '.join(f"{name} {100 * row['ik_share']['mean']:.0f} % "
-                                 f"({row['ik_ms_per_path']['mean']:.1f} ms)"
+                                 f"({row['ik_ms_per_path']['mean']:.1f} ms"
+                                 + (f"; {row['ik_paths']['mean']:.0f} paths solved, "
+                                    f"{row['ik_reused']['mean']:.0f} taken again"
+                                    if 'ik_paths' in row else '') + ')'
                                  for name, row in rows.items() if 'ik_share' in row))
     if any('held_out_goal_error' in row for row in rows.values()):
         lines.append('the hand\'s final miss on the held-out instances (mean): ' + ', '.join(
