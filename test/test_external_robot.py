@@ -237,7 +237,7 @@ class Recorder:
         from std_msgs.msg import Float64MultiArray
         self.lock = threading.Lock()
         self.states = []        # (sent [ns], stamp [ns], names, positions, sequence number)
-        self.commands = []      # (sent [ns], torques)
+        self.commands = []      # (sent [ns], torques, sequence number)
         self.path = HotPath(node, 'recorder', pause=0.01)
         self.path.subscribe(JointState, '/joint_states', self.on_state, WHOLE_EPISODE,
                             info=True)
@@ -258,7 +258,23 @@ class Recorder:
 
     def on_command(self, msg, info) -> None:
         with self.lock:
-            self.commands.append((info['source_timestamp'], np.array(msg.data)))
+            self.commands.append((info['source_timestamp'], np.array(msg.data),
+                                  info['publication_sequence_number']))
+
+    def commands_through(self, t: int) -> list | None:
+        """The commands received, in the order they were sent, once they are complete up to
+        one sent after `t` (their publisher's sequence numbers without a hole from the first
+        received on); None before. A command this reader missed comes again from its
+        publisher's history on a later heartbeat, after newer ones (seen under load: the zero
+        torques of a silence taken after the torques that followed it)."""
+        with self.lock:
+            commands = sorted(self.commands, key=lambda c: c[2])
+        numbers = [c[2] for c in commands]
+        if not numbers or max(c[0] for c in commands) <= t:
+            return None
+        if numbers != list(range(numbers[0], numbers[0] + len(numbers))):
+            return None
+        return sorted(((sent, u) for sent, u, _ in commands), key=lambda c: c[0])
 
     def count(self) -> int:
         with self.lock:
@@ -277,7 +293,7 @@ class Recorder:
         `t0` to `around` after `t1` (for a failure's message)."""
         with self.lock:
             events = sorted([(s[0], f'state {s[4]}') for s in self.states]
-                            + [(c[0], f'torque {np.round(c[1], 4).tolist()}')
+                            + [(c[0], f'torque {np.round(c[1], 4).tolist()} #{c[2]}')
                                for c in self.commands])
         sent = [e[0] for e in events]
         lo = max(0, int(np.searchsorted(sent, t0)) - 2 * around)
@@ -473,8 +489,9 @@ class TestMinimalRobot:
         # the robot published no state between these two that this test did not receive
         assert back_seq == last_seq + 1, (
             f'the test lost states {last_seq + 1}..{back_seq - 1} of the robot at the silence')
-        with recorder.lock:
-            commands = sorted(recorder.commands, key=lambda c: c[0])
+        until(lambda: recorder.commands_through(back) is not None, START_TIMEOUT,
+              "every command of the controller up to one after the states' return", robot)
+        commands = recorder.commands_through(back)
         zero = next((sent for sent, u in commands if not np.any(u)), None)
         assert zero is not None, 'the controller never commanded zero torque'
         timeline = recorder.timeline(last, back)

@@ -44,6 +44,10 @@ EFFORT_TRACKING = 0.025     # rad
 POSITION_TRACKING = 0.015   # rad
 GOAL_TOLERANCE = 0.01       # rad, asked for in the goals that must succeed
 AT_REST = 0.02              # rad/s: mean |velocity| over REST_STATES states of an arm at rest
+# the robot's joint-state publisher keeps a second of states (jtc_robot.py: depth 1 / period)
+# for a reader that missed some; past 1.5 s the missed ones are not coming (margin for delivery)
+HISTORY_NS = 1_500_000_000
+MIN_COMPARED = 200          # states of a quintic's 1.7 s (850 at 500 Hz) compared at least
 REST_STATES = 50
 STEP_HOLD = 0.05            # rad the arm may move on after a cancel
 
@@ -300,15 +304,17 @@ def follow_a_quintic(arm: Arm, tracking: float, effort=None):
     assert (status, result.error_code, result.error_string) == (
         GoalStatus.STATUS_SUCCEEDED, Result.SUCCESSFUL, 'Goal successfully reached!')
     t1 = t0 + round((T + 0.2) * 1e9)
-    def whole():
-        # every state of the motion here: one this reader missed (a moment it could not take
-        # them) comes again from the robot's history of a second, on a later heartbeat, after
-        # newer ones (seen: a hole of 0.33 s the moment the newest state passed t1)
-        stamps = arm.states_between(t0, t1)[0]
-        return len(stamps) > 100 and np.diff(stamps).max() < 0.1e9
-    arm.until(lambda: arm.states[-1][0] > t1 and whole(), 10,
-              'the states up to 0.2 s after the end, none more than 0.1 s apart')
+    # the states of the motion this reader will ever have: one it missed (a moment it could
+    # not take them) comes again from the robot's history of a second on a later heartbeat,
+    # after newer ones, or, once out of that history, never (seen under load: a hole of
+    # 0.33 s filled late; another never). So it waits for a state stamped past that history
+    # (the robot's clock), then compares the states it has: each is the robot's, and a lost
+    # one is not compared (at least MIN_COMPARED of the motion's)
+    arm.until(lambda: arm.states[-1][0] > t1 + HISTORY_NS, 10 + T,
+              "a state stamped past the robot's history of the motion's states")
     stamps, q = arm.states_between(t0, t1)
+    assert len(stamps) >= MIN_COMPARED, (
+        f'{len(stamps)} states of the motion reached this test, fewer than {MIN_COMPARED}')
     reference = np.array([at((s - t0) * 1e-9)[0] for s in stamps])
     worst = np.abs(q - reference).max()
     assert worst < tracking, f'{worst:.4f} rad off the quintic'
