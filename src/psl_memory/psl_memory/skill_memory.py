@@ -163,7 +163,7 @@ class SkillMemory:
         clash = sorted(set(other.skills) & set(self.skills))
         if clash and not replace:
             raise ValueError(f'the memory holds skill(s) {", ".join(map(repr, clash))} '
-                             'already; load with replace to replace them')
+                             'already; load with replace to replace them (psl memory load --replace)')
         if len(set(self.skills) | set(other.skills)) > self.limits.max_skills:
             raise ValueError(f'the memory would hold more than {self.limits.max_skills} skills '
                              '(max_skills)')

@@ -27,8 +27,8 @@ chain, and arm joints off it (their column of J would be zero), are refused with
 `IKError`: use `DifferentialIK` for such a model.
 
 Used by `psl_task.inverse_kinematics` (to check interpolated samples along a whole path) and
-`psl_task.population_ik` (the kinematics of a population's step). Imports no ROS; calls
-MuJoCo only to build the chain.
+the tests' `PopulationIK` (src/psl_task/test/test_population_ik.py: the kinematics of a
+population's step). Imports no ROS; calls MuJoCo only to build the chain.
 
 References
 ----------
