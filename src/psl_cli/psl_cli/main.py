@@ -194,6 +194,7 @@ def _up_options(p: argparse.ArgumentParser) -> None:
     from psl_controller.parameters import COMMAND_INTERFACES, STATE_TIMEOUT
     from psl_ros.graph import LOG_ROOT_VARIABLE, ROBOT_KINDS, ROBOTS, SIM_MODES
     from psl_ros.view_parameters import DEFAULT_PORT
+    from psl_task.schema import RESETS
 
     options.add_task(p)
     p.add_argument('--mode', choices=SIM_MODES, default=SIM_MODES[0])
@@ -201,7 +202,7 @@ def _up_options(p: argparse.ArgumentParser) -> None:
     p.add_argument('--workers', type=options.non_negative_int, default=0,
                    help='N rollout workers (sim, controller, executor, evaluator) under '
                    '<namespace>/worker0..N-1; the learner spreads a population over them')
-    p.add_argument('--reset', choices=('teleport', 'drive'), default='',
+    p.add_argument('--reset', choices=RESETS, default='',
                    help="how each episode begins: teleport the arm to the start posture "
                    '(simulation only) or drive it there through the controller (a homing '
                    "quintic within the task's homing limits, then settled); default: the "

@@ -39,7 +39,7 @@ from rclpy.parameter import Parameter
 from psl_controller.episode import Episode, Outcome, RobotError
 from psl_controller.parameters import ExecutorParameters
 from psl_controller.policy import TaskPolicy, policy_for
-from psl_controller.robot_link import RobotLink, trajectory_msg
+from psl_controller.robot_link import ACK_TIMEOUT, PARAMETER_TIMEOUT, RobotLink, trajectory_msg
 from psl_msgs.action import ExecuteRollout
 from psl_msgs.msg import GoalUpdate, RolloutEvaluation, TaskInstance
 from psl_msgs.srv import EvaluateEpisode
@@ -55,7 +55,6 @@ from psl_task.arm_model import ArmModel, joint_names_of
 from psl_task.safety_check import SafetyCheck, Verdict
 from psl_task.task import TaskDefinition, TaskError, load_task, task_id
 
-PARAMETER_TIMEOUT = 5.0  # s for psl's controller's parameter service (asked up to three times)
 EVALUATION_TIMEOUT = 30.0   # s for the evaluator's answer beyond the time it waits for states
 
 
@@ -173,7 +172,7 @@ class DMPExecutor(Node):
     def _evaluate(self, task: TaskDefinition, outcome: Outcome) -> RolloutEvaluation:
         """The evaluator's score of the episode (RuntimeError when it cannot give one)."""
         client = self.evaluator
-        if not client.wait_for_service(timeout_sec=5.0):
+        if not client.wait_for_service(timeout_sec=ACK_TIMEOUT):
             raise RuntimeError(f'the reward_evaluator service {client.srv_name} is not '
                                'available')
         link = self.link

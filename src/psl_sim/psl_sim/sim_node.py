@@ -59,9 +59,10 @@ from psl_ros.qos import LATCHED, RELIABLE, WORLD_POSES
 from psl_ros.service import create_service
 from psl_ros.stamps import NS_PER_S, time_msg
 from psl_ros.step_timing import StepTiming
+from psl_task.schema import RESETS
 from psl_task.task import TaskError, load_task
 
-RESET_MODES = ('teleport', 'drive', 'probe')     # ResetTask.mode
+RESET_MODES = (*RESETS, 'probe')     # ResetTask.mode: an episode's resets, and a probe
 CONTROLLER = 'pd_controller'     # the node whose effort_command an episode takes
 UNKNOWN_NODE = '_UNKNOWN_'       # rmw's node name of an endpoint whose node is not known yet
 NAME_PATIENCE = 2.0              # s to wait for it
