@@ -6,7 +6,7 @@ numpy and scipy ship OpenBLAS built for every x86-64 CPU kind (DYNAMIC_ARCH); at
 picks the kernels of the CPU it finds, or those named by ``OPENBLAS_CORETYPE``. The kernels
 block and sum matrix products in different orders, so a product of the same numbers can
 differ in its last bits from one CPU kind to another (measured: a learning session's results
-by up to 4.3e-11 relative after hundreds of rollouts, README "What is equal to what"). Used by the
+by up to 4.3e-11 relative after hundreds of rollouts, docs/testing.md "What is equal to what"). Used by the
 suite's kernel sweeps (`run_per_kernel`) and by the learning identity
 (`psl_bench.learning_identity`).
 """

@@ -1,5 +1,5 @@
 """psl bench memories on a small synthetic session: the mean reference against an independent
-computation, and the README's ranking (AELM and ARBF complete held-out [tau, theta] far better
+computation, and the ranking in docs/benchmarks.md ("memories") (AELM and ARBF complete held-out [tau, theta] far better
 than the mean; Hopfield's tau -> theta is no better than the mean)."""
 import numpy as np
 import pytest
@@ -15,7 +15,7 @@ NUM_SAMPLES, THETA_DIM, STRIDE = 20, 6, 2        # 10 held-out pairs
 # of the mean, ARBF at most 0.32 (either direction); Hopfield's tau -> theta 0.82-1.02 of the
 # mean (even started at the held-out answer itself it drifts to 0.73). A memory that does not
 # complete (answers its start, about the mean) fails the first bound; a Hopfield network that
-# resolves neighbouring samples fails the second, and then the README's ranking is wrong.
+# resolves neighbouring samples fails the second, and then the ranking in docs/benchmarks.md ("memories") is wrong.
 BELOW_MEAN = 0.5             # aelm, arbf: nRMSE < BELOW_MEAN x the mean's, both directions
 HOPFIELD_NOT_BELOW = 0.7     # hopfield tau -> theta: nRMSE >= this x the mean's
 

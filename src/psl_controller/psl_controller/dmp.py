@@ -292,7 +292,7 @@ class DMP(GatedAttractor):
         """`integrate` for B thetas at once (the DMP's own theta is not changed): y, yd, ydd
         of shape (B, N+1, n_dims), row b `integrate` after ``set_theta(thetas[b])`` within
         rounding: the products have other shapes, which BLAS may sum in another order, by CPU
-        (README, "What is equal to what").
+        (docs/testing.md, "What is equal to what").
 
         Args:
             dt: step in seconds (> 0).

@@ -1,6 +1,6 @@
 """A population's references in one pass equal the references one by one, within rounding.
 
-What is promised (README, "Tests: what is equal to what"): the population's matrix products
+What is promised (docs/testing.md, "What is equal to what"): the population's matrix products
 have other shapes than one rollout's, so BLAS may block and sum them in another order, and
 which order it takes depends on the CPU (OpenBLAS chooses its kernels by CPU and by shape:
 with its SkylakeX kernels the two agree bit for bit, with its Haswell kernels, which AMD EPYC

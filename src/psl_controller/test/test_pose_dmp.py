@@ -75,7 +75,7 @@ def test_a_population_row_is_the_single_integration():
         pose.set_theta(theta)
         single = pose.integrate(DT, 1.2)
         # the forcing of both is one matrix product, which BLAS may sum in another order for
-        # another population size (README, "What is equal to what"): within rounding
+        # another population size (docs/testing.md, "What is equal to what"): within rounding
         np.testing.assert_allclose(population.quat[row], single.quat, rtol=0, atol=1e-12)
         np.testing.assert_allclose(population.y[row], single.y, rtol=0, atol=1e-12)
 

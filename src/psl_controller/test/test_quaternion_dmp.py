@@ -24,7 +24,7 @@ TOL_REFERENCE_PER_DT = 3.0  # rad per s of dt: against RK45, continuous forcing 
 TOL_HELD_PER_DT = 0.5  # rad per s of dt: against RK45, forcing held per step (measured 0.32)
 FIT_TOL = 1e-4  # rad: fit + integrate against the demonstration, 40 Gaussians (measured 3.1e-5)
 FIT_EXACT_TOL = 1e-7  # rad: the same, a Gaussian per grid point (measured 3.7e-9)
-ULPS = 16  # population against one by one: ulps of a field's largest magnitude (README)
+ULPS = 16  # population against one by one: ulps of a field's largest magnitude (docs/testing.md)
 
 RNG_SEED = 7
 

@@ -4,7 +4,7 @@
 finished training task (also the content of ``checkpoint.json``) and, once every task is done,
 the `Summary` of the zero-shot test on held-out instances. The learner writes it; the CLI, the
 plots and the benchmarks read it with `read_metrics`, never by string keys of their own. The
-JSON layout is the file format (documented in the README): flat keys, one JSON object.
+JSON layout is the file format (documented in docs/learning.md): flat keys, one JSON object.
 Imports no ROS.
 """
 from __future__ import annotations
