@@ -34,7 +34,7 @@ def test_a_pose_goal_change_is_scored_against_the_new_orientation(client, graph_
     here from the measured joints by MuJoCo)."""
     import mujoco
 
-    from psl_controller import quaternion
+    from psl_task import quaternion
     from psl_task.arm_model import ArmModel
     from psl_task.task import task_id
     task = load_task(graph_task)

@@ -9,7 +9,7 @@ velocity omega (base frame, rad/s) and its scaled form ``eta = tau omega``::
 
 where ``*`` is the quaternion product, eta enters the product as the pure quaternion
 ``[0, eta]`` and ``2 log(g * conj(q))`` is the rotation vector that turns q into the goal g
-(:func:`psl_controller.quaternion.log_map`, the shorter way). The paper's gains
+(:func:`psl_task.quaternion.log_map`, the shorter way). The paper's gains
 ``alpha_z (beta_z 2 log(...) - eta)`` are ``k_s = alpha_z beta_z``, ``k_d = alpha_z``; tau is
 :class:`~psl_controller.dmp.DMP`'s ``time_scale``, so that per axis, near the goal, the system
 is eq. 2.23 with the same gains: ``tau^2 omega_dot = k_s e - k_d tau omega + f``.
@@ -67,7 +67,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import expm
 
-from psl_controller import quaternion
+from psl_task import quaternion
 from psl_controller.dmp import GatedAttractor
 
 AXES = 3  # one forcing row per rotation axis

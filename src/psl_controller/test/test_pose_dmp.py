@@ -7,7 +7,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from psl_controller import quaternion
+from psl_task import quaternion
 from psl_controller.dmp import DMP
 from psl_controller.policy import TaskPolicy
 from psl_controller.pose_dmp import PoseDMP
@@ -153,7 +153,7 @@ def test_the_hand_follows_the_pose_dmp(pose_task):
 def test_the_default_hand_pose_is_the_targets(pose_task):
     """The demonstration ends at the goal posture, where the target section's pose is the
     palm's: the default theta's hand ends on the default target, position and orientation."""
-    from psl_task.site_chain import quaternion_of
+    from psl_task.quaternion import quaternion_of
     policy = TaskPolicy(pose_task)
     x, quat = hand_pose(pose_task, policy.reference(policy.default_theta).q[-1:])
     target, rotation = pose_task.target_of(None)

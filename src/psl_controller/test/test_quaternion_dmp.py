@@ -12,7 +12,7 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation, Slerp
 
-from psl_controller import quaternion
+from psl_task import quaternion
 from psl_controller.dmp import DMP
 from psl_controller.quaternion_dmp import QuaternionDMP
 

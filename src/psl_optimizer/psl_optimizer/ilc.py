@@ -45,12 +45,12 @@ import dataclasses
 
 import numpy as np
 
-from psl_controller import quaternion
 from psl_controller.pd_law import PDLaw
 from psl_controller.policy import TaskPolicy
 from psl_optimizer.policy_search import SearchResult
 from psl_optimizer.rollouts import RolloutResult, Rollouts
-from psl_task.site_chain import quaternion_of
+from psl_task import quaternion
+from psl_task.quaternion import quaternion_of
 
 
 @dataclasses.dataclass(frozen=True)

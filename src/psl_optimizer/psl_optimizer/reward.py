@@ -23,7 +23,7 @@ from typing import Mapping
 import mujoco
 import numpy as np
 
-from psl_controller import quaternion
+from psl_task import quaternion
 from psl_task import reward_components
 from psl_task.reward_components import ComponentFailed
 from psl_task.reward_geometry import Measurements, RewardGeometry

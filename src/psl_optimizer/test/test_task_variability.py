@@ -301,7 +301,7 @@ def test_an_ilc_step_turns_the_goal_orientation_by_the_hands_miss():
     the goal point takes the position miss off as in point_reach_3d."""
     import mujoco
 
-    from psl_controller import quaternion
+    from psl_task import quaternion
     from psl_optimizer.ilc import ILCSettings, ilc_step
     from psl_task.arm_model import ArmModel
     task = load_task('pose_reach_3d')

@@ -140,7 +140,8 @@ import mujoco
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from psl_task.site_chain import IKError, SiteChain, orientation_error
+from psl_task.quaternion import orientation_error
+from psl_task.site_chain import IKError, SiteChain
 
 ORIENTATION_WEIGHT = 0.1   # m/rad: 1 rad of orientation error weighs as 0.1 m of position error
 QUATERNION_NORM_TOLERANCE = 1e-6   # |q| of an orientation reference may be off 1 by this much

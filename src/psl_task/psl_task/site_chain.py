@@ -40,6 +40,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from psl_task.quaternion import quaternion_of
+
 
 class IKError(ValueError):
     """Input the inverse kinematics or its kinematic chain refuses: wrong shapes, non-finite
@@ -68,64 +70,6 @@ def _homogeneous(pos: np.ndarray, quat: np.ndarray) -> np.ndarray:
 def _skew(a: np.ndarray) -> np.ndarray:
     """[a]_x (3, 3): [a]_x v = a x v."""
     return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-
-
-# 4 q q^T (Bar-Itzhack 2000) as an affine function of a rotation matrix's 9 entries r
-# (row-major): r @ _QUAT_LINEAR + _QUAT_CONSTANT, flattened to 16 (on the diagonal
-# 4 w^2 = 1 + r00 + r11 + r22, ..., off it 4 w x = r21 - r12, ...)
-def _quaternion_map() -> tuple[np.ndarray, np.ndarray]:
-    rows = {(0, 0): {0: 1, 4: 1, 8: 1}, (1, 1): {0: 1, 4: -1, 8: -1},
-            (2, 2): {0: -1, 4: 1, 8: -1}, (3, 3): {0: -1, 4: -1, 8: 1},
-            (0, 1): {7: 1, 5: -1}, (0, 2): {2: 1, 6: -1}, (0, 3): {3: 1, 1: -1},
-            (1, 2): {1: 1, 3: 1}, (1, 3): {2: 1, 6: 1}, (2, 3): {5: 1, 7: 1}}
-    linear, constant = np.zeros((9, 16)), np.zeros(16)
-    for (i, j), terms in rows.items():
-        for entry, sign in terms.items():
-            linear[entry, 4 * i + j] = linear[entry, 4 * j + i] = sign
-        if i == j:
-            constant[4 * i + i] = 1.0
-    return linear, constant
-
-
-_QUAT_LINEAR, _QUAT_CONSTANT = _quaternion_map()
-
-
-def quaternion_of(rot: np.ndarray) -> np.ndarray:
-    """Unit quaternions (..., 4) [w, x, y, z] of rotation matrices (..., 3, 3): the column of
-    4 q q^T (Bar-Itzhack 2000) with the largest diagonal entry, so no division by a small
-    component; the sign is that of the largest component (positive)."""
-    rot = np.asarray(rot, dtype=float)
-    k4 = (rot.reshape(rot.shape[:-2] + (9,)) @ _QUAT_LINEAR + _QUAT_CONSTANT)
-    k4 = k4.reshape(rot.shape[:-2] + (4, 4))
-    diagonal = np.diagonal(k4, axis1=-2, axis2=-1)
-    best = np.argmax(diagonal, axis=-1)[..., None, None]
-    column = np.take_along_axis(k4, best, axis=-1)[..., 0]       # 4 q q_best
-    return column / np.sqrt(np.sum(column * column, axis=-1, keepdims=True))
-
-
-def _left_conjugate(q: np.ndarray) -> np.ndarray:
-    """M (..., 4, 4) with M p = q (x) conj(p) for quaternions [w, x, y, z]."""
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    left = np.stack([np.stack([w, -x, -y, -z], -1), np.stack([x, w, -z, y], -1),
-                     np.stack([y, z, w, -x], -1), np.stack([z, -y, x, w], -1)], -2)
-    return left * np.array([1.0, -1.0, -1.0, -1.0])           # conj(p) = p * (1, -1, -1, -1)
-
-
-def rotation_vector(q: np.ndarray) -> np.ndarray:
-    """log of unit quaternions (..., 4) [w, x, y, z]: the rotation vector (..., 3) [rad] of
-    the shortest rotation (angle in [0, pi]; q and -q give the same)."""
-    w, v = q[..., 0], q[..., 1:]
-    norm = np.sqrt(np.sum(v * v, axis=-1))
-    angle = 2.0 * np.arctan2(norm, np.abs(w))
-    scale = np.copysign(angle / np.maximum(norm, 1e-300), w)    # 0 / tiny = 0 at norm 0
-    return scale[..., None] * v
-
-
-def orientation_error(quat: np.ndarray, quat_ref: np.ndarray) -> np.ndarray:
-    """|log(quat_ref (x) conj(quat))| (...,) [rad]: the angle between orientations (..., 4)."""
-    err = (_left_conjugate(np.asarray(quat_ref, dtype=float))
-           @ np.asarray(quat, dtype=float)[..., None])[..., 0]
-    return np.sqrt(np.sum(rotation_vector(err) ** 2, axis=-1))
 
 
 class SiteChain:

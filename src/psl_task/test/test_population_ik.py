@@ -83,8 +83,9 @@ import pytest
 from psl_task.arm_model import ArmModel
 from psl_task.inverse_kinematics import (ORIENTATION_WEIGHT, QUATERNION_NORM_TOLERANCE,
                                          DifferentialIK, IKError, IKResult)
-from psl_task.site_chain import (_HINGE, _SLIDE, SiteChain, _left_conjugate, orientation_error,
-                                 quaternion_of, rotation_vector)
+from psl_task.quaternion import (_left_conjugate, orientation_error, quaternion_of,
+                                  rotation_vector)
+from psl_task.site_chain import _HINGE, _SLIDE, SiteChain
 from psl_task.task import load_task
 
 

@@ -1,4 +1,8 @@
-"""Unit quaternions for orientations: product, conjugate, log and exp maps, geodesic resampling.
+"""Unit quaternions for orientations, the one module of psl's quaternion math: product,
+conjugate, log and exp maps, geodesic resampling (the pose DMP's, Ude et al. 2014); and, over
+any leading shape for the vectorised kinematics (`psl_task.site_chain`, the IK's errors), the
+quaternion of a rotation matrix (Bar-Itzhack 2000), the rotation vector and the angle between
+orientations.
 
 A quaternion is a numpy array ``[w, x, y, z]`` (scalar first; scipy's ``Rotation`` takes
 ``[x, y, z, w]``); the functions take any leading shape ``(..., 4)``. A unit quaternion ``q``
@@ -18,6 +22,9 @@ to the same rotation vector, of angle in [0, pi], and it is accurate near the id
 
 References
 ----------
+Bar-Itzhack, I. Y. (2000). New method for extracting the quaternion from a rotation matrix.
+Journal of Guidance, Control, and Dynamics, 23(6), 1085-1087.
+
 Ude, A., Nemec, B., Petric, T., Morimoto, J. (2014). Orientation in Cartesian space dynamic
 movement primitives. IEEE International Conference on Robotics and Automation (ICRA),
 2997-3004. doi:10.1109/ICRA.2014.6907291
@@ -151,3 +158,61 @@ def interpolate(t, q, t_new) -> np.ndarray:
     s = np.clip((t_new - t[index]) / (t[index + 1] - t[index]), 0.0, 1.0)  # (M,)
     arc = log_map(product(q[index + 1], conjugate(q[index])))  # (M, 3)
     return product(exp_map(s[:, None] * arc), q[index])
+
+
+# 4 q q^T (Bar-Itzhack 2000) as an affine function of a rotation matrix's 9 entries r
+# (row-major): r @ _QUAT_LINEAR + _QUAT_CONSTANT, flattened to 16 (on the diagonal
+# 4 w^2 = 1 + r00 + r11 + r22, ..., off it 4 w x = r21 - r12, ...)
+def _quaternion_map() -> tuple[np.ndarray, np.ndarray]:
+    rows = {(0, 0): {0: 1, 4: 1, 8: 1}, (1, 1): {0: 1, 4: -1, 8: -1},
+            (2, 2): {0: -1, 4: 1, 8: -1}, (3, 3): {0: -1, 4: -1, 8: 1},
+            (0, 1): {7: 1, 5: -1}, (0, 2): {2: 1, 6: -1}, (0, 3): {3: 1, 1: -1},
+            (1, 2): {1: 1, 3: 1}, (1, 3): {2: 1, 6: 1}, (2, 3): {5: 1, 7: 1}}
+    linear, constant = np.zeros((9, 16)), np.zeros(16)
+    for (i, j), terms in rows.items():
+        for entry, sign in terms.items():
+            linear[entry, 4 * i + j] = linear[entry, 4 * j + i] = sign
+        if i == j:
+            constant[4 * i + i] = 1.0
+    return linear, constant
+
+
+_QUAT_LINEAR, _QUAT_CONSTANT = _quaternion_map()
+
+
+def quaternion_of(rot: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4) [w, x, y, z] of rotation matrices (..., 3, 3): the column of
+    4 q q^T (Bar-Itzhack 2000) with the largest diagonal entry, so no division by a small
+    component; the sign is that of the largest component (positive)."""
+    rot = np.asarray(rot, dtype=float)
+    k4 = (rot.reshape(rot.shape[:-2] + (9,)) @ _QUAT_LINEAR + _QUAT_CONSTANT)
+    k4 = k4.reshape(rot.shape[:-2] + (4, 4))
+    diagonal = np.diagonal(k4, axis1=-2, axis2=-1)
+    best = np.argmax(diagonal, axis=-1)[..., None, None]
+    column = np.take_along_axis(k4, best, axis=-1)[..., 0]       # 4 q q_best
+    return column / np.sqrt(np.sum(column * column, axis=-1, keepdims=True))
+
+
+def _left_conjugate(q: np.ndarray) -> np.ndarray:
+    """M (..., 4, 4) with M p = q (x) conj(p) for quaternions [w, x, y, z]."""
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    left = np.stack([np.stack([w, -x, -y, -z], -1), np.stack([x, w, -z, y], -1),
+                     np.stack([y, z, w, -x], -1), np.stack([z, -y, x, w], -1)], -2)
+    return left * np.array([1.0, -1.0, -1.0, -1.0])           # conj(p) = p * (1, -1, -1, -1)
+
+
+def rotation_vector(q: np.ndarray) -> np.ndarray:
+    """log of unit quaternions (..., 4) [w, x, y, z]: the rotation vector (..., 3) [rad] of
+    the shortest rotation (angle in [0, pi]; q and -q give the same)."""
+    w, v = q[..., 0], q[..., 1:]
+    norm = np.sqrt(np.sum(v * v, axis=-1))
+    angle = 2.0 * np.arctan2(norm, np.abs(w))
+    scale = np.copysign(angle / np.maximum(norm, 1e-300), w)    # 0 / tiny = 0 at norm 0
+    return scale[..., None] * v
+
+
+def orientation_error(quat: np.ndarray, quat_ref: np.ndarray) -> np.ndarray:
+    """|log(quat_ref (x) conj(quat))| (...,) [rad]: the angle between orientations (..., 4)."""
+    err = (_left_conjugate(np.asarray(quat_ref, dtype=float))
+           @ np.asarray(quat, dtype=float)[..., None])[..., 0]
+    return np.sqrt(np.sum(rotation_vector(err) ** 2, axis=-1))
