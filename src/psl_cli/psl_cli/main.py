@@ -561,17 +561,14 @@ def _learn_here(args, task, out: Path, stop: threading.Event, progress, workers,
                                  continuation=args.continuation or '',
                                  measurement_noise=args.measurement_noise,
                                  confirm=args.confirm)
-        learner = Learner(task, settings, out,
-                          make_rollouts(args.mode, task, workers=workers,
-                                        should_stop=stop.is_set,
-                                        model_error=args.model_error,
-                                        measurement_noise=args.measurement_noise),
-                          instances=instances)
-        if node is not None:
-            from psl_optimizer.progress_topic import ReportedRollouts, progress_publisher
-
-            learner.rollouts = ReportedRollouts(learner.rollouts, learner,
-                                                progress_publisher(node), node.get_clock())
+        rollouts = make_rollouts(args.mode, task, workers=workers, should_stop=stop.is_set,
+                                 model_error=args.model_error,
+                                 measurement_noise=args.measurement_noise)
+        if node is None:
+            learner = Learner(task, settings, out, rollouts, instances=instances)
+        else:           # with the graph: the session the learner node runs, here
+            from psl_optimizer.progress_topic import graph_session
+            learner = graph_session(task, settings, out, rollouts, node, instances=instances)
 
         def finished(record) -> None:
             progress.finished(record.index, record.best_reward, record.fulfilled,

@@ -36,7 +36,7 @@ from psl_optimizer.learning import (CORRECTION_SUFFIX, Learner, LearnSettings,
 from psl_optimizer.policy_search import STRATEGIES, SearchSettings
 from psl_optimizer.rollout_modes import make_rollouts
 from psl_optimizer.rollouts import MODES, Rollouts, Stopped
-from psl_optimizer.progress_topic import ReportedRollouts, progress_publisher
+from psl_optimizer.progress_topic import graph_session, progress_publisher
 from psl_ros import names
 from psl_ros.action_server import ActionServer
 from psl_ros.client import MemoryClient, RolloutClient
@@ -190,9 +190,14 @@ class LearnerNode(Node):
                 instances = None if settings.task_selection != 'given' else TopicInstances(
                     self, self.parameters.tau_topic, task.validate_tau,
                     self.parameters.tau_timeout, lambda: goal_handle.is_cancel_requested)
-                learner = Learner(task, settings, out,
-                                  rollouts=self._rollouts(task, mode, goal_handle),
-                                  skill=skill, instances=instances)
+                learner = graph_session(
+                    task, settings, out, self._rollouts(task, mode, goal_handle), self,
+                    publisher=self.pub_progress, skill=skill, instances=instances,
+                    should_stop=lambda: goal_handle.is_cancel_requested,
+                    on_points=lambda points: goal_handle.publish_feedback(LearnSkill.Feedback(
+                        task_index=points[-1].task_index, rollouts=points[-1].rollout,
+                        best_reward=points[-1].best_reward,
+                        fulfilled=points[-1].task_fulfilled)))
             except (TaskError, ValueError, RuntimeError) as exc:
                 skill.release()
                 if instances is not None:
@@ -200,13 +205,6 @@ class LearnerNode(Node):
                 goal_handle.abort()
                 result.message = str(exc)
                 return result
-            learner.rollouts = ReportedRollouts(
-                learner.rollouts, learner, self.pub_progress, self.get_clock(),
-                should_stop=lambda: goal_handle.is_cancel_requested,
-                on_points=lambda points: goal_handle.publish_feedback(LearnSkill.Feedback(
-                    task_index=points[-1].task_index, rollouts=points[-1].rollout,
-                    best_reward=points[-1].best_reward,
-                    fulfilled=points[-1].task_fulfilled)))
             try:
                 metrics = learner.run()
             except (Stopped, InstanceStopped):

@@ -1,7 +1,8 @@
 """The learning curve on the graph: a session's progress points (`SessionProgress`) published
 as psl_msgs/LearningProgress on ``learning_progress``, one message per rollout, by whoever runs
 a session with the graph (the learner node; ``psl learn --learner here --mode graph``). The view
-(`psl_ros.foxglove_view`) plots them live, and ``psl record`` keeps them.
+(`psl_ros.foxglove_view`) plots them live, and ``psl record`` keeps them. `graph_session` is
+such a session, assembled in one place for the learner node and ``psl learn``.
 """
 from __future__ import annotations
 
@@ -18,6 +19,21 @@ from psl_optimizer.rollouts import Rollouts, Stopped
 from psl_optimizer.session_progress import ProgressPoint, SessionProgress
 from psl_ros import names
 from psl_ros.qos import RELIABLE
+
+
+def graph_session(task, settings, out, rollouts: Rollouts, node: Node, *, publisher=None,
+                  skill=None, instances=None, should_stop: Callable[[], bool] | None = None,
+                  on_points: Callable[[list[ProgressPoint]], None] | None = None) -> Learner:
+    """A `Learner` session run with the graph's `node`: its rollouts reported
+    (`ReportedRollouts`: its learning curve on ``learning_progress`` through `publisher`, by
+    default a new one of the node's, stamped with the node's clock; `should_stop` and
+    `on_points` as there); `skill` and `instances` as `Learner` takes them. Raises what
+    `Learner` raises (a folder of another session, a bad memory file)."""
+    learner = Learner(task, settings, out, rollouts, skill=skill, instances=instances)
+    learner.rollouts = ReportedRollouts(learner.rollouts, learner,
+                                        publisher or progress_publisher(node), node.get_clock(),
+                                        should_stop=should_stop, on_points=on_points)
+    return learner
 
 
 def progress_publisher(node: Node):
