@@ -217,7 +217,7 @@ def run(task_name: str = DEFAULT_TASK, strategies: Sequence[str] | None = None,
     """
     from psl_optimizer.learning import SKILL_MAPS, LearnSettings
     from psl_optimizer.policy_search import STRATEGIES, SearchSettings
-    from psl_task.task import load_task
+    from psl_task.task import load_task, task_id
 
     strategies = tuple(strategies or STRATEGIES)
     unknown = [s for s in strategies if s not in STRATEGIES]
@@ -254,7 +254,7 @@ def run(task_name: str = DEFAULT_TASK, strategies: Sequence[str] | None = None,
             plan.append(sessions.Session(
                 key=(seed, name), label=f"seed {seed} {row['strategy']} ({row['skill_map']})",
                 function=learn_session,
-                kwargs=dict(task_name=task_name, settings=settings, folder=str(folder),
+                kwargs=dict(task_name=task_id(task), settings=settings, folder=str(folder),
                             after=after, threads=1 if runner == 'ray' else 2)))
     try:
         swept = sessions.run(plan, runner, address, progress)

@@ -173,7 +173,7 @@ def _plans(task_name: str, model_error: str, nominal_seed: int, nominal_tasks: i
     root = root / task.name
     search = SearchSettings(max_rollouts=budget)
     # the robot's task: the task itself, or its copy with the robot controller's gains
-    real = task_name if robot_gains == 1.0 else str(robot_task(task, root, robot_gains))
+    real = task_id(task) if robot_gains == 1.0 else str(robot_task(task, root, robot_gains))
     memory = str(root / 'nominal' / 'memory.npz')
     on_robot = {'model_error': model_error, 'measurement_noise': measurement_noise}
     nominal = Session(
