@@ -7,6 +7,7 @@ exit code 2 and the reason. Numbers are printed, never stored (``-o/--out`` keep
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from pathlib import Path
@@ -377,7 +378,11 @@ def run(args) -> int:
     setting or a folder or file it cannot write, 1 when the graph could not run it."""
     command = f'psl bench {args.bench}'
     try:
-        report, table = BENCHES[args.bench](args)
+        # stdout holds the table or the JSON alone: whatever else prints while the benchmark
+        # runs goes to stderr (Ray's driver prints a dead worker's notice on stdout, from a
+        # thread of its own, even with log_to_driver off)
+        with contextlib.redirect_stdout(sys.stderr):
+            report, table = BENCHES[args.bench](args)
     except (ValueError, OSError) as exc:
         return fail(command, exc, 2)
     except (RuntimeError, TimeoutError) as exc:

@@ -52,3 +52,22 @@ def test_learn_runs_the_baselines_named_by_skill_maps(tmp_path, capsys):
     assert '| bootstrap | gp |' in out and '| bootstrap | library |' in out
     assert main(argv[:-2] + ['magic']) == 2
     assert 'unknown skill maps' in capsys.readouterr().err
+
+
+def test_json_stays_alone_on_stdout_whatever_prints_meanwhile(monkeypatch, capsys):
+    """psl bench ... --json: stdout holds the report alone, whatever prints while the
+    benchmark runs (seen: Ray's driver printing a dead worker's notice on stdout, which broke
+    the JSON of a sweep that had retried the session and was complete)."""
+    from psl_cli import bench_commands
+
+    def noisy(args):
+        print('(raylet) A worker died or was killed while executing a task')
+        return {'rows': 1}, 'the table\n'
+    monkeypatch.setitem(bench_commands.BENCHES, 'learn', noisy)
+    assert main(['bench', 'learn', '--json']) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out) == {'rows': 1}
+    assert '(raylet)' in err
+    assert main(['bench', 'learn']) == 0
+    out, _ = capsys.readouterr()
+    assert out == 'the table\n'
