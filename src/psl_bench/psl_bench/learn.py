@@ -292,8 +292,8 @@ def learn_session(task_name: str, settings, folder: str, after: int, threads: in
     metrics; returns `read_run` of the folder, with ``reused`` and a ``summary`` line.
     `threads`: of `mujoco.rollout` for a population (2: a serial sweep's sessions use both
     cores; 1: as a Ray task, the cores are the sweep's); the same results either way."""
-    from psl_optimizer.batch_rollout import BatchRollouts
     from psl_optimizer.learning import Learner
+    from psl_optimizer.rollout_modes import make_rollouts
     from psl_task.task import load_task
 
     importlib.import_module('cma')    # policy_search imports it on first use: not in a session
@@ -301,7 +301,7 @@ def learn_session(task_name: str, settings, folder: str, after: int, threads: in
     reused = _reusable(folder, settings, resumable=True)
     if not reused:
         task = load_task(task_name)
-        rollouts = BatchRollouts(task, n_threads=threads)
+        rollouts = make_rollouts('batch', task, threads=threads)
         policy = rollouts.policy        # whose references the rollouts solve (their IK)
         start, simulated = time.perf_counter(), rollouts.simulation_seconds
         solving, paths, reused = policy.ik_seconds, policy.ik_paths, policy.ik_reused

@@ -95,16 +95,13 @@ def robot_task(task, folder: Path, gains: float) -> Path:
 def _robot(task_ref: str, model_error: str, measurement_noise: str, threads: int):
     """Batch rollouts on the robot: the task `task_ref` (a name or a YAML path) with the model
     error and measurement noise; each session has its own (its noise draws count its own
-    rollouts, `MeasurementNoise`: a session's result does not depend on what ran before).
-    `threads`: of `mujoco.rollout` (the same results with any)."""
-    from psl_optimizer.batch_rollout import BatchRollouts, MeasurementNoise
-    from psl_task.model_error import ModelError
+    rollouts, `MeasurementNoise`: a session's result does not depend on what ran before)."""
+    from psl_optimizer.rollout_modes import make_rollouts
     from psl_task.task import load_task
 
     task = load_task(task_ref)
-    return task, BatchRollouts(task, n_threads=threads,
-                               model_error=ModelError.parse(model_error),
-                               measurement_noise=MeasurementNoise.parse(measurement_noise))
+    return task, make_rollouts('batch', task, model_error=model_error,
+                               measurement_noise=measurement_noise, threads=threads)
 
 
 def learn_session(task_ref: str, folder: str, settings, model_error: str = '',

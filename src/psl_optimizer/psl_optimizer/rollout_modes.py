@@ -20,7 +20,7 @@ def make_rollouts(mode: str, task: TaskDefinition, *, workers: Sequence | None =
                   timeout: float = ROLLOUT_TIMEOUT,
                   should_stop: Callable[[], bool] | None = None,
                   model_error: ModelError | str = '',
-                  measurement_noise=None) -> Rollouts:
+                  measurement_noise=None, threads: int = 2) -> Rollouts:
     """The rollouts of `mode` for `task`.
 
     Args:
@@ -29,6 +29,8 @@ def make_rollouts(mode: str, task: TaskDefinition, *, workers: Sequence | None =
             out on the graph's robot, which is what it is: only the identity is accepted.
         measurement_noise: batch mode: noise on the measured joint states
             (`psl_optimizer.batch_rollout.MeasurementNoise`, or its text); graph mode: none.
+        threads: batch mode: of `mujoco.rollout` for a population (the same results with
+            any; 1 for a session of a sweep whose cores are the sweep's).
         workers: graph mode: one `psl_ros.client.RolloutClient` per rollout worker.
         timeout: graph mode: seconds to wait for one rollout.
         should_stop: graph mode: asked between two rollouts (e.g. a cancelled goal).
@@ -44,7 +46,8 @@ def make_rollouts(mode: str, task: TaskDefinition, *, workers: Sequence | None =
         measurement_noise = MeasurementNoise.parse(measurement_noise or '')
     if mode == 'batch':
         from psl_optimizer.batch_rollout import BatchRollouts
-        return BatchRollouts(task, model_error=model_error, measurement_noise=measurement_noise)
+        return BatchRollouts(task, n_threads=threads, model_error=model_error,
+                             measurement_noise=measurement_noise)
     if mode == 'graph':
         if not (model_error.is_identity and measurement_noise.is_off):
             raise ValueError('a model error and measurement noise are for batch mode: graph '
