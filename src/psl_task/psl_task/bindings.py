@@ -42,13 +42,15 @@ class Arm(Protocol):
 class Binding(BaseModel):
     """One kind of binding; its fields are the keys of ``binds`` besides ``kind``."""
 
-    model_config = ConfigDict(frozen=True, extra='forbid')
+    model_config = ConfigDict(frozen=True, extra='forbid',
+                              use_attribute_docstrings=True)   # a key's docstring: its description
 
     kind: ClassVar[str]
     changes_model: ClassVar[bool] = False   # the model itself (a mass), not only its data
     sets_duration: ClassVar[bool] = False   # the value is the movement's duration [s]
     needs_target: ClassVar[bool] = False    # the task needs a target section
-    offset: float = 0.0                     # added to the task parameter's value
+    offset: float = 0.0
+    """Added to the task parameter's value before it is applied."""
 
     def check_range(self, name: str, low: float, high: float) -> None:
         """Raises ValueError when the parameter's range [low, high] (offset applied) does
@@ -70,7 +72,9 @@ class MocapPosition(Binding):
 
     kind: ClassVar[str] = 'mocap_position'
     body: str
+    """A mocap body of the model or the scene."""
     axis: Axis
+    """The coordinate: 0 = x, 1 = y, 2 = z (world frame)."""
 
     def applier(self, arm: Arm) -> Applier:
         mocap, axis, offset = arm.mocap(self.body), self.axis, self.offset
@@ -86,6 +90,7 @@ class BodyMass(Binding):
     kind: ClassVar[str] = 'body_mass'
     changes_model: ClassVar[bool] = True
     body: str
+    """The body whose mass the value is."""
 
     def check_range(self, name: str, low: float, high: float) -> None:
         if not low > 0.0:
@@ -106,6 +111,7 @@ class TargetPosition(Binding):
     kind: ClassVar[str] = 'target_position'
     needs_target: ClassVar[bool] = True
     axis: Axis
+    """The coordinate: 0 = x, 1 = y, 2 = z (world frame)."""
 
     def move_target(self, value: float, position: np.ndarray, angles: np.ndarray) -> None:
         position[self.axis] = value
@@ -117,6 +123,7 @@ class TargetOrientation(Binding):
     kind: ClassVar[str] = 'target_orientation'
     needs_target: ClassVar[bool] = True
     axis: Axis
+    """The angle: about x (0), y (1) or z (2), extrinsic."""
 
     def move_target(self, value: float, position: np.ndarray, angles: np.ndarray) -> None:
         angles[self.axis] = value

@@ -7,7 +7,9 @@ level (`TaskFile`), ``robot`` (`RobotSection`, its ``end_effector``), ``controll
 ``target`` (`TargetSpec`), ``scene`` (`SceneObject`), ``homing`` (`HomingSpec`), ``safety``
 (`SafetySpec`) and ``reward`` (`RewardSpec`). A key no section knows is refused anywhere,
 with the section and the nearest valid key ("did you mean settle_time?"); a value of the
-wrong type or out of its range is refused naming the key (`parse_task_file`).
+wrong type or out of its range is refused naming the key (`parse_task_file`). Each key's
+description is the docstring under it (pydantic's ``use_attribute_docstrings``), so the
+reference docs/task_reference.md is generated from here (`psl_task.schema_reference`).
 
 What the sections hold together (a posture's length against the joints, the demonstration
 against the duration, ...) is checked where the task is built (`psl_task.task`). The section
@@ -23,7 +25,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, TypeAdapter,
-                      ValidationError, model_validator, with_config)
+                      ValidationError, WithJsonSchema, model_validator, with_config)
 
 from psl_task.bindings import Binding, BINDINGS, binding_kind
 
@@ -32,7 +34,8 @@ Space = Literal['joint', 'end_effector']       # where the DMP runs (policy.spac
 Reset = Literal['teleport', 'drive']           # how an episode begins (homing.reset)
 SPACES = typing.get_args(Space)
 RESETS = typing.get_args(Reset)
-SECTION = ConfigDict(extra='forbid', arbitrary_types_allowed=True)
+SECTION = ConfigDict(extra='forbid', arbitrary_types_allowed=True,
+                     use_attribute_docstrings=True)   # a key's docstring: its description
 
 
 def _vector(value: Any) -> np.ndarray:
@@ -60,9 +63,13 @@ def _matrix(value: Any) -> np.ndarray:
     return array
 
 
-Vector = Annotated[np.ndarray, BeforeValidator(_vector)]
-Vector3 = Annotated[np.ndarray, BeforeValidator(_vector3)]
-Matrix = Annotated[np.ndarray, BeforeValidator(_matrix)]
+# what each array is in the YAML, for the JSON schema (validation is the function's alone)
+_NUMBERS = {'type': 'array', 'items': {'type': 'number', 'finite': True}}
+Vector = Annotated[np.ndarray, BeforeValidator(_vector), WithJsonSchema(_NUMBERS)]
+Vector3 = Annotated[np.ndarray, BeforeValidator(_vector3),
+                    WithJsonSchema({**_NUMBERS, 'minItems': 3, 'maxItems': 3})]
+Matrix = Annotated[np.ndarray, BeforeValidator(_matrix),
+                   WithJsonSchema({'type': 'array', 'items': _NUMBERS})]
 Positive = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
 NonNegative = Annotated[float, Field(ge=0.0)]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
@@ -80,9 +87,13 @@ class TargetSpec:
     the end of the movement, by default; ``target_position`` / ``target_orientation`` task
     parameters replace single coordinates of it per instance."""
 
-    position: Vector3               # (3,) m, world frame
-    orientation: Vector3 = dataclasses.field(default_factory=_zeros3)   # (3,) rad, x-y-z
-    body: str = ''                  # a mocap body moved to the instance's target (display)
+    position: Vector3
+    """The target point (3,) [m], world frame; the coordinates no task parameter binds."""
+    orientation: Vector3 = dataclasses.field(default_factory=_zeros3)
+    """The target frame's extrinsic x-y-z angles (3,) [rad]; the angles no task parameter
+    binds."""
+    body: str = ''
+    """A mocap body psl moves to each instance's target, for display ('': none)."""
 
 
 @with_config(SECTION)
@@ -92,12 +103,21 @@ class SceneObject:
     one geom of the same name), e.g. an obstacle, a table or a target marker."""
 
     name: str
-    size: Vector                    # MuJoCo's geom size for the type (half-sizes, radius, ...)
-    position: Vector3               # (3,) m, world frame
-    type: Literal['box', 'sphere', 'capsule', 'cylinder'] = 'box'   # SCENE_TYPES
-    orientation: Vector3 = dataclasses.field(default_factory=_zeros3)   # (3,) rad, x-y-z
-    contacts: StrictBool = False    # collide with the robot (default: scored geometrically)
+    """The body's and its geom's name (``mocap_position`` bindings and
+    ``reward.obstacle_geoms`` name it)."""
+    size: Vector
+    """MuJoCo's geom size for the type [m]: 3 half-sizes (box), a radius (sphere), a radius
+    and a half-length (capsule, cylinder); each > 0."""
+    position: Vector3
+    """The body's position (3,) [m], world frame."""
+    type: Literal['box', 'sphere', 'capsule', 'cylinder'] = 'box'
+    """The geom's shape (SCENE_TYPES)."""
+    orientation: Vector3 = dataclasses.field(default_factory=_zeros3)
+    """The body's extrinsic x-y-z angles (3,) [rad]."""
+    contacts: StrictBool = False
+    """Collide with the robot; by default the reward scores the distance geometrically."""
     rgba: tuple[float, float, float, float] = (0.8, 0.2, 0.2, 0.6)
+    """The geom's colour: red, green, blue, alpha in [0, 1]."""
 
     def __post_init__(self):
         if self.size.size != SCENE_TYPES[self.type]:
@@ -113,8 +133,10 @@ class ControllerSpec:
     """The ``controller`` section: gains of the PD + feed-forward law, per joint (actuator
     order). Torque limits come from the model."""
 
-    kp: Vector                      # (n_joints,) N m / rad
-    kd: Vector                      # (n_joints,) N m s / rad
+    kp: Vector
+    """Proportional gains (n_joints,) [N m / rad], one per driven joint."""
+    kd: Vector
+    """Derivative gains (n_joints,) [N m s / rad], one per driven joint."""
 
 
 @with_config(SECTION)
@@ -123,16 +145,28 @@ class PolicySpec:
     """The ``policy`` section: how theta encodes the commanded trajectory
     (`psl_controller.policy`)."""
 
-    n_basis: Annotated[int, Field(ge=1)]   # Gaussians per joint of the DMP (and feed-forward)
-    kind: str = 'dmp'               # dmp | gmr (psl_controller.policy.KINDS)
-    k_s: float = 400.0              # DMP spring constant of eq. 2.23 (k_d = 2 sqrt(k_s))
-    canonical: str = 'linear'       # canonical system of the phase: linear | exponential
-    feedforward: StrictBool = False  # theta = [theta_K, theta_D]: feed-forward torque
-    n_components: int = 6           # gmr: Gaussians of the mixture
-    fit_seed: int = 0               # gmr: seed of the EM fit to the demonstration
-    learn_goal: StrictBool = False  # theta_K = [weights, goal]: the DMP goal is learned too
-    space: Space = 'joint'          # joint | end_effector: the DMP's output (SPACES)
-    orientation: StrictBool = False  # end_effector: a second DMP moves the hand's orientation
+    n_basis: Annotated[int, Field(ge=1)]
+    """Gaussians per joint of the DMP (and of the feed-forward torque)."""
+    kind: str = 'dmp'
+    """The trajectory's encoding: dmp | gmr (psl_controller.policy.KINDS)."""
+    k_s: float = 400.0
+    """The DMP's spring constant of eq. 2.23 (k_d = 2 sqrt(k_s))."""
+    canonical: str = 'linear'
+    """The canonical system of the phase: linear | exponential."""
+    feedforward: StrictBool = False
+    """theta = [theta_K, theta_D]: a feed-forward torque is learned too."""
+    n_components: int = 6
+    """gmr: Gaussians of the mixture."""
+    fit_seed: int = 0
+    """gmr: the seed of the EM fit to the demonstration."""
+    learn_goal: StrictBool = False
+    """theta_K = [weights, goal]: the DMP's goal is learned too (default: the demonstration's
+    end)."""
+    space: Space = 'joint'
+    """What the DMP moves: the joints, or the end effector's position through inverse
+    kinematics (SPACES)."""
+    orientation: StrictBool = False
+    """end_effector space: a second DMP moves the hand's orientation."""
 
 
 @with_config(SECTION)
@@ -141,21 +175,27 @@ class RewardSpec:
     """The ``reward`` section: weights of the named components (`psl_optimizer.reward`), the
     success threshold and what the geometric components measure."""
 
-    weights: dict[str, Finite]      # component name -> weight; missing components count zero;
-                                    # a name registered as a reward component (a plugin's too:
-                                    # psl_task.reward_components)
-    success_threshold: float        # fulfilled when reward >= this
-    clearance_margin: NonNegative = 0.0   # m; closer than this to an obstacle costs
-    obstacle_geoms: tuple[str, ...] = ()  # geoms the arm must keep clear of
-    arm_geoms: tuple[str, ...] = ()       # the arm's geoms measured against them
-    # what the smoothness component differentiates twice: the measured joint angles, or the
-    # commanded reference (a noisy robot: 1 mrad of noise at 2 ms adds about 6 sigma^2/dt^4 =
-    # 4e5 rad^2/s^4 to the measured one, more than any motion, docs/benchmarks.md)
+    weights: dict[str, Finite]
+    """Component name -> weight; reward = -sum(weight * component); a missing component
+    counts zero; a name must be registered (psl_task.reward_components, a plugin's too)."""
+    success_threshold: float
+    """A rollout fulfils its instance when its reward >= this."""
+    clearance_margin: NonNegative = 0.0
+    """[m] closer than this to an obstacle costs (the clearance component)."""
+    obstacle_geoms: tuple[str, ...] = ()
+    """The geoms the arm must keep clear of."""
+    arm_geoms: tuple[str, ...] = ()
+    """The arm's geoms measured against them (default: those of the bodies the driven joints
+    move, visual-only geoms left out)."""
+    # the measured angles of a noisy robot: 1 mrad of noise at 2 ms adds about
+    # 6 sigma^2/dt^4 = 4e5 rad^2/s^4 to the smoothness, more than any motion (docs/benchmarks.md)
     smoothness_of: Literal['measured', 'reference'] = 'measured'
-    # bodies of the world the arm does not drive (a ball, a puck) whose poses the reward's
-    # components read (RolloutData.world): in simulation MuJoCo's, on a robot the poses
-    # published on world/<body>/pose (geometry_msgs/PoseStamped; remap it to a motion capture)
+    """What the smoothness component differentiates twice: the measured joint angles or the
+    commanded reference."""
     observe: tuple[str, ...] = ()
+    """Bodies the arm does not drive (a ball, a puck) whose poses the components read: MuJoCo's
+    in simulation, world/<body>/pose (geometry_msgs/PoseStamped, remap it to a motion capture)
+    on a robot."""
 
 
 @with_config(SECTION)
@@ -165,19 +205,26 @@ class SafetySpec:
     executed (`psl_task.safety_check`), in either rollout mode. By default the reference must be
     finite and inside the joint ranges; every other limit is off until the task sets it."""
 
-    joint_margin: NonNegative = 0.0           # rad (m) kept inside each limited joint's range
-    max_velocity: NonNegative = float('inf')  # rad/s (m/s), |qd_ref| of every driven joint
-    max_acceleration: NonNegative = float('inf')  # rad/s^2, |qdd_ref|
-    torque_share: NonNegative = float('inf')  # inverse-dynamics torque along the reference, as
-                                              # a share of each joint's torque limit
-    collisions: StrictBool = False      # no penetration of reward.obstacle_geoms in a
-                                        # kinematic replay of the reference
-    self_collision: StrictBool = False  # no contact between the robot's own geoms in it
-    replay_period: Positive = 0.01      # s between the replayed states of the collision check
-    penalty: Finite = -100.0            # reward of a refused candidate, minus its violation
-    max_tracking_error: NonNegative = float('inf')  # rad (m), |q - q_ref| of any driven joint
-                                        # while the controller runs a trajectory: beyond it
-                                        # the controller aborts the episode (graph mode)
+    joint_margin: NonNegative = 0.0
+    """[rad (m)] kept inside each limited joint's range."""
+    max_velocity: NonNegative = float('inf')
+    """[rad/s (m/s)] bound on |qd_ref| of every driven joint."""
+    max_acceleration: NonNegative = float('inf')
+    """[rad/s^2] bound on |qdd_ref|."""
+    torque_share: NonNegative = float('inf')
+    """Bound on the inverse-dynamics torque along the reference, as a share of each joint's
+    torque limit."""
+    collisions: StrictBool = False
+    """No penetration of reward.obstacle_geoms in a kinematic replay of the reference."""
+    self_collision: StrictBool = False
+    """No contact between the robot's own geoms in that replay."""
+    replay_period: Positive = 0.01
+    """[s] between the replayed states of the collision check."""
+    penalty: Finite = -100.0
+    """The reward of a refused candidate, minus its violation."""
+    max_tracking_error: NonNegative = float('inf')
+    """[rad (m)] bound on |q - q_ref| of any driven joint while the controller runs a
+    trajectory: beyond it the controller aborts the episode (graph mode)."""
 
 
 @with_config(SECTION)
@@ -188,13 +235,19 @@ class HomingSpec:
     along a quintic within the velocity and acceleration limits, and waits until it has
     settled (`psl_controller.homing`)."""
 
-    reset: Reset = 'teleport'           # teleport | drive (RESETS); psl up --reset overrides
-    max_velocity: Positive = 1.0        # rad/s (m/s) of any joint along the homing path
-    max_acceleration: Positive = 4.0    # rad/s^2
-    min_duration: Positive = 0.2        # s, the shortest homing motion
-    settle_time: Positive = 0.3         # s held at the start posture after the motion
-    tolerance: Positive = 0.01          # rad from the start posture (and rad/s of velocity)
-                                        # within which the arm counts as there
+    reset: Reset = 'teleport'
+    """teleport (simulation only) | drive (RESETS); psl up --reset overrides it."""
+    max_velocity: Positive = 1.0
+    """[rad/s (m/s)] of any joint along the homing path."""
+    max_acceleration: Positive = 4.0
+    """[rad/s^2] of any joint along the homing path."""
+    min_duration: Positive = 0.2
+    """[s] the shortest homing motion."""
+    settle_time: Positive = 0.3
+    """[s] held at the start posture after the motion."""
+    tolerance: Positive = 0.01
+    """[rad] from the start posture (and rad/s of velocity) within which the arm counts as
+    there."""
 
 
 # -- the sections of the file only ----------------------------------------------------------
@@ -207,8 +260,11 @@ class EndEffector(_Section):
     there)."""
 
     site: str | None = None
+    """A site of the model (or give body)."""
     body: str | None = None
+    """A body of the model; psl adds the site psl_end_effector to it."""
     offset: Vector3 | None = None
+    """With body: the site's position (3,) [m] in the body's frame (default: its origin)."""
 
     @model_validator(mode='after')
     def _one_way(self) -> 'EndEffector':
@@ -221,57 +277,93 @@ class RobotSection(_Section):
     """``robot``: the model, the end effector, the driven joints and what psl adds."""
 
     model: str | None = None
+    """An MJCF or URDF file: a path (absolute, or relative to the YAML) or package://NAME/...
+    (or the top-level model)."""
     end_effector: EndEffector | None = None
-    package_paths: dict[str, str] = {}     # package://NAME/... -> folder (relative to the YAML)
-    torque_limits: Vector | None = None    # (n,) N m for motors psl adds (else the model's)
+    """{site: NAME} or {body: NAME, offset: [x, y, z]} (or the top-level end_effector_site)."""
+    package_paths: dict[str, str] = {}
+    """package://NAME/... -> folder (relative to the YAML), searched before the
+    environment's."""
+    torque_limits: Vector | None = None
+    """(n_joints,) [N m] for the motors psl adds (default: the joints' actuatorfrcrange)."""
     gravity_compensation: StrictBool = False
-    joints: list[str] = []                 # the driven joints in command order
-    exclude_contacts: list[tuple[str, str]] = []   # body pairs MuJoCo never collides
-    # the robot's parts in contact at the start or goal posture (an overlap of coarse
-    # collision meshes): exclude them (the default, psl check names them) or keep them
+    """Set MuJoCo's gravcomp on every body the driven joints move."""
+    joints: list[str] = []
+    """The driven joints in command order (default: the joints of the model's actuators)."""
+    exclude_contacts: list[tuple[str, str]] = []
+    """Body pairs MuJoCo never collides."""
     contacts_at_rest: Literal['exclude', 'keep'] = 'exclude'
+    """The robot's parts in contact at the start or goal posture (overlapping collision
+    meshes): exclude them (psl check names them) or keep them."""
 
 
 class Demonstration(_Section):
     """``demonstration``: the waypoints the default policy is fitted to."""
 
     times: Vector
+    """[s] of the waypoints, rising from 0 to duration."""
     positions: Matrix
+    """[rad (m)] one row of joint positions per time, from start_posture to goal_posture."""
 
 
 class TaskParameterEntry(_Section):
     """One entry of ``task_parameters``; its ``binds`` by kind (`psl_task.bindings`)."""
 
     name: str
+    """The task parameter's name."""
     low: float
+    """The lower end of its range (< high)."""
     high: float
-    default: float | None = None           # default: the middle of the range
+    """The upper end of its range."""
+    default: float | None = None
+    """Its default value (default: the middle of the range)."""
     unit: str = ''
+    """Its unit, for people (m, kg, s, rad)."""
     binds: dict[str, Any]
+    """What its value moves: {kind: KIND, ...the kind's keys} (the binding kinds below)."""
 
 
 class TaskFile(_Section):
     """The top level of a task YAML."""
 
-    name: str | None = None                # default: the file's stem
+    name: str | None = None
+    """The task's name (default: the file's stem)."""
     description: str = ''
-    model: str | None = None               # or robot.model
-    end_effector_site: str | None = None   # or robot.end_effector
+    """One line about the task, for people."""
+    model: str | None = None
+    """The model file; or robot.model (give it once)."""
+    end_effector_site: str | None = None
+    """The end effector's site; or robot.end_effector (give it once)."""
     robot: RobotSection = RobotSection()
-    control_rate: Positive                 # Hz
-    duration: Positive                     # s, length of the motion
-    settle_time: NonNegative = 0.0         # s, the episode goes on after the motion
+    """The robot: model, end effector, driven joints and what psl adds."""
+    control_rate: Positive
+    """[Hz] of the controller; a whole divisor of the physics rate 1 / timestep."""
+    duration: Positive
+    """[s] the length of the motion (the demonstration's)."""
+    settle_time: NonNegative = 0.0
+    """[s] the episode goes on after the motion."""
     start_posture: Vector
+    """(n_joints,) [rad (m)] where the episode starts, in command order."""
     goal_posture: Vector
+    """(n_joints,) [rad (m)] where the movement ends: the demonstration's last waypoint."""
     task_parameters: list[TaskParameterEntry]
+    """tau: the task parameters, in this order."""
     controller: ControllerSpec
+    """The PD gains."""
     policy: PolicySpec
+    """How theta encodes the commanded trajectory."""
     demonstration: Demonstration
+    """The waypoints the default theta is fitted to."""
     reward: RewardSpec
+    """The reward's weights, success threshold and geometry."""
     target: TargetSpec | None = None
+    """The default target (needed by target_position / target_orientation bindings)."""
     safety: SafetySpec = SafetySpec()
+    """What a candidate must keep before it runs."""
     homing: HomingSpec = HomingSpec()
+    """How an episode begins."""
     scene: list[SceneObject] = []
+    """Bodies psl adds to the model (obstacles, tables, markers)."""
 
 
 _TASK_FILE = TypeAdapter(TaskFile)
