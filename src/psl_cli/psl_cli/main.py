@@ -54,13 +54,17 @@ def cmd_up(args) -> int:
         extra['dmp_executor'] = {'command_interface': args.command_interface}
     if args.robot_param:
         extra['robot'] = dict(args.robot_param)
+    try:
+        view_port = None if args.view is None else options.view_port(args.view)
+    except ValueError as exc:
+        return fail('psl up', exc, 2)
     topics = {name: topic for name, topic in (('joint_states', args.joint_states),
                                               ('effort_command', args.effort_command)) if topic}
     try:
         graph = Graph(task=args.task, mode=args.mode, namespace=args.namespace,
                       workers=args.workers, log_dir=log_dir, reset=args.reset,
                       robot=args.robot, robot_topics=topics, extra_params=extra,
-                      view_port=args.view, controller=args.controller)
+                      view_port=view_port, controller=args.controller)
     except ValueError as exc:           # e.g. a controller given for psl's simulator
         return fail('psl up', exc, 2)
     if args.controller:                 # the robot's own: can it run the task?
@@ -242,10 +246,11 @@ def _up_options(p: argparse.ArgumentParser) -> None:
                    help="folder for the nodes' output, one <node>.log each (default: a new "
                    f'folder named by the start time under ${LOG_ROOT_VARIABLE}, or when that is '
                    'unset under ./log/graph in the current working directory)')
-    p.add_argument('--view', nargs='?', type=options.port, const=DEFAULT_PORT, metavar='PORT',
+    p.add_argument('--view', nargs='?', type=options.port, const=options.THE_DEFAULT_PORT,
+                   metavar='PORT',
                    help='also start the view node: the graph live in the Foxglove app, a '
-                   f'WebSocket server on ws://127.0.0.1:PORT (default {DEFAULT_PORT}); '
-                   'psl view --layout writes its layout')
+                   f'WebSocket server on ws://127.0.0.1:PORT (default ${options.VIEW_PORT_VARIABLE}'
+                   f', else {DEFAULT_PORT}); psl view --layout writes its layout')
     p.add_argument('--memory-dir', metavar='DIR',
                    help="the skill memory's folder: psl memory save/load, checkpoints of "
                    'graph-mode sessions and autosave stay inside it (default: $PSL_MEMORY_DIR, '

@@ -7,6 +7,7 @@ nothing heavy: the parser of every command is built from it.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -83,6 +84,30 @@ def port(text: str) -> int:
     if value > 65535:
         raise argparse.ArgumentTypeError(f'a TCP port is 0..65535, got {value}')
     return value
+
+
+VIEW_PORT_VARIABLE = 'PSL_VIEW_PORT'    # environment: the view's port when none is given
+THE_DEFAULT_PORT = -1                   # `--view` without a value: resolved by `view_port`
+
+
+def view_port(given: int | None) -> int:
+    """The view's TCP port: `given`, else ``$PSL_VIEW_PORT``, else the Foxglove app's default
+    (8765). Two graphs on one machine keep apart by ``ROS_DOMAIN_ID`` and this variable.
+
+    Raises:
+        ValueError: ``$PSL_VIEW_PORT`` is no TCP port
+    """
+    from psl_ros.view_parameters import DEFAULT_PORT
+
+    if given is not None and given != THE_DEFAULT_PORT:
+        return given
+    text = os.environ.get(VIEW_PORT_VARIABLE)
+    if text is None:
+        return DEFAULT_PORT
+    try:
+        return port(text)
+    except argparse.ArgumentTypeError as exc:
+        raise ValueError(f'${VIEW_PORT_VARIABLE}={text!r}: {exc}') from None
 
 
 def output_folder(path: str | Path) -> Path:

@@ -17,9 +17,9 @@ from psl_cli.options import fail
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from psl_ros.view_parameters import DEFAULT_PORT, ViewParameters
 
-    p.add_argument('--port', type=options.port, default=DEFAULT_PORT,
-                   help=f'TCP port of the WebSocket server (default {DEFAULT_PORT}, the '
-                   "Foxglove app's; 0 = a free one, logged)")
+    p.add_argument('--port', type=options.port,
+                   help=f'TCP port of the WebSocket server (default ${options.VIEW_PORT_VARIABLE}'
+                   f", else {DEFAULT_PORT}, the Foxglove app's; 0 = a free one, logged)")
     p.add_argument('--host', default=ViewParameters.host,
                    help=f'address to bind (default {ViewParameters.host}: this machine only)')
     p.add_argument('--namespace', default='', help="the graph's namespace (psl up --namespace)")
@@ -47,7 +47,12 @@ def run(args: argparse.Namespace) -> int:
     from psl_ros.node_main import run_node
     from psl_ros.view_node import ViewNode
 
-    ros_args = ['psl view', '--ros-args', '-p', f'port:={args.port}', '-p',
+    try:
+        port = options.view_port(args.port)
+    except ValueError as exc:
+        return fail('psl view', exc, 2)
+
+    ros_args = ['psl view', '--ros-args', '-p', f'port:={port}', '-p',
                 f'host:={args.host}', '-p', f'max_rate:={float(args.max_rate)}']
     if args.namespace.strip('/'):
         ros_args += ['-r', f'__ns:=/{args.namespace.strip("/")}']

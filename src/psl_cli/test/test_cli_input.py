@@ -324,3 +324,26 @@ def test_psl_record_ends_with_a_complete_bag_on_a_signal_even_from_a_script(tmp_
     assert (bag / 'metadata.yaml').is_file()
     assert read_bag_summary(bag) == {topic: ('std_msgs/msg/String', RECORDED)}, err
     assert re.search(rf'^{re.escape(topic)}\s+{RECORDED}$', out, re.MULTILINE), out
+
+
+def test_the_views_port_is_given_else_the_environments_else_the_foxglove_default(monkeypatch):
+    from psl_cli import options
+    from psl_ros.view_parameters import DEFAULT_PORT
+
+    monkeypatch.delenv(options.VIEW_PORT_VARIABLE, raising=False)
+    assert options.view_port(None) == options.view_port(options.THE_DEFAULT_PORT) == DEFAULT_PORT
+    monkeypatch.setenv(options.VIEW_PORT_VARIABLE, '9123')
+    assert options.view_port(None) == options.view_port(options.THE_DEFAULT_PORT) == 9123
+    assert options.view_port(0) == 0 and options.view_port(8000) == 8000     # given wins
+    for bad in ('x', '-2', '70000', ''):
+        monkeypatch.setenv(options.VIEW_PORT_VARIABLE, bad)
+        with pytest.raises(ValueError, match=options.VIEW_PORT_VARIABLE):
+            options.view_port(None)
+
+
+@pytest.mark.parametrize('command', [['up', '--view'], ['view']])
+def test_a_bad_view_port_in_the_environment_is_one_line(tmp_path, command):
+    done = subprocess.run(PSL + command, capture_output=True, text=True, cwd=tmp_path,
+                          timeout=120, env=dict(os.environ, PSL_VIEW_PORT='eighty'))
+    assert_one_line(done, 'PSL_VIEW_PORT', "'eighty'")
+    assert done.returncode == 2
