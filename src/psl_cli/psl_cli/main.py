@@ -897,6 +897,43 @@ def _bench_options(p: argparse.ArgumentParser) -> None:
     bench_commands.add_arguments(p)
 
 
+# -- psl run ---------------------------------------------------------------------------------
+def _run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument('package', help='a package of the workspace, e.g. psl_sim')
+    p.add_argument('executable', help='one of its executables, e.g. sim')
+    p.add_argument('arguments', nargs=argparse.REMAINDER,
+                   help='its arguments, e.g. --ros-args -r __ns:=/worker1 -p task:=T')
+
+
+def cmd_run(args) -> int:
+    """psl run PACKAGE EXECUTABLE [ARGS]: what ``ros2 run`` does (the ros2 command line is not
+    installed with the wheels): the executable under ``<prefix>/lib/<package>/``, found in
+    the ament index of this environment, run in this process's place."""
+    from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+
+    try:
+        folder = Path(get_package_prefix(args.package)) / 'lib' / args.package
+    except (PackageNotFoundError, ValueError):
+        return fail('psl run', f'no package {args.package!r} in this environment (psl\'s: '
+                    f'{", ".join(_workspace_packages())})', 2)
+    executables = sorted(p.name for p in folder.glob('*') if p.is_file()
+                         and os.access(p, os.X_OK)) if folder.is_dir() else []
+    if args.executable not in executables:
+        return fail('psl run', f'package {args.package!r} has no executable '
+                    f'{args.executable!r} (it has: {", ".join(executables) or "none"})', 2)
+    path = folder / args.executable
+    sys.stdout.flush()
+    os.execv(str(path), [str(path), *args.arguments])
+
+
+def _workspace_packages() -> list[str]:
+    """The packages of psl's workspace that have executables."""
+    from ament_index_python.packages import get_packages_with_prefixes
+
+    return sorted(name for name, prefix in get_packages_with_prefixes().items()
+                  if name.startswith('psl_') and (Path(prefix) / 'lib' / name).is_dir())
+
+
 # -- the parser ------------------------------------------------------------------------------
 class Command(NamedTuple):
     help: str
@@ -931,6 +968,8 @@ COMMANDS = {
     'view': Command('the running graph live in the Foxglove app (a WebSocket server on '
                     'ws://127.0.0.1:8765), or its layout file', _view_options, cmd_view),
     'bench': Command('benchmarks (see docs/benchmarks.md)', _bench_options, cmd_bench),
+    'run': Command("one node of the graph by its package and executable, as ros2 run "
+                   "(e.g. a worker's nodes on a second machine)", _run_options, cmd_run),
 }
 
 

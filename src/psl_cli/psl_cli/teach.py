@@ -5,6 +5,7 @@ instance, fitted, checked, and the accepted ones added to a skill memory file th
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -27,16 +28,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         help='the task instances, one line of numbers per demonstration')
     source.add_argument('--tau-topic', metavar='TOPIC',
                         help='a topic of the bag announcing the instances: psl_msgs/TaskInstance '
-                        '(e.g. /task_instance) or std_msgs/Float64MultiArray; a demonstration '
-                        'takes the last one announced before it starts')
+                        '(e.g. /task_instance: psl\'s episodes, each taken with its tau) or '
+                        'std_msgs/Float64MultiArray (a demonstration takes the last one '
+                        'announced before it starts)')
     cut = p.add_mutually_exclusive_group()
     cut.add_argument('--window', nargs=2, type=float, action='append', metavar=('A', 'B'),
                      help='a demonstration is the span [A, B] s of the recording (the robot\'s '
-                     'clock; repeatable); default: rest-to-rest segmentation')
+                     'clock; repeatable); default: the episodes psl announced on --tau-topic, '
+                     'else rest-to-rest segmentation')
     cut.add_argument('--episodes', action='store_true',
                      help='the demonstrations are the episodes --tau-topic announced '
                      '(psl_msgs/TaskInstance: rollouts recorded from psl\'s graph), each with '
-                     'its tau')
+                     'its tau; the default when that topic announces them, this makes it an '
+                     'error when it does not')
     p.add_argument('--velocity-threshold', type=options.positive_float,
                    default=teaching.VELOCITY_THRESHOLD, metavar='RAD_S',
                    help='the arm rests while no joint moves faster (default %(default)g)')
@@ -86,13 +90,25 @@ def run(args) -> int:
         task = load_task(args.task)
         bag = Path(args.bag)
         recording = teaching.read_joint_states(bag, args.topic, joint_names_of(task))
-        returns = []
-        if args.episodes:
-            if not args.tau_topic:
-                raise ValueError('--episodes needs --tau-topic (the topic announcing them)')
+        returns, skipped = [], []
+        by_episodes = args.episodes
+        if by_episodes and not args.tau_topic:
+            raise ValueError('--episodes needs --tau-topic (the topic announcing them)')
+        if args.tau_topic and not args.window:
             from psl_ros.bag_recorder import make_typestore
-            spans, taus = teaching.episodes(task, bag, args.tau_topic, recording,
-                                            make_typestore())
+            announcements = teaching.read_announcements(bag, args.tau_topic, make_typestore())
+            if not by_episodes and teaching.announces_episodes(announcements):
+                by_episodes = True
+                print(f'psl teach: {args.tau_topic} announces psl\'s episodes '
+                      '(psl_msgs/TaskInstance): each episode\'s movement is a demonstration '
+                      'with its tau, as with --episodes (--window A B cuts otherwise)',
+                      file=sys.stderr)
+        if by_episodes:
+            spans, taus, skipped = teaching.episodes(task, announcements, recording)
+            if not spans:
+                raise ValueError(f'no episode of the task in {bag}: of the {len(skipped)} '
+                                 f'announced on {args.tau_topic}, ' + '; '.join(
+                                     f'{t:.3f} s: {why}' for t, why in skipped))
         elif args.window:
             spans = teaching.windows(recording, args.window)
         else:
@@ -103,7 +119,7 @@ def run(args) -> int:
                              f'{args.velocity_threshold:g} rad/s for {args.min_duration:g} s '
                              f'that is not a return to the start posture; {len(returns)} '
                              'returns)')
-        if not args.episodes:
+        if not by_episodes:
             taus = _taus(args, spans, recording, bag)
         memory = (SkillMemory.read(args.into) if args.into
                   else SkillMemory(LearnSettings().skill))
@@ -111,6 +127,8 @@ def run(args) -> int:
                                   args.fit_tolerance)
     except (ValueError, OSError) as exc:        # TaskError, a bag or file that is not one
         return options.fail('psl teach', exc, 2)
+    for t, why in skipped:
+        print(f'episode announced at {t:.3f} s: no demonstration ({why})')
     for i, j in returns:
         print(f'motion [{recording.t[i]:.3f}, {recording.t[j]:.3f}] s: the arm brought back '
               'to the start posture, no demonstration')

@@ -347,3 +347,18 @@ def test_a_bad_view_port_in_the_environment_is_one_line(tmp_path, command):
                           timeout=120, env=dict(os.environ, PSL_VIEW_PORT='eighty'))
     assert_one_line(done, 'PSL_VIEW_PORT', "'eighty'")
     assert done.returncode == 2
+
+
+@pytest.mark.parametrize('args, words', [
+    (['nothing', 'sim'], ["no package 'nothing'", 'psl_sim']),
+    (['psl_sim', 'nothing'], ["no executable 'nothing'", 'sim, standard_robot'])])
+def test_psl_run_names_what_it_cannot_find(tmp_path, args, words):
+    assert_one_line(run(['run', *args], tmp_path), *words)
+
+
+def test_psl_run_runs_the_packages_executable_with_its_arguments(tmp_path):
+    # the simulator node itself answers: it read the task its arguments gave it
+    done = run(['run', 'psl_sim', 'sim', '--ros-args', '-r', f'__ns:=/{NOBODY}',
+                '-p', 'task:=no_such_task'], tmp_path)
+    assert done.returncode != 0
+    assert "SimNode: cannot start: unknown task 'no_such_task'" in done.stdout + done.stderr
