@@ -5,16 +5,18 @@ The view node offers every topic with its message definition; it subscribes to a
 only while a viewer watches it; a viewer receives the very bytes the graph published (compared
 with the test's own ROS subscriptions) and decodes them with the advertised schemas; the
 learning progress of a graph-mode session arrives rollout by rollout and agrees with the
-session's metrics; a viewer joining later gets the latched scene; the shipped layout names
-topics and fields the graph has. A viewer offering either name of the subprotocol
-(``foxglove.websocket.v1``: Lichtblick, clients of foxglove_bridge; ``foxglove.sdk.v1``: the
-Foxglove app) is served the same; one offering neither is refused."""
+session's metrics; a viewer joining later gets the latched scene; a viewer of a graph that
+has run no rollout yet is offered every topic of the layout and gets the scene as the simulator
+started; the shipped layout names topics and fields the graph has. A viewer offering either
+name of the subprotocol (``foxglove.websocket.v1``: Lichtblick, clients of foxglove_bridge;
+``foxglove.sdk.v1``: the Foxglove app) is served the same; one offering neither is refused."""
 import json
 import re
 import subprocess
 import threading
 from pathlib import Path
 
+import numpy as np
 import pytest
 from websockets.exceptions import InvalidStatus
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -24,7 +26,9 @@ from psl_controller.policy import policy_for
 from psl_ros import names
 from psl_ros.bag_recorder import import_message_class
 from psl_ros.foxglove_layout import layout_json
-from psl_ros.graph import find_executable
+from psl_ros.graph import Graph, find_executable, pid_alive
+from psl_sim.scene import END_EFFECTOR_PATH, Scene
+from psl_task.arm_model import ArmModel
 from psl_task.task import load_task
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,6 +40,8 @@ LATCHED = {'/' + names.SCENE, '/' + names.TASK_INSTANCE}
 SESSION = dict(task=TASK, strategy='bootstrap', num_tasks=2, max_rollouts_per_task=6, seed=1,
                mode='graph', num_test=1)
 WAIT = 30.0                 # s, for a process, a port or a delivery
+IDLE = 'idle_view'          # namespace of a graph of its own that runs no rollout
+POSE_TOLERANCE = 1e-9       # m, a marker's position against the scene computed here
 
 
 @pytest.fixture(scope='module')
@@ -219,6 +225,60 @@ def test_a_viewer_sees_the_session_as_the_graph_published_it(url, client, graph,
         for subscription in published.subscriptions:
             client.node.destroy_subscription(subscription)
     nobody_watches(client, wait_until)
+
+
+def layout_topics(namespace: str = '') -> set[str]:
+    """The topics the layout of the graph under `namespace` names (its panels' topics and the
+    topics of its message paths)."""
+    return {topic for topic, _ in re.findall(r'"(/[a-z_/]+)(?:\.([a-z_]+))?',
+                                             layout_json(namespace))}
+
+
+def test_a_viewer_of_a_graph_that_has_run_no_rollout_sees_the_layouts_topics_and_the_scene(
+        tmp_path):
+    """A graph of its own, just started (its namespace; no rollout, no session: only what its
+    nodes publish at start): a viewer is offered every topic of the layout, the scene, the
+    arm's joint states and its controller's reference, the task instance and the learning
+    progress, and gets the scene at once: the arm in the posture the simulator starts in (the
+    model's default), the world as the model places it."""
+    graph = Graph(task=TASK, namespace=IDLE, log_dir=tmp_path / 'logs', view_port=0,
+                  extra_params={'skill_memory': {'memory_dir': str(tmp_path)},
+                                'learner': {'output_root': str(tmp_path / 'runs')}})
+    viewer = None
+    try:
+        graph.start()
+        graph.wait_ready(timeout=60)
+        viewer = FoxgloveClient(graph.view_url(WAIT))
+        wanted = layout_topics(IDLE)
+        assert wanted == {f'/{IDLE}/{t}' for t in (
+            names.SCENE, names.JOINT_STATES, names.PSL_CONTROLLER_STATE, names.TASK_INSTANCE,
+            names.LEARNING_PROGRESS)}
+        assert viewer.wait_channels(wanted, WAIT), sorted(viewer.channels)
+        scene = f'/{IDLE}/{names.SCENE}'
+        viewer.subscribe([scene])
+        assert viewer.pump(lambda: viewer.messages.get(scene), WAIT), \
+            'no scene before the first rollout'
+        [array] = viewer.decoded(scene)       # the one the simulator published at start
+    finally:
+        if viewer is not None:
+            viewer.close()
+        graph.stop()
+        left = [p.name for p in graph.processes if pid_alive(p.pid)]
+        assert not left, f'processes left behind: {left}'
+    task = load_task(TASK)
+    arm = ArmModel(task)                      # as the simulator starts: the model's default
+    expected = Scene(arm.model)
+    poses = expected.poses(expected.forward(arm.data))
+    markers = {(m.ns, m.id): m for m in array.markers}
+    assert {m.header.frame_id for m in array.markers} == {names.WORLD_FRAME}
+    assert set(markers) == {(s.namespace, s.marker_id) for s in expected.shapes} | {
+        (END_EFFECTOR_PATH, 0)}
+    for k, shape in enumerate(expected.shapes):
+        p = markers[shape.namespace, shape.marker_id].pose.position
+        np.testing.assert_allclose([p.x, p.y, p.z], poses.position[k], atol=POSE_TOLERANCE)
+    # stamped with the simulator's time as it starts, one control period in
+    assert {(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec) for m in array.markers} \
+        == {task.control_period_ns}
 
 
 @pytest.mark.parametrize('subprotocol', SUBPROTOCOLS)

@@ -17,9 +17,11 @@ executor owns the episode and announces it (``task_instance``).
 obstacles, the static geoms; a capsule is a cylinder and two spheres) and the end-effector path
 executed so far in the episode (LINE_STRIP, sampled at the scene rate), in the frame ``world``,
 one marker per (namespace, id) that stays the same, so viewers update markers in place.
-Published at every reset and at the end of every episode, and in between every
-``1 / scene_rate`` seconds of simulated time while someone subscribes, so that the lockstep loop
-pays for it only when watched. Latched: a viewer that joins between episodes gets the scene as
+Published when the simulator starts (the arm in the posture it starts in, the model's
+default, where a probe finds it, and the world before any instance is placed), at every reset
+and at the end of every episode, and in between every ``1 / scene_rate`` seconds of simulated
+time while someone subscribes, so that the lockstep loop pays for it only when watched.
+Latched: a viewer that joins before the first episode or between episodes gets the scene as
 it is. When a reset switches to a model with other geoms the array starts with DELETEALL.
 
 Modes:
@@ -151,6 +153,7 @@ class SimNode(Node):
         self._rng = np.random.default_rng()     # the motion capture's noise (world_pose_noise)
         for body in self.arm.task.reward.observe:      # there from the start (psl record)
             self._world_publisher(body)
+        self._scene_tick(always=True)       # the scene as it starts, latched (see above)
         self.hot_path = HotPath(self)
         # a command answers the state published last (lockstep) or one of this episode's
         # (realtime): one the controller published before that state answers an older one
