@@ -90,7 +90,7 @@ def run(args) -> int:
         task = load_task(args.task)
         bag = Path(args.bag)
         recording = teaching.read_joint_states(bag, args.topic, joint_names_of(task))
-        returns, skipped = [], []
+        returns, notes = [], []
         by_episodes = args.episodes
         if by_episodes and not args.tau_topic:
             raise ValueError('--episodes needs --tau-topic (the topic announcing them)')
@@ -104,11 +104,11 @@ def run(args) -> int:
                       'with its tau, as with --episodes (--window A B cuts otherwise)',
                       file=sys.stderr)
         if by_episodes:
-            spans, taus, skipped = teaching.episodes(task, announcements, recording)
+            spans, taus, notes = teaching.episodes(task, announcements, recording,
+                                                   args.velocity_threshold, args.min_duration)
             if not spans:
-                raise ValueError(f'no episode of the task in {bag}: of the {len(skipped)} '
-                                 f'announced on {args.tau_topic}, ' + '; '.join(
-                                     f'{t:.3f} s: {why}' for t, why in skipped))
+                raise ValueError(f'no episode of the task in {bag} announced on '
+                                 f'{args.tau_topic}: ' + '; '.join(note for _, note in notes))
         elif args.window:
             spans = teaching.windows(recording, args.window)
         else:
@@ -127,8 +127,8 @@ def run(args) -> int:
                                   args.fit_tolerance)
     except (ValueError, OSError) as exc:        # TaskError, a bag or file that is not one
         return options.fail('psl teach', exc, 2)
-    for t, why in skipped:
-        print(f'episode announced at {t:.3f} s: no demonstration ({why})')
+    for _, note in notes:
+        print(note)
     for i, j in returns:
         print(f'motion [{recording.t[i]:.3f}, {recording.t[j]:.3f}] s: the arm brought back '
               'to the start posture, no demonstration')

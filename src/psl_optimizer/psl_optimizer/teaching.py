@@ -8,11 +8,17 @@ policy optimization". This module turns a recording into such samples:
 1. `read_joint_states`: the task's joints (by name, `psl_task.joint_selection`) of every
    sensor_msgs/JointState on a topic of a rosbag2 bag (MCAP or sqlite3, as `psl record` and
    ``ros2 bag record`` write it), on the robot's clock (header stamps).
-2. `rest_to_rest` cuts the recording into demonstrations: the spans in which the arm moves
+2. The recording is cut into demonstrations. A bag of rollouts through psl's graph holds the
+   episodes psl announced (psl_msgs/TaskInstance on the tau topic, each stamped with its
+   first state and carrying its length: `announces_episodes`): `episodes` takes the movement
+   of each, with its tau (the announced ones that are none, e.g. homing episodes, and motions
+   in no announced episode are said). Cutting from rest to rest cannot separate them: an episode's settling leaves the arm
+   at rest for less than MIN_REST before the next one begins, and a teleport reset, a jump
+   between two states, begins the next motion at the goal of the episode before.
+   Otherwise (guided demonstrations) `rest_to_rest` cuts the spans in which the arm moves
    (the largest joint speed, a difference over 50 ms, above ``velocity_threshold``; pauses
    under 0.2 s belong to the motion), each from the rest before to the rest after, kept if
-   it lasts ``min_duration``; or `windows` takes given time spans; or `episodes` takes the
-   episodes psl announced (psl_msgs/TaskInstance: a recording of rollouts through the graph).
+   it lasts ``min_duration``; or `windows` takes given time spans.
    A person brings the arm back to the start between two demonstrations: those returns
    (motions that end at the start posture from elsewhere, `split_returns`) are no
    demonstrations (said, given no tau, not refused).
@@ -43,7 +49,7 @@ from psl_controller.policy import TaskPolicy
 from psl_task.arm_model import ArmModel
 from psl_task.joint_selection import JointSelection
 from psl_task.safety_check import SafetyCheck
-from psl_task.task import TaskDefinition, TaskError
+from psl_task.task import TaskDefinition, TaskError, task_id
 
 VELOCITY_THRESHOLD = 0.05     # rad/s: the arm rests while no joint moves faster
 MIN_DURATION = 0.5            # s: a shorter motion is no demonstration (a nudge, a tremor)
@@ -127,71 +133,148 @@ def read_joint_states(bag: str | Path, topic: str, joint_names: list[str],
     return Recording(t=times, q=np.array([rows[t] for t in times]))
 
 
-def read_instances(bag: str | Path, topic: str, typestore=None) -> list[tuple[float, np.ndarray]]:
-    """(seconds, tau) of each task instance on `topic`: psl_msgs/TaskInstance (the episode's
-    stamp; homing episodes skipped) or std_msgs/Float64MultiArray (its data; the bag's
-    receive time)."""
-    return [(t, tau) for t, tau, _ in _instances(bag, topic, typestore)]
+@dataclasses.dataclass(frozen=True)
+class Announcement:
+    """One message of a tau topic: its time t [s] (a psl_msgs/TaskInstance's stamp, else the
+    bag's receive time) and tau; of a psl_msgs/TaskInstance also the episode it announces:
+    its task, its length [s] (num_steps control periods; None: a std_msgs/Float64MultiArray,
+    no episode), whether psl stamped it (on the robot's clock) and whether it homes the arm."""
+
+    t: float
+    tau: np.ndarray
+    task: str = ''
+    length: float | None = None
+    stamped: bool = False
+    homing: bool = False
 
 
-def episodes(task: TaskDefinition, bag: str | Path, topic: str, recording: Recording,
-             typestore=None) -> tuple[list[tuple[int, int]], list[np.ndarray]]:
-    """The demonstrations of a recording of episodes (rollouts replayed through psl's graph):
-    the movement of each episode psl_msgs/TaskInstance announced on `topic` (from its stamp
-    for the instance's duration, without the settling; homing episodes skipped) and its tau.
-    ValueError for a topic of another type."""
-    spans, taus = [], []
-    for t, tau, length in _instances(bag, topic, typestore):
-        if length is None:
-            raise ValueError(f'{bag}, {topic}: episodes need psl_msgs/TaskInstance messages '
-                             '(their stamp and length)')
-        motion = min(length, task.duration_of(tau))
-        spans.extend(windows(recording, [(t - 1e-9, t + motion + 1e-9)]))
-        taus.append(tau)
-    return spans, taus
-
-
-def _instances(bag, topic, typestore):
-    """(seconds, tau, episode length [s] or None) of each instance on `topic`."""
+def read_announcements(bag: str | Path, topic: str, typestore=None) -> list[Announcement]:
+    """Every message on `topic` (psl_msgs/TaskInstance or std_msgs/Float64MultiArray), in the
+    bag's order; ValueError for a topic of another type."""
     out = []
     for t, msg in _messages(bag, topic, typestore):
         if hasattr(msg, 'tau'):
-            if not getattr(msg, 'homing', False):
-                out.append((t, np.asarray(msg.tau, dtype=float),
-                            msg.num_steps * msg.control_period))
+            stamp = msg.stamp
+            out.append(Announcement(t, np.asarray(msg.tau, dtype=float), str(msg.task),
+                                    msg.num_steps * msg.control_period,
+                                    stamp.sec != 0 or stamp.nanosec != 0,
+                                    bool(getattr(msg, 'homing', False))))
         elif hasattr(msg, 'data'):
-            out.append((t, np.asarray(msg.data, dtype=float), None))
+            out.append(Announcement(t, np.asarray(msg.data, dtype=float)))
         else:
             raise ValueError(f'{bag}, {topic}: {type(msg).__name__} carries no tau (a '
                              'psl_msgs/TaskInstance or a std_msgs/Float64MultiArray is needed)')
     return out
 
 
-def rest_to_rest(recording: Recording, velocity_threshold: float = VELOCITY_THRESHOLD,
-                 min_duration: float = MIN_DURATION) -> list[tuple[int, int]]:
-    """The demonstrations of a recording: index spans [i, j] (inclusive) from the last sample
-    at rest before a motion to the first at rest after it, kept if they last at least
-    min_duration. The arm moves while its largest joint speed is above velocity_threshold,
-    the speed a difference over VELOCITY_WINDOW (encoder noise of sigma adds about
-    sigma sqrt(2) / VELOCITY_WINDOW: 0.03 rad/s at 1 mrad); a pause shorter than MIN_REST is
-    part of the motion. A motion still going at the end of the recording is not kept."""
-    if not (velocity_threshold > 0 and min_duration >= 0):
-        raise ValueError(f'velocity_threshold must be > 0 and min_duration >= 0, got '
-                         f'{velocity_threshold!r}, {min_duration!r}')
+def read_instances(bag: str | Path, topic: str, typestore=None) -> list[tuple[float, np.ndarray]]:
+    """(seconds, tau) of each task instance on `topic`: psl_msgs/TaskInstance (the episode's
+    stamp; homing episodes skipped) or std_msgs/Float64MultiArray (its data; the bag's
+    receive time)."""
+    return [(a.t, a.tau) for a in read_announcements(bag, topic, typestore) if not a.homing]
+
+
+def announces_episodes(announcements: list[Announcement]) -> bool:
+    """Whether a tau topic holds psl's episodes (a bag of rollouts through the graph): each of
+    its messages a psl_msgs/TaskInstance stamped with its episode's first state and carrying
+    the episode's length, as psl's executor announces them (not a perception node's
+    std_msgs/Float64MultiArray, nor a TaskInstance published by hand without them)."""
+    return bool(announcements) and all(a.stamped and a.length is not None and a.length > 0
+                                       for a in announcements)
+
+
+def episodes(task: TaskDefinition, announcements: list[Announcement], recording: Recording,
+             velocity_threshold: float = VELOCITY_THRESHOLD, min_duration: float = MIN_DURATION
+             ) -> tuple[list[tuple[int, int]], list[np.ndarray], list[tuple[float, str]]]:
+    """The demonstrations of a recording of episodes (rollouts through psl's graph): the
+    movement of each episode announced (from its stamp for the instance's duration, without
+    the settling) and its tau; and notes (time, what) on what is none: an announced homing
+    episode, an episode of another task, one superseded by the next announcement before its
+    movement ended (a goal that came late, sent again), one not wholly in the recording (the
+    latched announcement of an episode before the recording began, one it did not see end);
+    and a motion of the arm (`rest_to_rest`'s, over ``min_duration``) in no announced
+    episode (an announcement missing from the bag, the arm moved by other means).
+    ValueError when the announcements carry no episodes (`announces_episodes`)."""
+    if not announces_episodes(announcements):
+        raise ValueError('episodes need psl_msgs/TaskInstance messages as psl announces them '
+                         '(their stamp and length)')
+    ours = {task.name, task_id(task)}
+    t = recording.t
+    spans, taus, notes = [], [], []
+
+    def skip(a: Announcement, why: str) -> None:
+        notes.append((a.t, f'episode announced at {a.t:.3f} s: no demonstration ({why})'))
+    for k, a in enumerate(announcements):
+        if a.homing:
+            skip(a, 'a homing episode, the arm driven to the start posture')
+            continue
+        if a.task not in ours:
+            skip(a, f'an episode of the task {a.task!r}')
+            continue
+        end = a.t + min(a.length, task.duration_of(a.tau))
+        later = [b.t for b in announcements[k + 1:] if a.t - 1e-9 < b.t < end - 1e-9]
+        if later:
+            skip(a, f'superseded by the episode announced at {later[0]:.3f} s')
+        elif a.t < t[0] - 1e-9 or end > t[-1] + 1e-9:
+            skip(a, f'not wholly in the recording, [{t[0]:.3f}, {t[-1]:.3f}] s: announced '
+                 'before it began, or it ended first')
+        else:
+            try:
+                spans.extend(windows(recording, [(a.t - 1e-9, end + 1e-9)]))
+            except ValueError as exc:       # states lost in the recording
+                skip(a, str(exc))
+                continue
+            taus.append(a.tau)
+    # what the arm did outside every episode announced (the speed's window at either end)
+    outside = moving(recording, velocity_threshold)
+    for a in announcements:
+        outside &= ~((t >= a.t - VELOCITY_WINDOW) & (t <= a.t + a.length + VELOCITY_WINDOW))
+    for start, stop in _motions(t, outside):
+        if t[stop - 1] - t[start] >= min_duration:
+            notes.append((float(t[start]), f'motion [{t[start]:.3f}, {t[stop - 1]:.3f}] s in '
+                          'no episode announced (its announcement is not in the bag, or the '
+                          'arm was moved otherwise): no demonstration'))
+    return spans, taus, sorted(notes, key=lambda note: note[0])
+
+
+def moving(recording: Recording, velocity_threshold: float = VELOCITY_THRESHOLD
+           ) -> np.ndarray:
+    """Whether the arm moves at each sample, (N,) bool: its largest joint speed above
+    velocity_threshold, the speed a difference over VELOCITY_WINDOW centred on the sample
+    (encoder noise of sigma adds about sigma sqrt(2) / VELOCITY_WINDOW: 0.03 rad/s at
+    1 mrad)."""
     t, q = recording.t, recording.q
     before = np.searchsorted(t, t - 0.5 * VELOCITY_WINDOW)
     after = np.minimum(np.searchsorted(t, t + 0.5 * VELOCITY_WINDOW, side='right') - 1,
                        len(t) - 1)
     span = np.maximum(t[after] - t[before], 1e-12)
-    speed = (np.abs(q[after] - q[before]).max(axis=1) / span)
-    moving = speed > velocity_threshold
-    runs = _runs(moving)                       # (start, stop) of each moving run
+    return np.abs(q[after] - q[before]).max(axis=1) / span > velocity_threshold
+
+
+def _motions(t: np.ndarray, mask: np.ndarray) -> list[list[int]]:
+    """[start, stop) index pairs of the runs of True in mask, a pause shorter than MIN_REST
+    joining its neighbours."""
     merged: list[list[int]] = []
-    for start, stop in runs:                   # a short pause joins its neighbours
+    for start, stop in _runs(mask):
         if merged and t[start] - t[merged[-1][1] - 1] < MIN_REST:
             merged[-1][1] = stop
         else:
             merged.append([start, stop])
+    return merged
+
+
+def rest_to_rest(recording: Recording, velocity_threshold: float = VELOCITY_THRESHOLD,
+                 min_duration: float = MIN_DURATION) -> list[tuple[int, int]]:
+    """The demonstrations of a recording: index spans [i, j] (inclusive) from the last sample
+    at rest before a motion to the first at rest after it, kept if they last at least
+    min_duration. The arm moves while its largest joint speed is above velocity_threshold
+    (`moving`); a pause shorter than MIN_REST is part of the motion. A motion still going
+    at the end of the recording is not kept."""
+    if not (velocity_threshold > 0 and min_duration >= 0):
+        raise ValueError(f'velocity_threshold must be > 0 and min_duration >= 0, got '
+                         f'{velocity_threshold!r}, {min_duration!r}')
+    t = recording.t
+    merged = _motions(t, moving(recording, velocity_threshold))
     spans = []
     for start, stop in merged:
         if stop >= len(t):

@@ -326,3 +326,81 @@ def test_returns_to_the_start_are_no_demonstrations_and_take_no_tau(task, tmp_pa
         taught = SkillMemory.read(out_file).get(task.name)
         np.testing.assert_array_equal(taught.taus, np.array(taus))
         assert_taught(task, taught.thetas, taus, demonstrated)
+
+
+def rollouts(task, thetas, taus):
+    """Joint states of rollouts through psl's graph with the task's teleport reset: each
+    episode the policy's reference (movement and settling, num_steps + 1 states) from its
+    stamp, the next one's first state (teleported to the start posture) stamped with the time
+    the one before ended and kept in its place; (recording, each episode's stamp)."""
+    policy = policy_for(task)
+    rows, stamps = {}, []
+    for k, (theta, tau) in enumerate(zip(thetas, taus)):
+        stamp = k * task.num_steps_of(tau) * task.control_period
+        stamps.append(stamp)
+        reference = policy.reference(theta, tau)
+        for t, q in zip(reference.t, reference.q):
+            rows[round(stamp + t, 9)] = q
+    t = np.array(sorted(rows))
+    return teaching.Recording(t=t, q=np.array([rows[s] for s in t])), stamps
+
+
+def test_a_recording_of_rollouts_is_cut_by_the_episodes_psl_announced(task):
+    """psl's rollouts with teleport resets: cut from rest to rest, the teleport (a jump of
+    the arm between two states) begins the next motion, which then starts at the goal of the
+    episode before and is refused (through the graph the PD's settling leaves less than
+    MIN_REST at rest before it, and all episodes are one motion no fit follows); the episodes
+    psl announced cut them, each with its tau and without the settling. Announcements that
+    are no demonstration of the recording are said: the latched one of an episode before the
+    recording, a homing episode, an episode of another task, one announced again later (its
+    goal came late)."""
+    taus = [np.array([0.5, 0.2]), np.array([0.62, 0.35]), np.array([0.45, 0.1])]
+    thetas = shown_thetas(task, taus, np.random.default_rng(3))
+    recording, stamps = rollouts(task, thetas, taus)
+    by_motion = teaching.rest_to_rest(recording)
+    for (i, _), stamp in zip(by_motion[1:], stamps[1:]):     # the teleport begins the motion
+        assert recording.t[i] < stamp
+    refused = teaching.teach(task, recording, by_motion, taus[:len(by_motion)],
+                             SkillMemory(LearnSettings().skill))[1:]
+    assert refused and all('from the start posture' in o.reason for o in refused)
+    length = task.num_steps_of(None) * task.control_period
+
+    def episode(t, tau, **kw):
+        return teaching.Announcement(t, tau, kw.pop('task', task.name), length, True, **kw)
+    announced = ([episode(stamps[0] - length, taus[1])]                     # latched
+                 + [episode(s, tau) for s, tau in zip(stamps[:2], taus)]
+                 + [episode(stamps[2] - 0.25, taus[2]),     # its goal came late: sent again
+                    episode(stamps[2], taus[2]),
+                    episode(stamps[2] + length, taus[0], homing=True),
+                    episode(stamps[2] + length, taus[0], task='reach_over_obstacle')])
+    assert teaching.announces_episodes(announced)
+    spans, found, notes = teaching.episodes(task, announced, recording)
+    assert len(spans) == 3 and len(notes) == 4, notes
+    said = ' | '.join(note for _, note in notes)
+    for why in ('not wholly in the recording', 'a homing episode',
+                "an episode of the task 'reach_over_obstacle'",
+                'superseded by the episode announced'):
+        assert f'no demonstration ({why}' in said
+    for (i, j), stamp, tau, got in zip(spans, stamps, taus, found):
+        assert recording.t[i] == pytest.approx(stamp)
+        assert recording.t[j] == pytest.approx(stamp + task.duration_of(tau))
+        np.testing.assert_array_equal(got, tau)
+    memory = SkillMemory(LearnSettings().skill)
+    outcomes = teaching.teach(task, recording, spans, found, memory)
+    assert all(o.accepted for o in outcomes), [o.reason for o in outcomes]
+    assert_taught(task, [o.theta for o in outcomes], taus, thetas)
+    # an announcement missing from the bag (a lossy recording): its episode is no
+    # demonstration, and its motion is said
+    spans, found, notes = teaching.episodes(task, announced[:3] + announced[5:], recording)
+    assert len(spans) == 2 and [note for _, note in notes if 'motion' in note] == [
+        notes[-3][1]], notes
+    assert 'in no episode announced' in notes[-3][1]
+    assert stamps[2] <= notes[-3][0] <= stamps[2] + 0.1
+    # a perception node's instances, and a TaskInstance published by hand (no stamp, no
+    # length), announce no episodes: those bags are cut from rest to rest
+    assert not teaching.announces_episodes([teaching.Announcement(1.0, taus[0])])
+    assert not teaching.announces_episodes([teaching.Announcement(1.0, taus[0], task.name,
+                                                                  0.0)])
+    assert not teaching.announces_episodes([])
+    with pytest.raises(ValueError, match='episodes need psl_msgs/TaskInstance'):
+        teaching.episodes(task, [teaching.Announcement(1.0, taus[0])], recording)
