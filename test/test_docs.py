@@ -247,10 +247,12 @@ def test_the_documents_commands_run_as_typed(document, tmp_path):
     env = dict(os.environ, PSL_VIEW_PORT=str(_free_port()), PSL_LOG_DIR=str(tmp_path / 'logs'))
     env.pop('PSL_MEMORY_DIR', None)     # the graph keeps its memory files where it was started
     background: dict[tuple, Background] = {}
+    took = []                   # (seconds, command): `pytest -s` prints where the time goes
     try:
         for k, command in enumerate(RUN[document]):
             if command.not_run:
                 continue
+            start = time.monotonic()
             if command.ready:
                 kind = tuple(command.words[:2])
                 if kind in background:            # the same command again: the first one ends
@@ -260,9 +262,16 @@ def test_the_documents_commands_run_as_typed(document, tmp_path):
                 started.wait_ready()
             else:
                 _run(command, folder, env)
+            took.append((time.monotonic() - start, command))
     finally:
+        start = time.monotonic()
         for started in background.values():
             started.end()
+        took.append((time.monotonic() - start, None))
+        print(f'\n{document}: {sum(t for t, _ in took):.1f} s')
+        for seconds, command in took:
+            print(f'  {seconds:6.1f} s  ' + (f'{command.where} {command.text[:70]}'
+                                            if command else 'Ctrl-C to what runs in the background'))
 
 
 @pytest.mark.parametrize('document', DOCUMENTS)

@@ -217,7 +217,8 @@ def measure_query_service(n_samples: int, n_calls: int) -> list[float]:
         path = Path(folder) / 'bench_memory.npz'
         memory.save(path)
         graph = Graph(nodes=(('skill_memory', 'psl_memory', 'skill_memory'),),
-                      extra_params={'skill_memory': {'autosave_path': str(path)}})
+                      extra_params={'skill_memory': {'autosave_path': str(path),
+                                                     'memory_dir': folder}})
         with graph, RosClient() as client:
             info = json.loads(client.memory('info', timeout=60).message)
             if info['bench']['num_samples'] != n_samples:

@@ -61,7 +61,9 @@ def _session(workers: int, task_name: str, strategy: str, tasks: int, budget: in
     from psl_task.task import load_task, task_id
 
     task = load_task(task_name)
-    graph = Graph(task=task_id(task), workers=workers, log_dir=log_dir)
+    # the session's folder inside the memory node's: it writes the session's memory there
+    graph = Graph(task=task_id(task), workers=workers, log_dir=log_dir,
+                  extra_params={'skill_memory': {'memory_dir': str(out.parent)}})
     with graph:
         graph.wait_ready(timeout=90)
         with RosClient() as client:

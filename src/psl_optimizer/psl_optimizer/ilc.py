@@ -33,7 +33,7 @@ as the reward shows it: while each fulfilling rollout betters the best one by mo
 converged already, and no rollout is spent to find that out). It returns the best fulfilling
 rollout's theta. It also stops when the budget is spent, or after ``patience`` iterations in a
 row without a better reward. Measured on TALOS's arm as published, point_reach_3d and
-payload_transport: docs/benchmarks.md, "Arms as published: generalisation".
+payload_transport: docs/benchmarks.md, "Generalisation on arms as published".
 
 It needs the applied torque of each rollout: it asks the results
 (`RolloutResult.has_trajectory`) and ends after the first rollout whose result carries none

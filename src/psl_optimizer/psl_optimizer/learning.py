@@ -78,7 +78,7 @@ from psl_task.task import TaskDefinition
 FEEDFORWARD_SCALE = 0.5          # theta_D's CMA-ES unit: this share of the joint's torque limit
 # after ILC, CMA-ES refines theta_D in this share of that unit (2 % of the torque limit): with
 # the full unit its steps undid what ILC had learned and the skill learned the noise
-# (point_reach_3d: zero-shot success 45 % -> 75 %, docs/benchmarks.md)
+# (point_reach_3d's zero-shot success: docs/benchmarks.md, "Task variability")
 ILC_REFINE_SHARE = 0.04
 GOAL_SCALE = {'joint': 0.3,      # a learned goal's CMA-ES unit: rad (joint space) ...
               'end_effector': 0.1}    # ... or m (end-effector space)
