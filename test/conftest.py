@@ -1,6 +1,8 @@
 """Integration tests: the nodes run as separate processes over real DDS, on the ROS domain
 of this test run (the root conftest.py)."""
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +16,10 @@ Q_TOLERANCE = 1e-9          # rad, joint angles at every control period
 REWARD_TOLERANCE = 1e-9     # reward, absolute
 COMPONENT_RTOL, COMPONENT_ATOL = 1e-9, 1e-12
 DELIVERY_TIMEOUT = 10.0     # s, for messages already published to reach a test's subscription
+
+# the helper modules of this folder (docs_commands.py) importable by its test files, which
+# pytest imports by path (--import-mode=importlib)
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def poll_until(condition, timeout: float, period: float = 0.01) -> bool:
