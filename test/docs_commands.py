@@ -171,6 +171,7 @@ def fast_form_missing(block: list[Command]) -> list[Command]:
 
 
 
+STARTED = re.compile(r'^(?:re)?started (\S+) +pid (\d+)$', re.MULTILINE)   # psl up's nodes
 COMMAND_TIMEOUT = 300.0     # s, a backstop for one command (the docs' commands take seconds)
 READY_TIMEOUT = 120.0       # s, for a background command to say it is ready
 END_TIMEOUT = 30.0          # s, for a background command to end after Ctrl-C
@@ -207,8 +208,11 @@ class Background:
                 f'{READY_TIMEOUT:.0f} s:\n{self.output()}')
             time.sleep(0.05)
 
-    def end(self) -> None:
-        """Ctrl-C, as in its shell: its process group gets SIGINT; killed if it does not end."""
+    def end(self) -> list[str]:
+        """Ctrl-C, as in its shell: its process group gets SIGINT; killed if it does not end,
+        and so is every process it said it started (``psl up``: one per node, in sessions of
+        their own) that outlived it. Returns those left behind, which it killed: a graph left
+        on this run's ROS domain would answer the next test's rollouts."""
         if self.process.poll() is None:
             try:
                 os.killpg(self.process.pid, signal.SIGINT)
@@ -220,6 +224,15 @@ class Background:
         except ProcessLookupError:
             pass
         self.process.wait()
+        left = []
+        for name, pid in STARTED.findall(self.output()):
+            try:    # still that node (a PID is reused): a process of ROS arguments
+                if b'--ros-args' in Path(f'/proc/{pid}/cmdline').read_bytes().split(b'\0'):
+                    os.kill(int(pid), signal.SIGKILL)
+                    left.append(f'{name} (pid {pid})')
+            except (FileNotFoundError, ProcessLookupError):
+                pass
+        return left
 
 
 def _run(command: Command, folder: Path, env: dict) -> str:
@@ -255,6 +268,7 @@ def run_document(document: str, tmp_path: Path) -> None:
     env = dict(os.environ, PSL_VIEW_PORT=str(_free_port()), PSL_LOG_DIR=str(tmp_path / 'logs'))
     env.pop('PSL_MEMORY_DIR', None)     # the graph keeps its memory files where it was started
     background: dict[tuple, Background] = {}
+    left: list[str] = []        # processes a background command left behind (killed)
     took = []                   # (seconds, command): `pytest -s` prints where the time goes
     try:
         for k, command in enumerate(c for block in commands(document) for c in block):
@@ -264,7 +278,8 @@ def run_document(document: str, tmp_path: Path) -> None:
             if command.ready:
                 kind = tuple(command.words[:2])
                 if kind in background:            # the same command again: the first one ends
-                    background.pop(kind).end()
+                    ended = background.pop(kind)
+                    left += [f'{ended.command.where}: {name}' for name in ended.end()]
                 started = Background(command, folder, env, tmp_path / f'background{k}.log')
                 background[kind] = started
                 started.wait_ready()
@@ -273,13 +288,14 @@ def run_document(document: str, tmp_path: Path) -> None:
             took.append((time.monotonic() - start, command))
     finally:
         start = time.monotonic()
-        for started in background.values():
-            started.end()
+        left += [f'{started.command.where}: {name}' for started in background.values()
+                 for name in started.end()]
         took.append((time.monotonic() - start, None))
         print(f'\n{document}: {sum(t for t, _ in took):.1f} s')
         for seconds, command in took:
             print(f'  {seconds:6.1f} s  ' + (f'{command.where} {command.text[:70]}'
                                             if command else 'Ctrl-C to what runs in the background'))
+    assert not left, f'left behind after Ctrl-C (killed now): {left}'
 
 
 def main() -> int:
