@@ -284,8 +284,11 @@ class SimNode(Node):
             self._ee_path = []
             self._scene_tick(always=True)
             self._publish_status(0)        # the episode's start (and, realtime, its rate)
+            # its start, read under the lock: once it is released the controller's answer to
+            # the start state may step the episode before this response is sent
+            began = self.t_ns
         response.success, response.message = True, f'episode of {num_steps} steps started'
-        response.stamp, response.num_steps = time_msg(self.t_ns), num_steps
+        response.stamp, response.num_steps = time_msg(began), num_steps
         return response
 
     # -- commands -----------------------------------------------------------------------

@@ -55,3 +55,33 @@ def test_a_command_published_before_the_state_is_not_its_answer(sim):
         assert sim.stale_commands == 1
         command(sim, time.time_ns())
     assert sim.stale_commands == 1
+
+
+class AnswerOnRelease:
+    """The node's lock, but the controller's answer to the start state comes the instant the
+    reset releases it (what a busy machine may schedule): a command handed to the node right
+    after the lock's release, once."""
+
+    def __init__(self, node: SimNode):
+        self.node, self.lock, self.armed = node, node._lock, True
+
+    def __enter__(self):
+        return self.lock.__enter__()
+
+    def __exit__(self, *exc):
+        released = self.lock.__exit__(*exc)
+        if self.armed:
+            self.armed = False
+            command(self.node, time.time_ns())
+        return released
+
+
+@pytest.mark.parametrize('sim', ['lockstep'], indirect=True)     # a command steps at once
+def test_a_resets_stamp_is_its_episodes_start_even_when_the_answer_comes_at_once(sim):
+    sim._lock = AnswerOnRelease(sim)
+    response = sim.on_reset(ResetTask.Request(task='reach_over_obstacle', tau=[0.675, 0.16]),
+                            ResetTask.Response())
+    assert response.success, response.message
+    assert sim.t_ns == sim.episode['t0'] + sim.arm.task.control_period_ns   # it stepped
+    stamp = response.stamp.sec * 10**9 + response.stamp.nanosec
+    assert stamp == sim.episode['t0'], (stamp, sim.episode['t0'])
