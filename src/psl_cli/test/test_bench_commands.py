@@ -11,7 +11,7 @@ SEEDS = (0, 1)
 def test_learn_reuses_finished_runs_and_refuses_other_settings(tmp_path, capsys):
     argv = ['bench', 'learn', '--strategies', *STRATEGIES, '--seeds', *map(str, SEEDS),
             '--tasks', '3', '--budget', '25', '--test-tasks', '3', '--after', '1',
-            '--out', str(tmp_path), '--json']
+            '--out', str(tmp_path), '--json', '--serial']    # Ray: test_sessions.py
     assert main(argv) == 0
     first = json.loads(capsys.readouterr().out)
     assert not any(run['reused'] for runs in first['runs'].values() for run in runs.values())
@@ -42,7 +42,7 @@ def test_the_rollout_bench_prints_its_ratio(capsys):
 def test_learn_runs_the_baselines_named_by_skill_maps(tmp_path, capsys):
     argv = ['bench', 'learn', '--strategies', 'bootstrap', '--seeds', '0', '--tasks', '2',
             '--budget', '20', '--test-tasks', '2', '--after', '1', '--out', str(tmp_path),
-            '--skill-maps', 'elm,library', 'gp']
+            '--serial', '--skill-maps', 'elm,library', 'gp']    # Ray: test_sessions.py
     assert main(argv + ['--json']) == 0
     report = json.loads(capsys.readouterr().out)
     assert report['settings']['skill_maps'] == ['elm', 'library', 'gp']
