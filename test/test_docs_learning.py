@@ -1,5 +1,5 @@
-"""The commands of docs/learning.md and docs/viewing_and_recording.md run as typed (`docs_commands`; a file of
-their own, so that the suite's two workers share the documents)."""
+"""The commands of docs/learning.md and docs/viewing_and_recording.md run as typed
+(`docs_commands`; a file of their own, so that the suite's two workers share the documents)."""
 from pathlib import Path
 
 import pytest

@@ -232,8 +232,8 @@ def test_rollouts_with_drive_resets_teach_the_skill(client, graph_task, reset, t
                                            joint_names_of(task))
     spans, returns = teaching.split_returns(task, recording, teaching.rest_to_rest(recording))
     assert len(spans) == 3 and len(returns) == 3
-    by_motion = teaching.taus_from_topic(bag, '/' + names.TASK_INSTANCE, recording, spans,
-                                         make_typestore())
+    by_motion = teaching.taus_from_topic(teaching.read_announcements(
+        bag, '/' + names.TASK_INSTANCE, make_typestore()), recording, spans)
     np.testing.assert_array_equal(by_motion, np.array([t.tolist() for t in taus]))
     outcomes = teaching.teach(task, recording, spans, by_motion,
                               SkillMemory(LearnSettings().skill))

@@ -158,8 +158,8 @@ def demonstrations_through_graph(task_name: str, count: int, seed: int, noise: s
             recorder.join()
     recording = teaching.read_joint_states(bag, '/' + names.JOINT_STATES, joint_names_of(task))
     spans, _ = teaching.split_returns(task, recording, teaching.rest_to_rest(recording))
-    taus = teaching.taus_from_topic(bag, '/' + names.TASK_INSTANCE, recording, spans,
-                                    make_typestore())
+    taus = teaching.taus_from_topic(teaching.read_announcements(
+        bag, '/' + names.TASK_INSTANCE, make_typestore()), recording, spans)
     outcomes = teaching.teach(task, recording, spans, taus, SkillMemory(LearnSettings().skill))
     accepted = [o for o in outcomes if o.accepted][:count]
     refused = sum(not o.accepted for o in outcomes)

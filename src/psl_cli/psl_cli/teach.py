@@ -60,12 +60,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help='the memory file to write (it may be --into\'s)')
 
 
-def _taus(args, spans, recording, bag: Path) -> list:
+def _taus(args, spans, recording, announcements: list) -> list:
     from psl_optimizer import teaching
 
     if args.tau_topic:
-        from psl_ros.bag_recorder import make_typestore
-        return teaching.taus_from_topic(bag, args.tau_topic, recording, spans, make_typestore(),
+        return teaching.taus_from_topic(announcements, recording, spans,
                                         motions=not args.window)
     if args.tau_file:
         rows = [line.split() for line in Path(args.tau_file).read_text().splitlines()
@@ -94,9 +93,11 @@ def run(args) -> int:
         by_episodes = args.episodes
         if by_episodes and not args.tau_topic:
             raise ValueError('--episodes needs --tau-topic (the topic announcing them)')
-        if args.tau_topic and not args.window:
+        announcements = []          # the tau topic's messages, read once
+        if args.tau_topic:
             from psl_ros.bag_recorder import make_typestore
             announcements = teaching.read_announcements(bag, args.tau_topic, make_typestore())
+        if args.tau_topic and not args.window:
             if not by_episodes and teaching.announces_episodes(announcements):
                 by_episodes = True
                 print(f'psl teach: {args.tau_topic} announces psl\'s episodes '
@@ -120,7 +121,7 @@ def run(args) -> int:
                              f'that is not a return to the start posture; {len(returns)} '
                              'returns)')
         if not by_episodes:
-            taus = _taus(args, spans, recording, bag)
+            taus = _taus(args, spans, recording, announcements)
         memory = (SkillMemory.read(args.into) if args.into
                   else SkillMemory(LearnSettings().skill))
         outcomes = teaching.teach(task, recording, spans, taus, memory, args.start_tolerance,

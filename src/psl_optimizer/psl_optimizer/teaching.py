@@ -12,9 +12,10 @@ policy optimization". This module turns a recording into such samples:
    episodes psl announced (psl_msgs/TaskInstance on the tau topic, each stamped with its
    first state and carrying its length: `announces_episodes`): `episodes` takes the movement
    of each, with its tau (the announced ones that are none, e.g. homing episodes, and motions
-   in no announced episode are said). Cutting from rest to rest cannot separate them: an episode's settling leaves the arm
-   at rest for less than MIN_REST before the next one begins, and a teleport reset, a jump
-   between two states, begins the next motion at the goal of the episode before.
+   in no announced episode are said). Cutting from rest to rest cannot separate them: an
+   episode's settling leaves the arm at rest for less than MIN_REST before the next one
+   begins, and a teleport reset, a jump between two states, begins the next motion at the
+   goal of the episode before.
    Otherwise (guided demonstrations) `rest_to_rest` cuts the spans in which the arm moves
    (the largest joint speed, a difference over 50 ms, above ``velocity_threshold``; pauses
    under 0.2 s belong to the motion), each from the rest before to the rest after, kept if
@@ -328,12 +329,13 @@ def windows(recording: Recording, spans: list[tuple[float, float]]) -> list[tupl
     return out
 
 
-def taus_from_topic(bag: str | Path, topic: str, recording: Recording,
-                    spans: list[tuple[int, int]], typestore=None, motions: bool = True) -> list:
-    """Each span's instance from `topic` of the bag (`read_instances`, `instance_at`): the last
-    announced before the arm starts to move (`motion_start`: spans of `rest_to_rest`), or with
-    ``motions=False`` before the span starts (time windows given)."""
-    instances = read_instances(bag, topic, typestore)
+def taus_from_topic(announcements: list[Announcement], recording: Recording,
+                    spans: list[tuple[int, int]], motions: bool = True) -> list:
+    """Each span's instance from a tau topic's `announcements` (`read_announcements`, homing
+    episodes skipped; `instance_at`): the last announced before the arm starts to move
+    (`motion_start`: spans of `rest_to_rest`), or with ``motions=False`` before the span
+    starts (time windows given)."""
+    instances = [(a.t, a.tau) for a in announcements if not a.homing]
     return [instance_at(instances, motion_start(recording, span) if motions
                         else float(recording.t[span[0]])) for span in spans]
 

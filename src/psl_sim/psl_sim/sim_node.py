@@ -70,8 +70,8 @@ UNKNOWN_NODE = '_UNKNOWN_'       # rmw's node name of an endpoint whose node is 
 NAME_PATIENCE = 2.0              # s to wait for it
 # phases of a lockstep step: the wait from sending a state to its answer's callback (the
 # controller and both transports; of it, the command's way from the controller's publish to
-# the callback, as far as it lies within the wait), the physics, building and sending the state, then the rest (clock, pose,
-# scene, status: done while the controller works)
+# the callback, as far as it lies within the wait), the physics, building and sending the
+# state, then the rest (clock, pose, scene, status: done while the controller works)
 STEP_PHASES = ('wait', 'command_transport', 'physics', 'state', 'extras')
 
 MARKER_TYPES = {ShapeKind.SPHERE: Marker.SPHERE, ShapeKind.CYLINDER: Marker.CYLINDER,
