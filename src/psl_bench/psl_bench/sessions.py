@@ -136,7 +136,7 @@ def cluster(runner: str, address: str | None = None) -> Iterator[None]:
     Raises:
         ValueError: the address is not HOST:PORT.
         RuntimeError: no cluster at the address (`check_reachable`: within CONNECT_TIMEOUT
-            s), or Ray found none to join ('auto'); one line naming the address.
+            s), one line naming it. (ConnectionError: 'auto' and no cluster on this machine.)
     """
     if runner != 'ray':
         yield
@@ -147,11 +147,8 @@ def cluster(runner: str, address: str | None = None) -> Iterator[None]:
     if started:
         given = address or os.environ.get(ADDRESS_VARIABLE) or 'local'
         check_reachable(given)
-        try:
-            ray.init(address=given, include_dashboard=False, log_to_driver=False,
-                     configure_logging=False, ignore_reinit_error=True)
-        except ConnectionError as exc:      # 'auto' with no cluster, a GCS that did not answer
-            raise RuntimeError(f'no Ray cluster at {given}: {_first_line(exc)}') from None
+        ray.init(address=given, include_dashboard=False, log_to_driver=False,
+                 configure_logging=False, ignore_reinit_error=True)
     try:
         yield
     finally:
@@ -178,7 +175,7 @@ def check_reachable(address: str, timeout: float = CONNECT_TIMEOUT) -> None:
     host, sep, port = address[len(scheme) if client else 0:].rpartition(':')
     if not (sep and host.strip('[]') and port.isdigit() and 0 < int(port) < 65536):
         raise ValueError(f'Ray address {address!r}: give HOST:PORT (e.g. 127.0.0.1:6379, '
-                         "what ray start --head prints)")
+                         'what ray start --head prints)')
     if not client:          # Ray joins a local host name at its node's address
         from ray._private.services import canonicalize_bootstrap_address
         host, _, port = canonicalize_bootstrap_address(address).rpartition(':')
@@ -195,11 +192,6 @@ def check_reachable(address: str, timeout: float = CONNECT_TIMEOUT) -> None:
     raise RuntimeError(f'no Ray cluster at {address}{joined}: {why}; start one there (ray '
                        f'start --head) or leave out --address and ${ADDRESS_VARIABLE} for a '
                        'cluster of this machine')
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def _ray(sessions: Sequence[Session], address: str | None, done) -> SweepResult:
@@ -233,7 +225,7 @@ def _reason(exc: Exception) -> str:
     cause = getattr(exc, 'cause', None)
     if isinstance(cause, BaseException):
         return f'{type(cause).__name__}: {cause}'
-    return _first_line(exc)
+    return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
 
 
 def _nodes(records: dict[Any, dict]) -> dict[str, int]:

@@ -73,3 +73,19 @@ def test_a_sweep_in_which_no_session_finished_raises_with_why():
     with pytest.raises(RuntimeError, match=r'^no session of the sweep finished: \(0,\): '
                                            r'ValueError: file0: damaged; \(1,\): ValueError'):
         sessions.run(plan, 'serial')
+
+
+def test_a_local_address_is_checked_where_ray_joins_it():
+    """Ray joins 127.0.0.1:PORT at its node's address: a server on the loopback alone is no
+    cluster Ray could join, and is refused naming both."""
+    from ray._private.services import get_node_ip_address
+    node = get_node_ip_address()
+    if node.startswith('127.'):
+        pytest.skip(f"this machine's node address is the loopback ({node})")
+    with socket.socket() as server:
+        server.bind(('127.0.0.1', 0))
+        server.listen(1)
+        address = f'127.0.0.1:{server.getsockname()[1]}'
+        with pytest.raises(RuntimeError, match=f'^no Ray cluster at {address} \\(joined at '
+                                               f'{node}:{server.getsockname()[1]}\\): '):
+            sessions.check_reachable(address)

@@ -235,6 +235,47 @@ def test_a_damaged_file_is_one_line_naming_it(good, tmp_path, capsys, kind, comm
     assert_one_line(code, err, path)
 
 
+def test_a_tau_file_with_a_value_that_is_not_finite_names_its_line(good, tmp_path, capsys):
+    from psl_cli.main import main
+    path = tmp_path / 'taus.txt'
+    path.write_text('# obstacle_x obstacle_height\n0.6 nan\n')
+    code = main(['teach', '--task', TASK, str(good / 'bag'), '--tau-file', str(path), '-o',
+                 str(tmp_path / 'm.npz')])
+    assert_one_line(code, capsys.readouterr().err, f'{path}, line 2: values that are not '
+                                                   'finite')
+
+
+@pytest.mark.parametrize('name', ['metrics.json', 'memory.npz'])
+def test_learn_into_a_folder_where_a_session_file_is_a_directory_is_one_line(
+        tmp_path, capsys, name):
+    """A folder where psl learn writes a file: metrics.json refused before any work (it would
+    be written last), memory.npz when the first task's checkpoint cannot be written."""
+    from psl_cli.main import main
+    out = tmp_path / 'run'
+    (out / name).mkdir(parents=True)
+    code = main(['learn', '--tasks', '1', '--test-tasks', '1', '--budget', '2', '-o',
+                 str(out)])
+    assert code == 2
+    assert_one_line(code, capsys.readouterr().err, 'psl learn:', out / name)
+    assert (out / name).is_dir()
+
+
+@pytest.mark.parametrize('name', ['checkpoint.json', 'metrics.json'])
+def test_bench_learn_refuses_a_run_folder_whose_session_file_is_a_directory(
+        tmp_path, capsys, name):
+    """Refused before any work (before: taken for an empty folder; each session ran and failed
+    writing it, twice)."""
+    from psl_cli.main import main
+    run = tmp_path / f'{TASK}-scratch-seed0'
+    (run / name).mkdir(parents=True)
+    code = main(['bench', 'learn', '--serial', '--strategies', 'scratch', '--seeds', '0',
+                 '--tasks', '2', '--after', '1', '--test-tasks', '1', '--budget', '2', '-o',
+                 str(tmp_path)])
+    assert code == 2
+    assert_one_line(code, capsys.readouterr().err, 'psl bench learn:', run)
+    assert sorted(p.name for p in run.iterdir()) == [name]
+
+
 # -- as processes ----------------------------------------------------------------------------
 def run(args, cwd, env=None, timeout: float = 180.0) -> subprocess.CompletedProcess:
     return subprocess.run(PSL + [str(a) for a in args], capture_output=True, text=True,

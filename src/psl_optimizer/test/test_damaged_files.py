@@ -164,3 +164,19 @@ def test_no_bag_and_a_folder_that_is_none_are_refused_naming_them(task, tmp_path
                         (tmp_path / 'folder', 'not a readable rosbag2 bag')):
         with pytest.raises(ValueError, match=f'{path}: {words}'):
             teaching.read_joint_states(path, '/joint_states', joint_names_of(task))
+
+
+def test_a_topic_of_a_type_psl_does_not_know_is_refused_naming_it(tmp_path):
+    """A tau topic of a package not installed here: said so, not taken for a damaged bag."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    store = get_typestore(Stores.ROS2_JAZZY)
+    store.register(get_types_from_msg('float64 x', 'their_msgs/msg/Thing'))
+    folder = tmp_path / 'theirs'
+    with Writer(folder, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        connection = writer.add_connection('/thing', 'their_msgs/msg/Thing', typestore=store)
+        writer.write(connection, 1, store.serialize_cdr(
+            store.types['their_msgs/msg/Thing'](x=1.0), 'their_msgs/msg/Thing'))
+    with pytest.raises(ValueError, match=f'^{folder}: /thing holds their_msgs/msg/Thing, a type '
+                                         'psl does not know'):
+        teaching.read_announcements(folder, '/thing')
