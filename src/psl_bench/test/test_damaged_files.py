@@ -47,6 +47,18 @@ def test_an_address_with_no_cluster_is_refused_naming_it():
         sessions.check_reachable(f'ray://{address}')
 
 
+def test_the_address_in_the_environment_is_checked_before_ray_joins(monkeypatch):
+    """$RAY_ADDRESS to where no cluster is: refused naming it (before: ray.init retried for
+    minutes); the sweep's cluster is not joined."""
+    import ray
+    address = f'127.0.0.1:{free_port()}'
+    monkeypatch.setenv(sessions.ADDRESS_VARIABLE, address)
+    with pytest.raises(RuntimeError, match=f'^no Ray cluster at {address}'):
+        with sessions.cluster('ray'):
+            pass
+    assert not ray.is_initialized()
+
+
 def test_an_address_that_answers_passes_and_local_and_auto_are_rays():
     with socket.socket() as server:
         server.bind(('0.0.0.0', 0))
