@@ -102,8 +102,7 @@ def read_run(folder: Path, after: int) -> dict:
         raise ValueError(f'{folder}: {len(metrics.tasks)} tasks, need more than after={after}')
     rollouts = [t.rollouts for t in metrics.tasks]
     summary = metrics.summary
-    timing = folder / SESSION_FILE      # absent for runs kept from before the bench wrote it
-    timed = json.loads(timing.read_text()) if timing.is_file() else {}
+    timed = _timing(folder / SESSION_FILE)
     return {
         **{key: float(timed[key]) for key in TIMINGS if key in timed},
         **{key: float(np.nanmean(summary.test_hand_errors[name]))
@@ -269,8 +268,6 @@ def run(task_name: str = DEFAULT_TASK, strategies: Sequence[str] | None = None,
             _check_same_instances(seed, runs[seed])
         else:
             del runs[seed]
-    if not runs:
-        raise RuntimeError('no session of the sweep finished: ' + '; '.join(swept.missing()))
     report = {'settings': {'task': task.name, 'strategies': list(strategies),
                            'seeds': list(seeds), 'num_tasks': num_tasks, 'budget': budget,
                            'num_test': num_test, 'after': after,
@@ -326,20 +323,40 @@ def learn_session(task_name: str, settings, folder: str, after: int, threads: in
     return record
 
 
+def _timing(path: Path) -> dict:
+    """A run's session time and its shares (`SESSION_FILE`; {} for runs kept from before the
+    bench wrote it). ValueError naming the file: damaged (not a file, not JSON, not an object
+    of numbers)."""
+    if not path.exists():
+        return {}
+    try:
+        timed = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:        # UnicodeDecodeError, JSONDecodeError too
+        raise ValueError(f'{path}: damaged ({getattr(exc, "strerror", None) or exc}); remove '
+                         'it (the run is then reported without its timing)') from None
+    if not isinstance(timed, dict) or not all(isinstance(timed.get(key, 0.0), (int, float))
+                                              for key in TIMINGS):
+        raise ValueError(f'{path}: damaged (not an object of numbers); remove it (the run is '
+                         'then reported without its timing)')
+    return timed
+
+
 def _reusable(folder: Path, settings, resumable: bool = False) -> bool:
     """True if folder holds a complete session with exactly these settings; False if it holds
     nothing yet, or (`resumable`: a session's retry) an unfinished one whose checkpoint the
     learner resumes (it refuses one of other settings). Anything else is refused (a partial
     or different session would mix in)."""
-    metrics_path, checkpoint = folder / METRICS_FILE, folder / 'checkpoint.json'
-    if not metrics_path.is_file() and not checkpoint.is_file():
+    from psl_optimizer.learning import holds_checkpoint
+
+    metrics_path = folder / METRICS_FILE
+    if not metrics_path.exists() and not holds_checkpoint(folder):
         return False
-    if metrics_path.is_file():
+    if metrics_path.exists():           # read_metrics names a damaged one
         metrics = read_metrics(folder)
         stored = {'skill_map': 'elm', **metrics.settings}     # runs from before the option
         if metrics.complete and stored == _settings_json(settings):
             return True
-    if resumable and not (metrics_path.is_file() and read_metrics(folder).complete):
+    if resumable and not (metrics_path.exists() and read_metrics(folder).complete):
         return False
     raise ValueError(f'{folder} holds another or an unfinished learning session; remove it or '
                      f'give another --out')

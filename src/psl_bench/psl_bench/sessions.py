@@ -31,6 +31,7 @@ RUNNERS = ('ray', 'serial')
 RETRIES = 1                 # a failed session is run once more
 ADDRESS_VARIABLE = 'RAY_ADDRESS'    # Ray's own: the cluster to join when --address is not given
 LIVENESS_PERIOD = 10.0      # [s] between checks that the cluster is there while sessions run
+CONNECT_TIMEOUT = 5.0       # [s] to reach a given cluster's head before Ray is asked to join
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,6 +84,8 @@ def run(sessions: Sequence[Session], runner: str = 'serial', address: str | None
 
     Raises:
         ValueError: an unknown runner, or two sessions with one key.
+        RuntimeError: no session finished (each failed twice: the reasons), or no Ray
+            cluster at the address (`cluster`).
     """
     if runner not in RUNNERS:
         raise ValueError(f'runner must be one of {", ".join(RUNNERS)}, got {runner!r}')
@@ -97,9 +100,10 @@ def run(sessions: Sequence[Session], runner: str = 'serial', address: str | None
             if progress is not None:
                 progress(f'{session.label}: FAILED ({reason})' if record is None
                          else f"{session.label}: {record.get('summary', 'done')}")
-        if runner == 'serial':
-            return _serial(sessions, done)
-        return _ray(sessions, address, done)
+        swept = _serial(sessions, done) if runner == 'serial' else _ray(sessions, address, done)
+    if sessions and not swept.records:      # a table of nothing: say why, exit non-zero
+        raise RuntimeError('no session of the sweep finished: ' + '; '.join(swept.missing()))
+    return swept
 
 
 def _serial(sessions: Sequence[Session], done) -> SweepResult:
@@ -127,7 +131,13 @@ def cluster(runner: str, address: str | None = None) -> Iterator[None]:
     cluster, or a new one of this machine's cores ('local': not whatever cluster `ray start`
     left on this machine, which may be gone); on a local cluster the workers inherit this
     process's environment (psl's, scripts/env.sh). Inside an already joined cluster: that
-    one."""
+    one.
+
+    Raises:
+        ValueError: the address is not HOST:PORT.
+        RuntimeError: no cluster at the address (`check_reachable`: within CONNECT_TIMEOUT
+            s), one line naming it. (ConnectionError: 'auto' and no cluster on this machine.)
+    """
     if runner != 'ray':
         yield
         return
@@ -135,14 +145,53 @@ def cluster(runner: str, address: str | None = None) -> Iterator[None]:
 
     started = not ray.is_initialized()
     if started:
-        ray.init(address=address or os.environ.get(ADDRESS_VARIABLE) or 'local',
-                 include_dashboard=False, log_to_driver=False, configure_logging=False,
-                 ignore_reinit_error=True)
+        given = address or os.environ.get(ADDRESS_VARIABLE) or 'local'
+        check_reachable(given)
+        ray.init(address=given, include_dashboard=False, log_to_driver=False,
+                 configure_logging=False, ignore_reinit_error=True)
     try:
         yield
     finally:
         if started:
             ray.shutdown()
+
+
+def check_reachable(address: str, timeout: float = CONNECT_TIMEOUT) -> None:
+    """Whether a Ray cluster's head can be reached at `address` (``HOST:PORT`` or
+    ``ray://HOST:PORT``; 'local' and 'auto' are Ray's to resolve): a TCP connection, within
+    `timeout` s, to the address Ray itself joins (a local host name stands for its node's
+    address: ``ray._private.services.canonicalize_bootstrap_address``). ``ray.init`` has no
+    timeout of its own for this and retries for minutes (ray-project/ray#46863).
+
+    Raises:
+        ValueError: `address` is not HOST:PORT.
+        RuntimeError: nothing answers there within `timeout` s; the message names the
+            address.
+    """
+    if address in ('local', 'auto'):
+        return
+    scheme = 'ray://'
+    client = address.startswith(scheme)
+    host, sep, port = address[len(scheme) if client else 0:].rpartition(':')
+    if not (sep and host.strip('[]') and port.isdigit() and 0 < int(port) < 65536):
+        raise ValueError(f'Ray address {address!r}: give HOST:PORT (e.g. 127.0.0.1:6379, '
+                         'what ray start --head prints)')
+    if not client:          # Ray joins a local host name at its node's address
+        from ray._private.services import canonicalize_bootstrap_address
+        host, _, port = canonicalize_bootstrap_address(address).rpartition(':')
+    target = (host.strip('[]'), int(port))
+    try:
+        with socket.create_connection(target, timeout=timeout):
+            return
+    except TimeoutError:
+        why = f'no answer within {timeout:g} s'
+    except OSError as exc:
+        why = (exc.strerror or str(exc) or type(exc).__name__).lower()
+    joined = '' if address.endswith(f'{target[0]}:{target[1]}') else (
+        f' (joined at {target[0]}:{target[1]})')
+    raise RuntimeError(f'no Ray cluster at {address}{joined}: {why}; start one there (ray '
+                       f'start --head) or leave out --address and ${ADDRESS_VARIABLE} for a '
+                       'cluster of this machine')
 
 
 def _ray(sessions: Sequence[Session], address: str | None, done) -> SweepResult:

@@ -231,7 +231,12 @@ def run(tasks: Sequence[str] = TASKS, counts: Sequence[int] = COUNTS,
         robot: str = 'standard', runner: str = 'serial', address: str | None = None) -> dict:
     """Every task x count x seed (module docstring); the report of `format_table`. Each task
     and seed is a session of `psl_bench.sessions` (`runner`, `address`); demonstrations shown
-    through the graph run here, one after the other (Ray stays out of the ROS graph)."""
+    through the graph run here, one after the other (Ray stays out of the ROS graph).
+
+    Raises:
+        ValueError: bad settings, a task that cannot be loaded (TaskError: its file named).
+        RuntimeError: no session of the sweep finished (`psl_bench.sessions.run`).
+    """
     if through not in THROUGH:
         raise ValueError(f'through must be one of {", ".join(THROUGH)}, got {through!r}')
     if robot not in ('standard', 'sim'):
@@ -241,6 +246,9 @@ def run(tasks: Sequence[str] = TASKS, counts: Sequence[int] = COUNTS,
         raise ValueError(f'counts must be distinct and >= 0, got {list(counts)}')
     if num_tasks <= LATE:
         raise ValueError(f'num_tasks must exceed {LATE} (the late tasks), got {num_tasks}')
+    from psl_task.task import load_task
+    for task in tasks:
+        load_task(task)             # a task file that cannot be read: refused before any work
     importlib.import_module('cma')
     with tempfile.TemporaryDirectory() as scratch:
         base = Path(out) if out is not None else Path(scratch)

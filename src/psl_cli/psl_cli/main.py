@@ -2,9 +2,11 @@
 bags, run the demo and benchmarks.
 
 Bad input gets one line on stderr and a non-zero exit code (2 for a bad argument or file, 1
-when the graph cannot do it), never a traceback; output cut short by a closed pipe (``psl ...
-| head``) ends quietly with exit code 141 (128 + SIGPIPE, as a shell reports it). Only the
-options of the command given are built, so a command imports what it needs and no more.
+when the graph cannot do it), never a traceback: a refusal of psl's own (`is_refusal`: a damaged
+file, a bad task) that a command does not catch itself ends in `main` the same way. Output cut
+short by a closed pipe (``psl ... | head``) ends quietly with exit code 141 (128 + SIGPIPE, as
+a shell reports it). Only the options of the command given are built, so a command imports
+what it needs and no more.
 """
 from __future__ import annotations
 
@@ -453,16 +455,21 @@ def cmd_learn(args) -> int:
 
 def _check_session_folder(args, out: Path) -> None:
     """ValueError (one line naming the folder and --out) when `out` holds a finished session
-    of at least --tasks tasks (a run would do nothing), or is the folder of the
-    --continue-from memory (the session would write over the skill it continues). A folder
-    of another session's checkpoint is refused by the learner (`SessionFolderError`)."""
+    of at least --tasks tasks (a run would do nothing), is the folder of the
+    --continue-from memory (the session would write over the skill it continues), or holds a
+    metrics.json that is no file. A folder of another session's checkpoint, or of a damaged
+    one, is refused by the learner (`SessionFolderError`)."""
     from psl_optimizer.metrics import read_metrics
 
     if args.continue_from and Path(args.continue_from).expanduser().resolve().parent == out:
         raise ValueError(f'--continue-from {args.continue_from} lies in the session folder '
                          f'{out}: the session would write over the skill it continues; give '
                          'another --out')
-    if (out / 'metrics.json').is_file():
+    metrics_file = out / 'metrics.json'
+    if os.path.lexists(metrics_file) and not metrics_file.is_file():
+        raise ValueError(f'{metrics_file} is not a file: the session could not write its '
+                         'metrics there; remove it or give another --out')
+    if metrics_file.is_file():
         try:
             metrics = read_metrics(out)
         except (OSError, ValueError, KeyError):
@@ -586,7 +593,7 @@ def _learn_here(args, task, out: Path, stop: threading.Event, progress, workers,
     except SessionFolderError as exc:
         progress.close()
         return fail('psl learn', f'{exc} (--out)', 2)
-    except ValueError as exc:
+    except (ValueError, OSError) as exc:       # OSError: a session file it cannot write
         progress.close()
         return fail('psl learn', exc, 2)
     except (Stopped, InstanceStopped):   # Ctrl-C between two rollouts, or while waiting
@@ -1005,6 +1012,15 @@ def _stdout_to_devnull() -> None:
         pass
 
 
+def is_refusal(exc: BaseException) -> bool:
+    """Whether `exc` is one of psl's own refusals of bad input: a ValueError of a class a psl
+    package defines for it (TaskError, MemoryFileError, MetricsError, BagError,
+    SessionFolderError, ...), whose message names the file or value and says what is wrong."""
+    return isinstance(exc, ValueError) and any(
+        cls.__module__.startswith('psl_') for cls in type(exc).__mro__
+        if issubclass(cls, ValueError))
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     command = argv[0] if argv and argv[0] in COMMANDS else None
@@ -1013,6 +1029,10 @@ def main(argv=None) -> int:
         code = args.func(args)
         sys.stdout.flush()      # a closed pipe raises here, not at exit
         return code
+    except ValueError as exc:           # a damaged file a command did not expect: one line
+        if not is_refusal(exc):
+            raise
+        return fail(f'psl {command}', exc, 2)
     except BrokenPipeError:
         _stdout_to_devnull()
         return SIGPIPE_EXIT

@@ -67,9 +67,8 @@ def _taus(args, spans, recording, announcements: list) -> list:
         return teaching.taus_from_topic(announcements, recording, spans,
                                         motions=not args.window)
     if args.tau_file:
-        rows = [line.split() for line in Path(args.tau_file).read_text().splitlines()
-                if line.strip() and not line.lstrip().startswith('#')]
-        taus = [np.array([float(x) for x in row]) for row in rows]
+        from psl_cli.vectors import load_rows
+        taus = load_rows(args.tau_file)
     else:
         taus = [np.array(tau) for tau in args.tau]
     if len(taus) != len(spans):

@@ -22,15 +22,7 @@ def load_vector(path: str | Path) -> np.ndarray:
             kind, empty or not all finite numbers; the message names the file and says which.
     """
     file = Path(path)
-    try:
-        if file.is_dir():
-            raise ValueError(f'{file} is a directory, not a file')
-        with open(file, 'rb') as f:
-            data = f.read()
-    except FileNotFoundError:
-        raise ValueError(f'{file}: no such file') from None
-    except OSError as exc:
-        raise ValueError(f'{file} cannot be read: {exc.strerror or exc}') from None
+    data = read_bytes(file)
     if zipfile.is_zipfile(file):
         raise ValueError(f'{file} is an .npz archive (several named arrays); save the one '
                          'vector with np.save (.npy), as a .json list or as text')
@@ -51,6 +43,54 @@ def load_vector(path: str | Path) -> np.ndarray:
     if not np.all(np.isfinite(vector)):
         raise ValueError(f'{file} holds values that are not finite (NaN or inf)')
     return vector
+
+
+def read_bytes(path: str | Path) -> bytes:
+    """The content of a file a command reads.
+
+    Raises:
+        ValueError: the file is missing, a directory or unreadable; the message names it.
+    """
+    file = Path(path)
+    try:
+        if file.is_dir():
+            raise ValueError(f'{file} is a directory, not a file')
+        with open(file, 'rb') as f:
+            return f.read()
+    except FileNotFoundError:
+        raise ValueError(f'{file}: no such file') from None
+    except OSError as exc:
+        raise ValueError(f'{file} cannot be read: {exc.strerror or exc}') from None
+
+
+def load_rows(path: str | Path) -> list[np.ndarray]:
+    """The rows of numbers of a text file, one per line (whitespace-separated; blank lines
+    and ``#`` comments skipped): ``psl teach --tau-file``'s task instances.
+
+    Raises:
+        ValueError: the file is missing, a directory, unreadable, not text, holds a word that
+            is not a finite number (its line named) or no numbers at all; the message names
+            the file.
+    """
+    file = Path(path)
+    try:
+        text = read_bytes(file).decode()
+    except UnicodeDecodeError:
+        raise ValueError(f'{file} is not text') from None
+    rows = []
+    for number, line in enumerate(text.splitlines(), 1):
+        words = line.split('#', 1)[0].split()
+        try:
+            row = np.array([float(word) for word in words])
+        except ValueError as exc:
+            raise ValueError(f'{file}, line {number}: {exc}') from None
+        if not np.all(np.isfinite(row)):
+            raise ValueError(f'{file}, line {number}: values that are not finite (NaN or inf)')
+        if words:
+            rows.append(row)
+    if not rows:
+        raise ValueError(f'{file} holds no numbers')
+    return rows
 
 
 def _from_text(text: str):

@@ -32,7 +32,8 @@ from psl_controller.policy import policy_for
 from psl_msgs.action import LearnSkill
 from psl_optimizer.learner_parameters import LearnerParameters
 from psl_optimizer.learning import (CORRECTION_SUFFIX, Learner, LearnSettings,
-                                     ResidualComposition)
+                                     ResidualComposition, SessionFolderError,
+                                     holds_checkpoint)
 from psl_optimizer.policy_search import STRATEGIES, SearchSettings
 from psl_optimizer.rollout_modes import make_rollouts
 from psl_optimizer.rollouts import MODES, Rollouts, Stopped
@@ -183,7 +184,7 @@ class LearnerNode(Node):
                                  continuing=bool(settings.continue_from))
             instances = None
             try:
-                if not (out / 'checkpoint.json').is_file():
+                if not holds_checkpoint(out):
                     # the memory node writes the session's memory file: it checks the folder
                     # (inside its memory_dir) before any work, and makes it
                     skill.save(out / 'memory.npz')
@@ -210,6 +211,10 @@ class LearnerNode(Node):
             except (Stopped, InstanceStopped):
                 goal_handle.canceled()
                 result.message = self._stopped('cancelled', learner)
+                return result
+            except SessionFolderError as exc:   # another session's checkpoint, or a damaged one
+                goal_handle.abort()
+                result.message = str(exc)
                 return result
             except Exception as exc:  # noqa: BLE001 - report it, keep serving
                 goal_handle.abort()

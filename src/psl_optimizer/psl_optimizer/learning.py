@@ -417,8 +417,18 @@ def _plain(value):
 
 
 class SessionFolderError(ValueError):
-    """A session's folder holds another session (its checkpoint's settings differ), or more
-    tasks than this session has: it is not resumed."""
+    """A session's folder holds another session (its checkpoint's settings differ), more
+    tasks than this session has, or a damaged checkpoint: it is not resumed."""
+
+
+CHECKPOINT_FILE = 'checkpoint.json'
+
+
+def holds_checkpoint(folder: str | Path) -> bool:
+    """Whether a session's `folder` holds a checkpoint, readable or not (a damaged one, even a
+    directory or a dangling link of its name, is refused by the learner, never written
+    over)."""
+    return os.path.lexists(Path(folder) / CHECKPOINT_FILE)
 
 
 def _brief(value, width: int = 60) -> str:
@@ -481,7 +491,7 @@ class Learner:
     # -- checkpoints --------------------------------------------------------------------------
     @property
     def checkpoint_path(self) -> Path:
-        return self.out / 'checkpoint.json'
+        return self.out / CHECKPOINT_FILE
 
     @property
     def memory_path(self) -> Path:
@@ -498,10 +508,17 @@ class Learner:
                 **{key: _plain(getattr(s, key)) for key in RESUMED_SETTINGS}}
 
     def _load_checkpoint(self) -> list[TaskRecord]:
-        if not self.checkpoint_path.is_file():
+        """The finished tasks of the folder's checkpoint, the skill restored to its moment; a
+        folder without one starts the session (`continue_from`).
+
+        Raises:
+            SessionFolderError: the checkpoint is another session's, of more tasks, or damaged
+                (not a file, not JSON, not a checkpoint's content: the file named).
+        """
+        if not holds_checkpoint(self.out):
             self.skill.start(self.settings.continue_from)
             return []
-        state = json.loads(self.checkpoint_path.read_text())
+        state = self._read_checkpoint()
         mine = self._identity()
         state.setdefault('task_selection', 'random')      # checkpoints from before the option
         for key, value in (('model_error', ''), ('measurement_noise', ''), ('confirm', [1, 1]),
@@ -522,8 +539,39 @@ class Learner:
         # the memory of the checkpoint's moment: the file it names if a kill left it there,
         # else memory.npz, which it replaced
         named = self.out / Path(str(state.get('memory', self.memory_path.name))).name
+        try:
+            done = [TaskRecord.from_dict(record) for record in state['tasks']]
+        except KeyError as exc:
+            raise self._damaged(f'a task record without {exc}') from None
+        except (TypeError, ValueError, AttributeError) as exc:
+            raise self._damaged(f'a task record that is not one: {exc}') from None
         self.skill.restore(named if named.is_file() else self.memory_path)
-        return [TaskRecord.from_dict(record) for record in state['tasks']]
+        return done
+
+    def _damaged(self, why: str) -> SessionFolderError:
+        return SessionFolderError(f'{self.checkpoint_path}: a damaged checkpoint ({why}); '
+                                  'remove it to start the session afresh, or use another '
+                                  'folder')
+
+    def _read_checkpoint(self) -> dict:
+        """The checkpoint's JSON object, with a list of tasks (SessionFolderError naming the
+        file otherwise)."""
+        path = self.checkpoint_path
+        if not path.is_file():
+            raise self._damaged('not a regular file')
+        try:
+            state = json.loads(path.read_text())
+        except OSError as exc:
+            raise self._damaged(f'cannot be read: {exc.strerror or exc}') from None
+        except UnicodeDecodeError:
+            raise self._damaged('not text') from None
+        except ValueError as exc:                       # json.JSONDecodeError
+            raise self._damaged(f'not JSON: {exc}') from None
+        if not isinstance(state, dict):
+            raise self._damaged(f'a JSON {type(state).__name__}, not an object')
+        if not isinstance(state.get('tasks'), list):
+            raise self._damaged('no list of tasks')
+        return state
 
     def _save_checkpoint(self, done: list[TaskRecord]) -> None:
         """The memory and the tasks of one moment, whenever the process is killed: the memory

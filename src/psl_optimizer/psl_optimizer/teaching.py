@@ -37,7 +37,8 @@ policy optimization". This module turns a recording into such samples:
 
 `teach` does all of it and adds the accepted samples to a `SkillMemory` (in memory: the
 caller saves the file, atomically, or sends the samples to the memory node). Imports no ROS:
-bags are read with `rosbags`.
+bags are read with `rosbags` (`psl_ros.bag_reading`: a damaged, cut short or empty bag is one
+ValueError naming it).
 """
 from __future__ import annotations
 
@@ -59,6 +60,7 @@ VELOCITY_WINDOW = 0.05        # s: the joint speed is a difference over this spa
 START_TOLERANCE = 0.05        # rad: how far a demonstration may start from the start posture
 FIT_TOLERANCE = 0.05          # rad: how far the fitted movement may stay from the demonstration
 MAX_MESSAGES = 2_000_000      # joint states read from a bag at most (an hour at 500 Hz)
+JOINT_STATE = 'sensor_msgs/msg/JointState'
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,21 +97,34 @@ def _stamp(msg, timestamp: int) -> float:
     return stamp.sec + stamp.nanosec * 1e-9
 
 
-def _messages(bag: str | Path, topic: str, typestore=None):
-    """(seconds, message) of every message on `topic` of the bag, in the bag's order;
-    ValueError if the bag has no such topic."""
-    from rosbags.rosbag2 import Reader
+def _messages(bag: str | Path, topic: str, typestore=None, msgtypes: tuple[str, ...] = ()):
+    """(seconds, message) of every message on `topic` of the bag, in the bag's order.
+
+    Raises:
+        BagError (a ValueError naming the bag): the bag cannot be read (damaged, cut short,
+            empty, not a bag: `psl_ros.bag_reading.open_bag`), has no such topic, the topic is
+            of a type psl cannot decode or not one of `msgtypes` (when given), or it holds
+            more than MAX_MESSAGES messages.
+    """
+    from psl_ros.bag_reading import BagError, open_bag
     from rosbags.typesys import Stores, get_typestore
     store = typestore or get_typestore(Stores.ROS2_JAZZY)
-    with Reader(Path(bag)) as reader:
+    with open_bag(bag) as reader:
         connections = [c for c in reader.connections if c.topic == topic]
         if not connections:
-            raise ValueError(f'{bag}: no topic {topic!r} (it has '
-                             f'{", ".join(sorted(reader.topics)) or "none"})')
+            raise BagError(f'{bag}: no topic {topic!r} (it has '
+                           f'{", ".join(sorted(reader.topics)) or "none"})')
+        for connection in connections:
+            if msgtypes and connection.msgtype not in msgtypes:
+                raise BagError(f'{bag}: {topic} holds {connection.msgtype}, not '
+                               f'{" or ".join(msgtypes)}')
+            if connection.msgtype not in store.types:
+                raise BagError(f'{bag}: {topic} holds {connection.msgtype}, a type psl does '
+                               'not know (its package is not installed here)')
         for count, (connection, timestamp, raw) in enumerate(reader.messages(connections)):
             if count >= MAX_MESSAGES:
-                raise ValueError(f'{bag}: more than {MAX_MESSAGES} messages on {topic}: cut '
-                                 'the bag (ros2 bag convert) or give time windows')
+                raise BagError(f'{bag}: more than {MAX_MESSAGES} messages on {topic}: cut '
+                               'the bag (ros2 bag convert) or give time windows')
             msg = store.deserialize_cdr(raw, connection.msgtype)
             yield _stamp(msg, timestamp), msg
 
@@ -118,11 +133,12 @@ def read_joint_states(bag: str | Path, topic: str, joint_names: list[str],
                       typestore=None) -> Recording:
     """The task's joints of every JointState on `topic`, sorted by stamp (of messages with
     the same stamp the later in the bag: psl's simulator stamps an episode's first state with
-    the time the episode before ended). ValueError: no such topic, a message without one of
-    the joints (named), fewer than two messages."""
+    the time the episode before ended). ValueError: the bag cannot be read, no such topic or
+    not of JointState, a message without one of the joints (named), fewer than two
+    messages."""
     select = JointSelection(joint_names)
     rows: dict[float, np.ndarray] = {}
-    for t, msg in _messages(bag, topic, typestore):
+    for t, msg in _messages(bag, topic, typestore, msgtypes=(JOINT_STATE,)):
         try:
             rows[t] = select.pick(list(msg.name), list(msg.position))
         except ValueError as exc:

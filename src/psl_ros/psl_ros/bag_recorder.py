@@ -74,10 +74,11 @@ from rosbags.interfaces import (
     QosReliability,
     QosTime,
 )
-from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import get_typestore, get_types_from_msg, Stores
 from rosbags.typesys.store import Typestore
 
+from psl_ros.bag_reading import open_bag
 from psl_ros.hot_path import HotPath
 
 # Topics never recorded when recording "all" topics.
@@ -633,6 +634,10 @@ def record(output: str | Path, topics: Sequence[str] = (), *,
 
 
 def read_bag_summary(path: str | Path) -> dict[str, tuple[str, int]]:
-    """Topic -> (message type, message count) of a rosbag2 bag (any storage rosbags reads)."""
-    with Reader(Path(path)) as reader:
+    """Topic -> (message type, message count) of a rosbag2 bag (any storage rosbags reads).
+
+    Raises:
+        BagError: a ValueError naming the bag that cannot be read (`psl_ros.bag_reading`).
+    """
+    with open_bag(path) as reader:
         return {topic: (info.msgtype, info.msgcount) for topic, info in reader.topics.items()}
