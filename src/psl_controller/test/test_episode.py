@@ -639,3 +639,43 @@ def test_another_goal_ending_the_episode_invalid_is_no_preemption(payload):
     with pytest.raises(RobotError) as caught:
         make_episode(payload, robot).run(default_reference(payload), 'teleport')
     assert not isinstance(caught.value, Preempted)
+
+
+def test_a_live_change_a_jtc_took_late_is_psls_own_preemption(payload):
+    """On a robot's JTC a live goal change that came late still preempted the running goal
+    (JTC takes it and jumps into it; the episode cancels it): the episode's goal ended
+    preempted by psl's own goal, so the rollout fails (RobotError), it is no `Preempted` (no
+    foreign goal to count)."""
+    policy = policy_for(payload)
+    robot = FakeRobot(payload, payload.tau_default)
+    taken = robot.taken
+    robot.taken = lambda handle, before: handle == 'goal0' and taken(handle, before)
+    episode = make_episode(payload, robot)
+    said: list[str] = []
+    robot.hooks[robot.start_time() + 100 * robot.dt_ns] = lambda: said.append(
+        episode.change_goal(policy.default_theta, policy.dmp.goal + np.array([0.1, -0.1]), 1.0))
+    with pytest.raises(RobotError) as caught:
+        episode.run(default_reference(payload), 'teleport')
+    assert not isinstance(caught.value, Preempted)
+    assert said and 'refused by the controller' in said[0]
+    assert robot.results['goal0'].error_string == PREEMPTION_WORDS[0]
+
+
+def test_a_homing_goal_from_outside_keeps_its_points_times():
+    """The goal of a homing from outside starts at its first point inside, later than the
+    goal's start: as a JointTrajectory (`robot_link.trajectory_msg`) each point keeps its time
+    from the goal's start, k control periods."""
+    from psl_controller.robot_link import trajectory_msg
+    from psl_ros.stamps import to_ns
+    reach = load_task('reach_over_obstacle')
+    q0 = np.array(reach.start_posture, dtype=float)
+    q0[2] = OUT
+    robot = beyond_its_range(reach, q0)
+    make_episode(reach, robot).begin('drive')
+    sent = next(iter(robot.goals.values())).reference
+    first = int(round(sent.t[0] / reach.control_period))
+    assert first > 0
+    msg = trajectory_msg(['joint1', 'joint2', 'joint3'], sent, 0, effort=True)
+    times = [to_ns(p.time_from_start) for p in msg.points]
+    assert times == [(first + k) * reach.control_period_ns for k in range(len(sent.t))]
+    np.testing.assert_array_equal([p.positions for p in msg.points], sent.q)
