@@ -591,6 +591,31 @@ def test_an_arm_outside_its_range_is_homed_back_inside_with_one_line():
     assert robot.error_from_start() <= reach.homing.tolerance
 
 
+def test_an_arm_running_toward_its_limit_is_braked_inside_and_homed():
+    """joint2 at -2.9 rad running at -2 rad/s toward its limit -3 (a foreign goal was
+    driving it when psl's homing began): braked within homing.max_acceleration it would stop
+    0.75 rad further, past the limit, and the safety check refused the homing; its braking
+    reference now stops inside the range, every point of the goal is inside, and the arm is
+    homed."""
+    reach = load_task('reach_over_obstacle')
+    q0 = np.array(reach.start_posture, dtype=float)
+    q0[1] = -2.9
+    robot = beyond_its_range(reach, q0)
+    arm = robot.arm
+    arm.data.qpos[arm.qpos_adr] = q0                # again, now moving (the first state: q0)
+    arm.data.qvel[arm.dof_adr] = [0.0, -2.0, 0.0]
+    mujoco.mj_forward(arm.model, arm.data)
+    robot.states.clear()
+    robot.tick()
+    episode = make_episode(reach, robot)
+    episode.begin('drive')
+    goal = next(iter(robot.goals.values()))
+    assert goal.reference.qd[0, 1] > -2.0                 # the braking starts slower: it fits
+    assert np.all((goal.reference.q >= episode.safety.low)
+                  & (goal.reference.q <= episode.safety.high))
+    assert robot.error_from_start() <= reach.homing.tolerance
+
+
 def foreign_goal(robot: FakeRobot, q: np.ndarray) -> None:
     """A goal someone else sends the robot's controller at once: hold q."""
     names = robot.controller.joint_names
@@ -613,7 +638,8 @@ def test_a_foreign_goal_preempting_the_primitive_is_no_outcome():
     assert robot.results['goal0'].error_code == INVALID_GOAL
 
 
-@pytest.mark.parametrize('words', PREEMPTION_WORDS)
+@pytest.mark.parametrize('words', ['Current goal preempted by new incoming action.',
+                                   'Current goal cancelled due to new incoming action.'])
 def test_a_foreign_goal_preempting_the_homing_is_no_failure_of_the_rollout(words):
     """psl's controller's words and a ros2_controllers JTC's (INVALID_GOAL, 'Current goal
     cancelled due to new incoming action.'): either is a preemption of the homing goal."""

@@ -337,6 +337,12 @@ def test_the_braking_stops_short_of_the_bound_ahead(task):
     assert reference.q[:, 0].max() <= HIGH[0]
     assert reference.q[:, 0].max() >= HIGH[0] - 1e-6           # it used the room
     np.testing.assert_array_equal(reference.qd[0], cut)
+    # stopped short by a billionth of the room: 2 room / Tb times Tb / 2 may round up past
+    # the bound (found by search: this case by 1.1e-16 rad)
+    q, bound, duration = -0.21990966359930952, 0.5, 2.582
+    stop = braking_velocity(np.array([q]), np.array([5.0]), duration, np.array([-3.0]),
+                            np.array([bound]))
+    assert q + 0.5 * stop[0] * duration <= bound
     outside = braking_velocity(np.array([1.2, -2.3]), np.array([0.5, -0.5]), Tb, LOW, HIGH)
     np.testing.assert_array_equal(outside, 0.0)
     coming_back = braking_velocity(np.array([1.2, -2.3]), np.array([-0.5, 0.5]), Tb, LOW,
