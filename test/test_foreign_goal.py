@@ -5,9 +5,8 @@ A. An arm outside its joint ranges (where such a goal can leave it) is homed bac
    ``psl rollout``, which says so in one line (the executor's log and the command's stderr).
    The arm is put there by psl's simulator itself: a task of the test's own, the same arm with
    wider ranges (its hard stops), teleports it to joint2 = -OUT (the embedded task's limit is
-   -3);
-   the rollout is of the embedded task, driven (its homing section says drive). Nothing sends
-   a goal outside the ranges, so this holds whatever the controllers refuse.
+   -3); the rollout is of the embedded task, driven (a copy whose homing section says drive).
+   Nothing sends a goal outside the ranges, so this holds whatever the controllers refuse.
 B. A foreign client sends the robot's controller a goal of its own (inside the ranges) in the
    middle of psl's episodes during ``psl learn --mode graph``: each preempted episode is one
    line in the executor's and the learner's logs, counted in metrics.json (``preempted``) and
@@ -19,7 +18,6 @@ B. A foreign client sends the robot's controller a goal of its own (inside the r
 Every graph and client ends in a finally; every wait is on an event with a deadline.
 """
 import json
-import shutil
 import subprocess
 import sys
 import threading
