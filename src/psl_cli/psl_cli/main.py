@@ -302,6 +302,8 @@ def cmd_rollout(args) -> int:
             return fail('psl rollout', exc, 1)
     if not result.success:
         return fail('psl rollout', result.message, 1)
+    if result.message != 'rollout done':        # what the episode says: on stderr, one line
+        print(f'psl rollout: {result.message}', file=sys.stderr)
     ev = evaluation_dict(result.evaluation)
     print(json.dumps(ev) if args.json else format_evaluation(ev))
     return 0
@@ -519,6 +521,10 @@ def _check_skill_map(args) -> None:
 
 
 def _print_summary(args, metrics, out: Path) -> None:
+    if metrics.preempted:
+        print(f"psl learn: {metrics.preempted} episodes were preempted by goals that are not "
+              "psl's (someone else commands the robot's controller); each rollout ran again",
+              file=sys.stderr)
     s = metrics.summary
     if s is not None:
         print(f"{s.total_rollouts} rollouts over {args.tasks} tasks; held-out zero-shot "

@@ -7,7 +7,11 @@ then run the episode (`psl_controller.episode.Episode`: the beginning, homing if
 driven, and the primitive, each one ``control_msgs/FollowJointTrajectory`` goal to the
 ``controller``, on the ``clock`` of the robot: `psl_controller.robot_link`), and have the
 reward evaluator score it (its ``~/evaluate``). Rollouts run one at a time; a bad goal gets
-``success=false`` and a message. The node adds nothing to the episode but ROS: parameters, the
+``success=false`` and a message. An episode whose goal a goal that is not psl's preempted (its
+controller serves someone else too) ends with ``success=false`` and the reason in
+``preempted``: nothing was scored, and the session runs the candidate again. What the episode
+says for people (an arm homed back inside its joint ranges, a goal change) is logged and
+joins the result's message. The node adds nothing to the episode but ROS: parameters, the
 action, the evaluator, the controller's gains.
 
 The controller is checked against the rollout's task before anything moves: it must drive the
@@ -36,7 +40,7 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from psl_controller.episode import Episode, Outcome, RobotError
+from psl_controller.episode import Episode, Outcome, Preempted, RobotError
 from psl_controller.parameters import ExecutorParameters
 from psl_controller.policy import TaskPolicy, policy_for
 from psl_controller.robot_link import ACK_TIMEOUT, PARAMETER_TIMEOUT, RobotLink, trajectory_msg
@@ -104,6 +108,10 @@ class DMPExecutor(Node):
                         result.aborted if result.aborted else 'rollout done')
                 result.success, result.message = True, '; '.join([done] + notes)
                 goal_handle.succeed()
+            except Preempted as exc:        # someone else's goal: not the candidate's doing
+                result.success, result.message, result.preempted = False, str(exc), str(exc)
+                self.get_logger().warning(f'rollout preempted: {exc}')
+                goal_handle.abort()
             except (TaskError, ValueError, RuntimeError, TimeoutError) as exc:
                 result.success, result.message = False, str(exc)
                 self.get_logger().warning(f'rollout failed: {exc}')
@@ -145,8 +153,8 @@ class DMPExecutor(Node):
                           task_id(task), self.get_parameter('timeout_margin').value,
                           log=self.get_logger().warning,
                           cancelled=lambda: goal_handle.is_cancel_requested)
-        notes: list[str] = []
-        episode.begin(reset)
+        notes = episode.notes           # what its beginning says (a homing back inside), then
+        episode.begin(reset)            # the live goal changes
         if goal_handle.is_cancel_requested:
             raise RuntimeError('rollout canceled')
         with self._live_lock:

@@ -14,7 +14,13 @@ An episode, from the goal the executor got:
    start posture when the primitive starts) or ``drive``: from the measured posture (the mean
    of the newest `SETTLE_STATES` states on a noisy robot) a homing quintic to the start
    posture (`psl_controller.homing`, its feed-forward the model's inverse dynamics with the
-   instance applied) as one goal, announced as a homing episode; then the arm must come within
+   instance applied) as one goal, announced as a homing episode. An arm found outside its joint
+   ranges (a foreign goal or a push left it there) is brought back inside: the safety check
+   passes a homing reference that only moves such a joint toward its range
+   (`psl_task.safety_check`, with the measured posture as its start), the episode says so in
+   one line, and the goal's points start at the first one inside every range
+   (`psl_controller.homing.inside_from`): the segment from the measured state to it is the
+   controller's own. Then the arm must come within
    ``homing.tolerance`` of the start posture, at rest, within ``homing.settle_time`` more; an
    arm at rest off the start (the robot is not its model) is held again with a corrected torque
    (`psl_controller.homing.corrected_hold`), up to `HOLD_CORRECTIONS` times; one still moving
@@ -25,6 +31,9 @@ An episode, from the goal the executor got:
    ``PATH_TOLERANCE_VIOLATED``); a goal that came after its start (``OLD_HEADER_TIMESTAMP``,
    or accepted when the robot's newest state had passed its start) is sent again, later;
 3. the answer: the goal's result, and the reference it ran (with a goal change, if one took).
+   A goal of the episode that a goal not sent by this episode preempted (the controller's
+   ``INVALID_GOAL`` with JTC's words, `PREEMPTION_WORDS`) raises `Preempted`: no outcome, and
+   not the candidate's doing (the executor says so; the session runs the rollout again).
 
 Every reference that reaches the controller has passed the task's safety check. A live goal
 change (`Episode.change_goal`) replaces the running goal with one of the same start whose
@@ -43,11 +52,13 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from psl_controller.homing import corrected_hold, hold_stiffness, homing_reference
+from psl_controller.homing import (corrected_hold, hold_stiffness, homing_reference,
+                                   inside_from)
 from psl_controller.policy import Reference, TaskPolicy
-from psl_controller.trajectory_controller import (GOAL_TOLERANCE_VIOLATED,
+from psl_controller.trajectory_controller import (GOAL_TOLERANCE_VIOLATED, INVALID_GOAL,
                                                   OLD_HEADER_TIMESTAMP,
-                                                  PATH_TOLERANCE_VIOLATED, SUCCESSFUL)
+                                                  PATH_TOLERANCE_VIOLATED, PREEMPTED,
+                                                  SUCCESSFUL)
 from psl_task.arm_model import joint_names_of
 from psl_task.safety_check import SafetyCheck
 from psl_task.task import TaskDefinition
@@ -63,8 +74,18 @@ LOAD_FACTOR = 3.0       # computing and sending a goal during an episode (the lo
 LIVE_ATTEMPTS = 4       # switch times tried, each later, before a live change gives up
 
 
+# what a JointTrajectoryController answers a goal another goal preempted, with INVALID_GOAL:
+# psl's controller's words, and ros2_controllers JTC's (Jazzy: preempt_active_goal)
+PREEMPTION_WORDS = (PREEMPTED, 'Current goal cancelled due to new incoming action.')
+
+
 class RobotError(RuntimeError):
     """The robot did not do what the episode needs (a rejected goal, lost states, no answer)."""
+
+
+class Preempted(RobotError):
+    """A goal the episode did not send preempted one of its goals (someone else commands the
+    controller): nothing the candidate did."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -197,6 +218,8 @@ class Episode:
         self._change = threading.Condition()    # guards handle, outcome and _changing
         self._changing = False          # a live goal change is being sent
         self._progress: Callable[[float], None] | None = None
+        self._superseded: set = set()   # goals this episode replaced itself (a live change)
+        self.notes: list[str] = []      # for people: what the beginning did (homing back)
 
     # -- the beginning --------------------------------------------------------------------
     def begin(self, mode: str) -> None:
@@ -211,12 +234,17 @@ class Episode:
         _, q0, qd0 = self.robot.measure(SETTLE_STATES)
         if self._homed(q0, qd0):
             return
+        safety = self.safety
         reference = homing_reference(q0, qd0, task.start_posture, spec, task.control_period,
-                                     self.inverse_dynamics)
-        verdict = self.safety.check(self.tau, reference.q, reference.qd)
+                                     self.inverse_dynamics, safety.low, safety.high)
+        verdict = safety.check(self.tau, reference.q, reference.qd, start=q0)
         if not verdict.safe:
             raise ValueError(f'homing refused by the safety check: {verdict.reason}')
-        self._hold(reference)
+        outside = safety.outside(q0)
+        if outside.any():
+            self._say(f'the arm is outside its joint ranges ({self._where(q0, outside)}): '
+                      'homing brings it back inside')
+        self._hold(reference, inside_from(reference.q, safety.low, safety.high))
         q, qd = self._settled()
         held = reference.u_ffwd[-1]
         waited = float(reference.t[-1]) + spec.settle_time
@@ -247,16 +275,42 @@ class Episode:
                 f'{waited:.2f} s (tolerance {spec.tolerance:g}): raise the controller gains '
                 'or homing.settle_time, or relax homing.tolerance')
 
-    def _hold(self, reference: Reference) -> None:
-        """Run a homing reference (announced, not evaluated) to its end."""
+    def _say(self, line: str) -> None:
+        """A note for people: logged, and kept for the rollout's result."""
+        self.log(line)
+        self.notes.append(line)
+
+    def _where(self, q: np.ndarray, outside: np.ndarray) -> str:
+        """Which joints of q are outside their ranges, and by how much (`SafetyCheck.outside`)."""
+        names, low, high = joint_names_of(self.task), self.safety.low, self.safety.high
+        return ', '.join(
+            f'joint {names[j]!r} at {q[j]:.4g} rad, '
+            + (f'above its limit {high[j]:.4g}' if q[j] > high[j] else
+               f'below its limit {low[j]:.4g}') + f' by {outside[j]:.3g}'
+            for j in np.flatnonzero(outside))
+
+    def _hold(self, reference: Reference, first: int = 0) -> None:
+        """Run a homing reference (announced, not evaluated) to its end; the goal's points
+        from index `first` on (those before are the controller's segment from the measured
+        state: module docstring, 1)."""
         task = self.task
         num_steps = len(reference.t) - 1
-        handle, start = self._start(reference, num_steps, 'drive', homing=True,
+        sent = reference if first == 0 else Reference(
+            *(a[first:] for a in (reference.t, reference.q, reference.qd, reference.u_ffwd)))
+        handle, start = self._start(sent, num_steps, 'drive', homing=True,
                                     path=float('inf'))
         result = self.robot.finish(handle, start + num_steps * task.control_period_ns,
                                    float(reference.t[-1]) + self.margin, self.cancelled)
+        if self._preempted(handle, result):
+            raise Preempted(f'the homing goal was preempted by a goal that is not psl\'s '
+                            f'(the controller: {result.error_string!r})')
         if result.error_code not in (SUCCESSFUL, GOAL_TOLERANCE_VIOLATED):
             raise RobotError(f'homing: {result.error_string}')
+
+    def _preempted(self, handle: object, result: GoalResult) -> bool:
+        """Whether a goal this episode did not send preempted `handle` (module docstring, 3)."""
+        return (result.error_code == INVALID_GOAL and result.error_string in PREEMPTION_WORDS
+                and handle not in self._superseded)
 
     def _settled(self) -> tuple[np.ndarray, np.ndarray]:
         """The posture and velocity (means of the newest SETTLE_STATES: the noise averaged)
@@ -323,6 +377,9 @@ class Episode:
                     self.handle = None
                     break
                 handle = self.handle
+        if self._preempted(handle, result):
+            raise Preempted(f'the episode\'s goal was preempted by a goal that is not psl\'s '
+                            f'(the controller: {result.error_string!r})')
         if result.error_code not in (SUCCESSFUL, PATH_TOLERANCE_VIOLATED,
                                      GOAL_TOLERANCE_VIOLATED):
             raise RobotError(result.error_string or f'the controller ended the episode '
@@ -409,11 +466,14 @@ class Episode:
             if self._step_bound() + self._steps_in(LOAD_FACTOR * self.send_cost) >= k:
                 cost = LOAD_FACTOR * (time.monotonic() - started)
                 continue                                # the loop came too close: later
+            replaced = self.handle          # the new goal preempts it: psl's own doing
+            self._superseded.add(replaced)
             try:
                 handle = self.robot.send(GoalSpec(
                     reference, outcome.start_ns, _bound(task.safety.max_tracking_error),
                     self._progress))
             except RobotError as exc:
+                self._superseded.discard(replaced)
                 return f'goal update failed: {exc}'
             switch = outcome.start_ns + k * task.control_period_ns
             if not self.robot.taken(handle, switch):

@@ -19,6 +19,18 @@ and whose deceleration peaks at 1.5 |qd0| / Tb, so Tb = 1.5 max|qd0| / ``max_acc
 (Carrying qd0 through the whole homing instead moves a joint about 0.19 qd0 T beyond its
 start: 34 rad for an oscillating arm homed over 4.5 s, which the safety check refused.)
 
+Within the joint ranges (``low``, ``high``: the safety check's, with its margin), one law
+(`psl_task.safety_check`): no joint's distance to its range grows along the homing, and every
+joint ends inside. The quintic from rest is monotone in every joint (its velocity
+30 d s^2 (1 - s)^2 / T never changes sign), so from q0 to q1 inside a joint inside stays inside
+and a joint outside only comes closer. The braking is monotone too, and stops short of the
+range's bound ahead of each joint: its velocity is cut to ``2 room / Tb`` (`braking_velocity`),
+room the distance from q0 to that bound, none for a joint outside moving away from its range
+(the reference then starts at rest there, and the controller brakes the arm). Sent to the
+controller, a homing from outside starts at its first point inside every range
+(`inside_from`): the points of the goal are all inside, and the segment from the measured
+state to that point is the controller's own (JTC's: a first point later than the start).
+
 Its feed-forward is the model's inverse dynamics along the quintic when one is given
 (``feed_forward(q, qd, qdd)``, e.g. `psl_task.arm_model.ArmModel.inverse_dynamics` with the
 instance applied): the torque that carries the arm and holds it against gravity at the start
@@ -78,13 +90,44 @@ def braking_duration(qd0: np.ndarray, spec: HomingSpec, dt: float) -> float:
                                                        / dt - 1e-9))
 
 
+ROOM_SHARE = 1.0 - 1e-9     # of the room ahead the braking may use: its last point, rounded,
+                            # stays inside
+
+
+def braking_velocity(q0: np.ndarray, qd0: np.ndarray, duration: float, low: np.ndarray,
+                     high: np.ndarray) -> np.ndarray:
+    """The velocity (n,) the braking quintic starts from: qd0, cut where braking over
+    `duration` would carry a joint past the bound ahead of it (braking distance
+    qd0 duration / 2, module doc): to 2 room / duration, room the distance from q0 to that
+    bound; 0 for a joint outside its range moving away from it."""
+    q0, qd0 = np.asarray(q0, dtype=float), np.asarray(qd0, dtype=float)
+    if duration <= 0.0:
+        return qd0
+    room = np.maximum(np.where(qd0 > 0.0, high - q0, q0 - low), 0.0)    # inf: unlimited
+    cap = 2.0 * ROOM_SHARE * room / duration
+    return np.sign(qd0) * np.minimum(np.abs(qd0), cap)
+
+
+def inside_from(q: np.ndarray, low: np.ndarray, high: np.ndarray) -> int:
+    """The first index of the samples q (T, n) from which every sample is inside every
+    range [low, high] (0: all are; T: the last is not)."""
+    outside = np.any((q < low) | (q > high), axis=1)
+    return int(len(q) - np.argmax(outside[::-1])) if outside.any() else 0
+
+
 def homing_reference(q0: np.ndarray, qd0: np.ndarray, q1: np.ndarray, spec: HomingSpec,
-                     dt: float, feed_forward: FeedForward | None = None) -> Reference:
+                     dt: float, feed_forward: FeedForward | None = None,
+                     low: np.ndarray | None = None, high: np.ndarray | None = None
+                     ) -> Reference:
     """The homing motion sampled every control period dt: a moving arm braked to rest, the
     quintic from rest to q1, then ``settle_time`` held at q1 (module doc); feed-forward
-    ``feed_forward(q, qd, qdd)`` on those samples (T, n), else zero."""
+    ``feed_forward(q, qd, qdd)`` on those samples (T, n), else zero. `low`, `high`: the joint
+    ranges (n,) the braking keeps to (`braking_velocity`; None: unlimited)."""
     q0, qd0, q1 = (np.asarray(a, dtype=float) for a in (q0, qd0, q1))
+    low = np.full_like(q0, -np.inf) if low is None else np.asarray(low, dtype=float)
+    high = np.full_like(q0, np.inf) if high is None else np.asarray(high, dtype=float)
     Tb = braking_duration(qd0, spec, dt)
+    qd0 = braking_velocity(q0, qd0, Tb, low, high)    # a cut joint brakes more gently
     qb = q0 + 0.5 * qd0 * Tb                    # where braking brings the arm to rest
     rest = np.zeros_like(q0)
     T = homing_duration(qb, q1, spec, dt)

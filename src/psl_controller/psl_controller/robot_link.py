@@ -72,13 +72,15 @@ REPORT_WAIT = 1.0       # s a live goal change waits for the controller's feedba
 
 def trajectory_msg(joint_names: list[str], ref: Reference, start_ns: int, effort: bool,
                    at_rest: bool = True) -> JointTrajectory:
-    """A reference as a JointTrajectory stamped `start_ns`: a point per control period,
-    positions and velocities (with `at_rest` the last velocity zero: a JTC refuses a
-    trajectory that ends moving; a reference ends at rest but for rounding), the feed-forward
-    as effort if `effort`."""
+    """A reference as a JointTrajectory stamped `start_ns`: a point per control period from
+    its first (at ``ref.t[0]``: 0, or later for a homing from outside the joint ranges, whose
+    first segment is the controller's), positions and velocities (with `at_rest` the last
+    velocity zero: a JTC refuses a trajectory that ends moving; a reference ends at rest but
+    for rounding), the feed-forward as effort if `effort`."""
     msg = JointTrajectory(joint_names=list(joint_names))
     msg.header.stamp = time_msg(start_ns)
     dt_ns = int(round((ref.t[1] - ref.t[0]) * 1e9)) if len(ref.t) > 1 else 0
+    first = int(round(ref.t[0] * 1e9 / dt_ns)) if dt_ns else 0     # the first point's index
     qd = ref.qd.copy()
     if at_rest:
         qd[-1] = 0.0
@@ -86,7 +88,7 @@ def trajectory_msg(joint_names: list[str], ref: Reference, start_ns: int, effort
     qd = qd.tolist()
     msg.points = [JointTrajectoryPoint(positions=q[k], velocities=qd[k],
                                        effort=u[k] if effort else [],
-                                       time_from_start=duration_msg(k * dt_ns))
+                                       time_from_start=duration_msg((first + k) * dt_ns))
                   for k in range(len(q))]
     return msg
 

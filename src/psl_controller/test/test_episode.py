@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 
 from psl_controller import episode as episode_module
-from psl_controller.episode import (SETTLE_STATES, START_ATTEMPTS, Episode, GoalResult,
-                                    GoalSpec, Instance, RobotError)
+from psl_controller.episode import (PREEMPTION_WORDS, SETTLE_STATES, START_ATTEMPTS, Episode,
+                                    GoalResult, GoalSpec, Instance, Preempted, RobotError)
 from psl_controller.pd_law import law_for
 from psl_controller.policy import policy_for
 from psl_controller.trajectory_controller import (INVALID_GOAL, OLD_HEADER_TIMESTAMP,
@@ -540,3 +540,168 @@ def test_a_cancelled_rollout_cancels_its_goal_and_the_controller_holds():
     held = robot.controller.last
     assert held.key is None and np.all(held.desired.velocities == 0.0)
     np.testing.assert_array_equal(held.desired.positions, at_cancel)
+
+
+# -- an arm outside its joint ranges, a goal that is not psl's ---------------------------------
+HARD_STOP = 3.5     # rad: the robot's joints stop here, beyond the task's ranges (+-3)
+OUT = 3.08          # rad: where a foreign goal left reach_over_obstacle's joint3 (limit 3)
+
+
+def beyond_its_range(task, q0) -> FakeRobot:
+    """A robot at rest at q0, outside the task's joint ranges: its own joints stop at
+    +-HARD_STOP (a real arm's hard stops lie beyond its software limits)."""
+    robot = FakeRobot(task, task.tau_default)
+    arm = robot.arm
+    arm.model.jnt_range[arm.joint_ids] = [-HARD_STOP, HARD_STOP]
+    arm.data.qpos[arm.qpos_adr] = q0
+    arm.data.qvel[arm.dof_adr] = 0.0
+    mujoco.mj_forward(arm.model, arm.data)
+    robot.states.clear()
+    robot.tick()
+    return robot
+
+
+def test_an_arm_outside_its_range_is_homed_back_inside_with_one_line():
+    """joint3 at 3.08 rad, its limit 3 (the issue's robot after a foreign goal): homing is
+    not refused; one line names the joint and says so (logged, and in the episode's notes);
+    the goal's points are all inside the ranges, the first later than the goal's start (the
+    segment from the measured state is the controller's); the arm never goes farther out
+    than it was and ends at the start posture."""
+    reach = load_task('reach_over_obstacle')
+    q0 = np.array(reach.start_posture, dtype=float)
+    q0[2] = OUT
+    robot = beyond_its_range(reach, q0)
+    logs: list[str] = []
+    episode = make_episode(reach, robot, logs=logs)
+    first_state = len(robot.states)
+    episode.begin('drive')
+    outside = [line for line in logs if 'outside its joint ranges' in line]
+    assert len(outside) == 1 and "'joint3' at 3.08" in outside[0], logs
+    assert 'above its limit 3' in outside[0] and 'homing brings it back inside' in outside[0]
+    assert episode.notes == outside
+    goal = next(iter(robot.goals.values()))
+    low, high = episode.safety.low, episode.safety.high
+    assert np.all((goal.reference.q >= low) & (goal.reference.q <= high))
+    assert goal.reference.t[0] > 0.0
+    announced, = robot.announced
+    assert announced.homing and announced.num_steps == round(goal.reference.t[-1]
+                                                             / reach.control_period)
+    measured = np.array([q for _, q, _ in robot.states[first_state:]])
+    assert measured[:, 2].max() <= OUT + 1e-6               # never farther out
+    assert robot.error_from_start() <= reach.homing.tolerance
+
+
+def test_an_arm_running_toward_its_limit_is_braked_inside_and_homed():
+    """joint2 at -2.9 rad running at -2 rad/s toward its limit -3 (a foreign goal was
+    driving it when psl's homing began): braked within homing.max_acceleration it would stop
+    0.75 rad further, past the limit, and the safety check refused the homing; its braking
+    reference now stops inside the range, every point of the goal is inside, and the arm is
+    homed."""
+    reach = load_task('reach_over_obstacle')
+    q0 = np.array(reach.start_posture, dtype=float)
+    q0[1] = -2.9
+    robot = beyond_its_range(reach, q0)
+    arm = robot.arm
+    arm.data.qpos[arm.qpos_adr] = q0                # again, now moving (the first state: q0)
+    arm.data.qvel[arm.dof_adr] = [0.0, -2.0, 0.0]
+    mujoco.mj_forward(arm.model, arm.data)
+    robot.states.clear()
+    robot.tick()
+    episode = make_episode(reach, robot)
+    episode.begin('drive')
+    goal = next(iter(robot.goals.values()))
+    assert goal.reference.qd[0, 1] > -2.0                 # the braking starts slower: it fits
+    assert np.all((goal.reference.q >= episode.safety.low)
+                  & (goal.reference.q <= episode.safety.high))
+    assert robot.error_from_start() <= reach.homing.tolerance
+
+
+def foreign_goal(robot: FakeRobot, q: np.ndarray) -> None:
+    """A goal someone else sends the robot's controller at once: hold q."""
+    names = robot.controller.joint_names
+    robot._deliver(robot.controller.submit(Goal(
+        'foreign', SampledTrajectory(np.array([0]), np.asarray(q)[None], np.zeros((1, len(q)))),
+        0, robot.controller.defaults.resolved(names, {}, {}, 0.0))))
+
+
+def test_a_foreign_goal_preempting_the_primitive_is_no_outcome():
+    """A goal that is not the episode's preempts its goal mid-episode: `Preempted` names it,
+    with the controller's words, and the episode gives no outcome (nothing to score)."""
+    reach = load_task('reach_over_obstacle')
+    robot = FakeRobot(reach, reach.tau_default)
+    start = robot.start_time()
+    robot.hooks[start + 200 * robot.dt_ns] = lambda: foreign_goal(robot, robot.arm.q)
+    episode = make_episode(reach, robot)
+    with pytest.raises(Preempted, match="preempted by a goal that is not psl's") as caught:
+        episode.run(default_reference(reach), 'teleport')
+    assert PREEMPTION_WORDS[0] in str(caught.value)
+    assert robot.results['goal0'].error_code == INVALID_GOAL
+
+
+@pytest.mark.parametrize('words', ['Current goal preempted by new incoming action.',
+                                   'Current goal cancelled due to new incoming action.'])
+def test_a_foreign_goal_preempting_the_homing_is_no_failure_of_the_rollout(words):
+    """psl's controller's words and a ros2_controllers JTC's (INVALID_GOAL, 'Current goal
+    cancelled due to new incoming action.'): either is a preemption of the homing goal."""
+    reach = load_task('reach_over_obstacle')
+    robot = FakeRobot(reach, reach.tau_default, q0=reach.start_posture + AWAY[reach.name])
+
+    def preempt() -> None:
+        foreign_goal(robot, robot.arm.q)
+        assert robot.results['goal0'].error_string == PREEMPTION_WORDS[0]
+        robot.results['goal0'] = Result('goal0', INVALID_GOAL, words)     # a JTC's words
+    robot.hooks[robot.start_time() + 50 * robot.dt_ns] = preempt
+    with pytest.raises(Preempted, match='the homing goal was preempted') as caught:
+        make_episode(reach, robot).begin('drive')
+    assert words in str(caught.value)
+
+
+def test_another_goal_ending_the_episode_invalid_is_no_preemption(payload):
+    """INVALID_GOAL for another reason (the robot lost) stays a failure: RobotError, not
+    Preempted."""
+    robot = FakeRobot(payload, payload.tau_default)
+    robot.hooks[robot.start_time() + 200 * robot.dt_ns] = lambda: robot._deliver(
+        robot.controller.stop('joint states stopped'))
+    with pytest.raises(RobotError) as caught:
+        make_episode(payload, robot).run(default_reference(payload), 'teleport')
+    assert not isinstance(caught.value, Preempted)
+
+
+def test_a_live_change_a_jtc_took_late_is_psls_own_preemption(payload):
+    """On a robot's JTC a live goal change that came late still preempted the running goal
+    (JTC takes it and jumps into it; the episode cancels it): the episode's goal ended
+    preempted by psl's own goal, so the rollout fails (RobotError), it is no `Preempted` (no
+    foreign goal to count)."""
+    policy = policy_for(payload)
+    robot = FakeRobot(payload, payload.tau_default)
+    taken = robot.taken
+    robot.taken = lambda handle, before: handle == 'goal0' and taken(handle, before)
+    episode = make_episode(payload, robot)
+    said: list[str] = []
+    robot.hooks[robot.start_time() + 100 * robot.dt_ns] = lambda: said.append(
+        episode.change_goal(policy.default_theta, policy.dmp.goal + np.array([0.1, -0.1]), 1.0))
+    with pytest.raises(RobotError) as caught:
+        episode.run(default_reference(payload), 'teleport')
+    assert not isinstance(caught.value, Preempted)
+    assert said and 'refused by the controller' in said[0]
+    assert robot.results['goal0'].error_string == PREEMPTION_WORDS[0]
+
+
+def test_a_homing_goal_from_outside_keeps_its_points_times():
+    """The goal of a homing from outside starts at its first point inside, later than the
+    goal's start: as a JointTrajectory (`robot_link.trajectory_msg`) each point keeps its time
+    from the goal's start, k control periods."""
+    from psl_controller.robot_link import trajectory_msg
+    from psl_ros.stamps import to_ns
+    reach = load_task('reach_over_obstacle')
+    q0 = np.array(reach.start_posture, dtype=float)
+    q0[2] = OUT
+    robot = beyond_its_range(reach, q0)
+    make_episode(reach, robot).begin('drive')
+    sent = next(iter(robot.goals.values())).reference
+    first = int(round(sent.t[0] / reach.control_period))
+    assert first > 0
+    msg = trajectory_msg(['joint1', 'joint2', 'joint3'], sent, 0, effort=True)
+    times = [to_ns(p.time_from_start) for p in msg.points]
+    assert times == [(first + k) * reach.control_period_ns for k in range(len(sent.t))]
+    np.testing.assert_array_equal([p.positions for p in msg.points], sent.q)

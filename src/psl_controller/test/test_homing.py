@@ -1,7 +1,9 @@
 """Tests of the homing motion (`psl_controller.homing`): the quintic's boundary conditions and
 limits, and its feed-forward, the model's inverse dynamics, against the model's own gravity
 torque at rest and in closed loop on the model (PD alone sags by g(q) / kp; with it, it does
-not); the corrected hold on a model that is wrong."""
+not); the corrected hold on a model that is wrong; from outside the joint ranges, the law of
+the safety check (no joint's distance to its range grows, every joint ends inside) over a
+generated family of arms, and the braking's end against its closed form."""
 
 import dataclasses
 
@@ -9,9 +11,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from psl_controller.homing import (braking_duration, corrected_hold, hold_stiffness,
-                                   homing_duration,
-                                   homing_reference, quintic)
+from psl_controller.homing import (braking_duration, braking_velocity, corrected_hold,
+                                   hold_stiffness, homing_duration, homing_reference,
+                                   inside_from, quintic)
 from psl_controller.pd_law import law_for
 from psl_task.arm_model import ArmModel
 from psl_task.model_error import ModelError
@@ -275,3 +277,78 @@ def test_an_arm_at_rest_is_homed_by_minimum_jerk_in_the_shortest_time(task):
                                rtol=0, atol=1e-12)
     np.testing.assert_allclose(reference.qd, d * (30 * s**2 - 60 * s**3 + 30 * s**4) / T,
                                rtol=0, atol=1e-11)
+
+
+# -- from outside the joint ranges ----------------------------------------------------------
+LOW, HIGH = np.array([-1.0, -2.0]), np.array([1.0, 2.0])     # ranges of the tests' own
+
+
+def test_a_homing_from_outside_only_comes_closer_to_the_ranges_and_ends_inside(task):
+    """A generated family of arms (200: each joint inside, outside above or below by up to
+    0.5 rad, at rest or moving up to 3 rad/s either way, the start posture inside): along the
+    homing reference no joint's distance to its range ever grows, every joint ends inside (at
+    the start posture), the reference starts where the arm is; from `inside_from` on every
+    sample is inside, the one before is not, and the safety check's law passes it."""
+    from psl_task.arm_model import ArmModel
+    from psl_task.safety_check import SafetyCheck
+    spec, dt = task.homing, task.control_period
+    safety = SafetyCheck(ArmModel(task))
+    low, high = safety.low, safety.high
+    assert np.all(np.isfinite(low)) and np.all(low < task.start_posture) \
+        and np.all(task.start_posture < high)
+    rng = np.random.default_rng(46)
+    outside_seen = moving_out = 0
+    for _ in range(200):
+        where = rng.integers(0, 3, size=2)                      # inside, above, below
+        q0 = np.where(where == 1, high + rng.uniform(0, 0.5, 2),
+                      np.where(where == 2, low - rng.uniform(0, 0.5, 2),
+                               rng.uniform(low, high)))
+        qd0 = rng.choice([0.0, 1.0], size=2) * rng.uniform(-3.0, 3.0, size=2)
+        reference = homing_reference(q0, qd0, task.start_posture, spec, dt, None, low, high)
+        distance = np.maximum(np.maximum(low - reference.q, reference.q - high), 0.0)
+        assert np.all(np.diff(distance, axis=0) <= 0.0), (q0, qd0)
+        np.testing.assert_array_equal(reference.q[0], q0)
+        np.testing.assert_array_equal(reference.q[-1], task.start_posture)
+        first = inside_from(reference.q, low, high)
+        assert np.all((reference.q[first:] >= low) & (reference.q[first:] <= high))
+        assert first == 0 or np.any((reference.q[first - 1] < low)
+                                    | (reference.q[first - 1] > high))
+        assert (first > 0) == bool(np.any(where > 0))
+        verdict = safety.check(task.tau_default, reference.q, reference.qd, start=q0)
+        assert verdict.safe, (q0, qd0, verdict.reason)
+        outside_seen += bool(np.any(where > 0))
+        moving_out += bool(np.any(((where == 1) & (qd0 > 0)) | ((where == 2) & (qd0 < 0))))
+    assert outside_seen > 100 and moving_out > 20             # the family covers the cases
+
+
+def test_the_braking_stops_short_of_the_bound_ahead(task):
+    """Braking (closed form: it stops qd0 Tb / 2 from where it starts) that would carry a
+    joint past its bound starts at 2 room / Tb instead, and stops inside (by at most a
+    billionth of the room); a joint outside moving away starts at rest; one with room brakes
+    as it would unlimited: the same reference, bit for bit."""
+    spec, dt = task.homing, task.control_period
+    q0, qd0 = np.array([0.9, 0.0]), np.array([2.0, -1.0])    # joint 0: 0.1 rad to HIGH
+    Tb = braking_duration(qd0, spec, dt)
+    assert 0.5 * qd0[0] * Tb > HIGH[0] - q0[0]                 # unlimited, it would pass it
+    cut = braking_velocity(q0, qd0, Tb, LOW, HIGH)
+    assert cut[0] == pytest.approx(2 * (HIGH[0] - q0[0]) / Tb, rel=1e-8)
+    assert cut[1] == qd0[1]                                    # 2 rad of room: untouched
+    reference = homing_reference(q0, qd0, task.start_posture, spec, dt, None, LOW, HIGH)
+    assert reference.q[:, 0].max() <= HIGH[0]
+    assert reference.q[:, 0].max() >= HIGH[0] - 1e-6           # it used the room
+    np.testing.assert_array_equal(reference.qd[0], cut)
+    # stopped short by a billionth of the room: 2 room / Tb times Tb / 2 may round up past
+    # the bound (found by search: this case by 1.1e-16 rad)
+    q, bound, duration = -0.21990966359930952, 0.5, 2.582
+    stop = braking_velocity(np.array([q]), np.array([5.0]), duration, np.array([-3.0]),
+                            np.array([bound]))
+    assert q + 0.5 * stop[0] * duration <= bound
+    outside = braking_velocity(np.array([1.2, -2.3]), np.array([0.5, -0.5]), Tb, LOW, HIGH)
+    np.testing.assert_array_equal(outside, 0.0)
+    coming_back = braking_velocity(np.array([1.2, -2.3]), np.array([-0.5, 0.5]), Tb, LOW,
+                                   HIGH)
+    np.testing.assert_array_equal(coming_back, [-0.5, 0.5])
+    roomy = homing_reference(Q0, QD0, task.start_posture, spec, dt, None, LOW, HIGH)
+    unlimited = homing_reference(Q0, QD0, task.start_posture, spec, dt)
+    for field in ('t', 'q', 'qd', 'u_ffwd'):
+        np.testing.assert_array_equal(getattr(roomy, field), getattr(unlimited, field))

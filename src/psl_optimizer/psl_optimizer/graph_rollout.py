@@ -10,11 +10,16 @@ torques, the controller's reference: `trajectory_of`), so that whatever needs tr
 A rollout that fails (a homing that did not settle on a robot, a worker that died) is tried
 again, up to ATTEMPTS times on each worker, before the population fails: on a robot the next
 attempt starts from wherever the arm came to rest; a lockstep rollout's result does not depend
-on the attempt.
+on the attempt. A rollout whose episode a goal that was not psl's preempted (the executor's
+``preempted``: someone else commands the robot's controller) is no failure and no result of
+the candidate: it is said in one line (`log`), counted (`preempted`, `last_preemption`) and run
+again, up to PREEMPTIONS times, from wherever the other goal left the arm (homing brings it
+back inside its joint ranges).
 """
 from __future__ import annotations
 
 import queue
+import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -31,6 +36,16 @@ from psl_ros.timeouts import ROLLOUT_TIMEOUT
 from psl_task.task import TaskDefinition, task_id
 
 ATTEMPTS = 2        # tries of a rollout on each worker before the population fails
+PREEMPTIONS = 5     # runs of one rollout that foreign goals preempted before the population
+                    # fails (someone else keeps commanding the controller)
+
+
+class RolloutPreempted(RuntimeError):
+    """A goal that was not psl's preempted the rollout's episode (the executor's reason)."""
+
+
+def _to_stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 class GraphRollouts(Rollouts):
@@ -42,14 +57,18 @@ class GraphRollouts(Rollouts):
         timeout: seconds to wait for one rollout.
         should_stop: asked before every rollout; True raises `Stopped` (a population of graph
             rollouts takes seconds, a cancel should not wait for all of it).
+        log: where a line for people goes (a preempted rollout run again); stderr by default.
     """
 
     def __init__(self, task: TaskDefinition, workers: list[RolloutClient],
-                 timeout: float = ROLLOUT_TIMEOUT, should_stop: Callable[[], bool] = lambda: False):
+                 timeout: float = ROLLOUT_TIMEOUT, should_stop: Callable[[], bool] = lambda: False,
+                 log: Callable[[str], None] = _to_stderr):
         super().__init__(task)
         if not workers:
             raise ValueError('graph mode needs at least one rollout worker')
         self.workers, self.timeout, self.should_stop = list(workers), timeout, should_stop
+        self.log = log
+        self._count_lock = threading.Lock()     # preemptions are counted from every worker
 
     def run(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
         thetas, taus = self._inputs(thetas, taus)
@@ -60,14 +79,31 @@ class GraphRollouts(Rollouts):
 
     def _tried(self, worker: RolloutClient, tau: np.ndarray, theta: np.ndarray
                ) -> RolloutResult:
-        """`_one`, tried again after a failure, ATTEMPTS times in all; the last error raised
-        with the number of tries."""
-        for attempt in range(ATTEMPTS):
+        """`_one`, tried again after a failure, ATTEMPTS times in all (the last error raised
+        with the number of tries), and run again after a preemption (`_preempted`)."""
+        failures = preemptions = 0
+        while True:
             try:
                 return self._one(worker, tau, theta)
+            except RolloutPreempted as exc:
+                preemptions += 1
+                self._preempted(worker, exc, preemptions)
             except (RuntimeError, TimeoutError) as exc:
-                if attempt == ATTEMPTS - 1:
+                failures += 1
+                if failures == ATTEMPTS:
                     raise RuntimeError(f'{exc} ({ATTEMPTS} tries)') from None
+
+    def _preempted(self, worker: RolloutClient, exc: RolloutPreempted, times: int) -> None:
+        """Count a preemption of a rollout's episode and say it (one line); RuntimeError once
+        the rollout was preempted more than PREEMPTIONS times."""
+        with self._count_lock:
+            self.preempted += 1
+            self.last_preemption = str(exc)
+        if times > PREEMPTIONS:
+            raise RuntimeError(f'{worker.name}: {exc}, {times} times in a row: another client '
+                               'keeps commanding the controller') from None
+        self.log(f'{worker.name}: {exc}; the rollout runs again (not counted against the '
+                 f'candidate; preemption {times} of at most {PREEMPTIONS})')
 
     def _spread(self, thetas: np.ndarray, taus: np.ndarray) -> list[RolloutResult]:
         """The population over the workers, one rollout per worker at a time. A worker whose
@@ -81,6 +117,7 @@ class GraphRollouts(Rollouts):
             pending.put(i)
         results: list[RolloutResult | None] = [None] * len(thetas)
         failures: dict[int, list[tuple[str, str]]] = {}   # rollout -> (worker, error) per try
+        preemptions = [0] * len(thetas)                     # rollout -> times preempted
         lock = threading.Lock()
         alive = [len(self.workers)]
         abort = threading.Event()               # a cancel or an error: every worker stops
@@ -111,6 +148,11 @@ class GraphRollouts(Rollouts):
                         continue
                     try:
                         results[i] = self._one(worker, taus[i], thetas[i])
+                    except RolloutPreempted as exc:      # no failure: run it again
+                        with lock:
+                            preemptions[i] += 1
+                        self._preempted(worker, exc, preemptions[i])
+                        pending.put(i)
                     except (RuntimeError, TimeoutError) as exc:
                         with lock:
                             failures.setdefault(i, []).append((worker.name, str(exc)))
@@ -140,6 +182,8 @@ class GraphRollouts(Rollouts):
         if self.should_stop():
             raise Stopped('stopped between two rollouts')
         result = worker.rollout(task_id(self.task), tau, theta, timeout=self.timeout)
+        if result.preempted:        # someone else's goal: nothing of the candidate ran
+            raise RolloutPreempted(result.preempted)
         if not result.success:
             raise RuntimeError(f'rollout failed: {result.message}')
         ev = result.evaluation

@@ -614,6 +614,7 @@ class Learner:
                     self.task, self.skill.variance, s.selection_candidates, s.seed, index)
             start, refused, failed = (time.perf_counter(), self.rollouts.refused,
                                       self.rollouts.failed)
+            preempted = self.rollouts.preempted
             result = self._search(tau, index, centre, scale)
             confirmed, extra = self._confirm(tau, result)
             if confirmed or not s.add_only_fulfilled:
@@ -628,7 +629,8 @@ class Learner:
                                    failure=(self.rollouts.last_failure
                                             if self.rollouts.failed > failed else ''),
                                    unconfirmed=result.fulfilled and not confirmed,
-                                   confirm_rollouts=extra))
+                                   confirm_rollouts=extra,
+                                   preempted=self.rollouts.preempted - preempted))
             self._save_checkpoint(done)
             if progress is not None:
                 progress(done[-1])

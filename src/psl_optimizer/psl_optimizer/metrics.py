@@ -43,6 +43,9 @@ class TaskRecord:
     # not finite: the penalty), and the newest such reason
     failed: int = 0
     failure: str = ''
+    # episodes a goal that was not psl's preempted (graph mode on a robot whose controller
+    # someone else commands too): each run again, not counted in rollouts
+    preempted: int = 0
 
     @classmethod
     def from_dict(cls, data: dict) -> 'TaskRecord':
@@ -53,7 +56,8 @@ class TaskRecord:
                    refused=int(data.get('refused', 0)),
                    unconfirmed=bool(data.get('unconfirmed', False)),
                    confirm_rollouts=int(data.get('confirm_rollouts', 0)),
-                   failed=int(data.get('failed', 0)), failure=str(data.get('failure', '')))
+                   failed=int(data.get('failed', 0)), failure=str(data.get('failure', '')),
+                   preempted=int(data.get('preempted', 0)))
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -133,6 +137,11 @@ class Metrics:
     def num_tasks(self) -> int:
         """Training tasks the session was set up for (finished or not)."""
         return int(self.settings.get('num_tasks', len(self.tasks)))
+
+    @property
+    def preempted(self) -> int:
+        """Episodes of the training tasks that foreign goals preempted (each run again)."""
+        return sum(t.preempted for t in self.tasks)
 
     @classmethod
     def from_dict(cls, data: dict) -> 'Metrics':

@@ -45,7 +45,8 @@ class ReportedRollouts(Rollouts):
     """A session's rollouts, checked before each batch (`should_stop`: raise Stopped) and
     reported after it: a LearningProgress per rollout on `publisher`, stamped with `clock`,
     and the batch's points to `on_points` (e.g. an action's feedback). The counts of rollouts
-    run, refused and failed are the inner rollouts' (the learner records the refusals per task)."""
+    run, refused, failed and preempted are the inner rollouts' (the learner records them per
+    task)."""
 
     def __init__(self, inner: Rollouts, learner: Learner, publisher, clock,
                  should_stop: Callable[[], bool] | None = None,
@@ -72,6 +73,14 @@ class ReportedRollouts(Rollouts):
     @property
     def last_failure(self) -> str:
         return self.inner.last_failure
+
+    @property
+    def preempted(self) -> int:
+        return self.inner.preempted
+
+    @property
+    def last_preemption(self) -> str:
+        return self.inner.last_preemption
 
     def run(self, thetas: np.ndarray, taus: np.ndarray):
         if self.should_stop is not None and self.should_stop():

@@ -80,15 +80,17 @@ def aborted_result(reason: str, reward: float, violation: float) -> RolloutResul
 class Rollouts(abc.ABC):
     """Rollouts of one task's policies on its task instances. `checked` counts the candidates
     run (each one passed the safety check or was refused by it), `refused` those refused,
-    `failed` those a reward component could not score (`last_failure`: the newest reason)."""
+    `failed` those a reward component could not score (`last_failure`: the newest reason),
+    `preempted` the episodes a goal that was not psl's preempted on a robot, each run again
+    (graph mode; `last_preemption`: the newest reason)."""
 
     def __init__(self, task: TaskDefinition):
         from psl_controller.policy import policy_for
 
         self.task = task
         self.policy: TaskPolicy = policy_for(task)
-        self.checked = self.refused = self.failed = 0
-        self.last_failure = ''
+        self.checked = self.refused = self.failed = self.preempted = 0
+        self.last_failure = self.last_preemption = ''
 
     def _count(self, results: list[RolloutResult]) -> list[RolloutResult]:
         self.checked += len(results)

@@ -1,5 +1,6 @@
 """metrics.json: what the learner writes reads back into the same Metrics and writes out to the
-same file; a missing, truncated or foreign file is a MetricsError naming it."""
+same file; a missing, truncated or foreign file is a MetricsError naming it; the episodes that
+foreign goals preempted are counted per task."""
 import json
 
 import pytest
@@ -55,3 +56,31 @@ def test_bad_files_are_refused_with_their_name(tmp_path):
             read_metrics(tmp_path)
         assert str(path) in str(info.value)
     assert issubclass(MetricsError, ValueError)
+
+
+class Preempting(BatchRollouts):
+    """Batch rollouts that report a preemption in the batches `at` (as graph mode does when a
+    goal that is not psl's preempted an episode, which it then ran again: the same results)."""
+
+    def __init__(self, task, at):
+        super().__init__(task)
+        self.at, self.batches = set(at), 0
+
+    def run(self, thetas, taus):
+        self.batches += 1
+        if self.batches in self.at:
+            self.preempted += 1
+        return super().run(thetas, taus)
+
+
+def test_preempted_episodes_are_counted_per_task_and_change_nothing_else(tmp_path):
+    task = load_task('reach_over_obstacle')
+    plain = Learner(task, LearnSettings(**SMALL), tmp_path / 'plain', BatchRollouts(task)).run()
+    rollouts = Preempting(task, at=(1, 2))
+    metrics = Learner(task, LearnSettings(**SMALL), tmp_path / 'preempted', rollouts).run()
+    assert [t.preempted for t in metrics.tasks] == [2, 0]   # both in the first task's search
+    assert metrics.preempted == 2 and plain.preempted == 0
+    assert read_metrics(tmp_path / 'preempted') == metrics
+    strip = lambda m: [{k: v for k, v in t.to_dict().items()      # noqa: E731
+                        if k not in ('seconds', 'preempted')} for t in m.tasks]
+    assert strip(metrics) == strip(plain) and metrics.summary == plain.summary

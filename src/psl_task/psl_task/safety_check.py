@@ -7,7 +7,14 @@ the trajectory and resets the episode. A refused candidate is not executed; it g
 ``penalty - violation`` and the reason. Checked, in this order (the first failure is the reason):
 
 1. the reference is finite;
-2. every driven joint stays ``joint_margin`` inside its range (limited joints);
+2. every driven joint stays ``joint_margin`` inside its range (limited joints). One law for
+   every reference, with the posture it leaves from (`outside`: how far each joint is outside
+   its range with the margin, 0 inside): no joint gets farther outside than that posture and
+   its earlier points were (its distance to the range never grows), and every joint ends
+   inside. A candidate leaves from the start posture, inside: it must stay inside throughout.
+   A homing reference (`check` with ``start``, the measured posture) may leave from outside,
+   where a foreign goal or a push left the arm: a motion toward the range passes, one further
+   out is refused;
 3. ``|qd_ref| <= max_velocity`` and ``|qdd_ref| <= max_acceleration`` (qdd the forward
    difference of qd_ref, `reference_acceleration`);
 4. the torque that makes the model follow the reference (``mj_inverse`` on the task instance:
@@ -128,22 +135,45 @@ class SafetyCheck:
         return [SAFE if ok else self.check(tau, qb, qdb)
                 for ok, tau, qb, qdb in zip(passes, taus, q, qd)]
 
-    def check(self, tau: np.ndarray, q: np.ndarray, qd: np.ndarray) -> Verdict:
-        """The verdict on a reference q, qd (T, n) for the (valid) task instance tau."""
+    def outside(self, q: np.ndarray) -> np.ndarray:
+        """How far each joint of the postures q (..., n) is outside its range with the margin
+        (rad, 0 inside)."""
+        return np.maximum(np.maximum(self.low - q, q - self.high), 0.0)
+
+    def check(self, tau: np.ndarray, q: np.ndarray, qd: np.ndarray,
+              start: np.ndarray | None = None) -> Verdict:
+        """The verdict on a reference q, qd (T, n) for the (valid) task instance tau.
+        `start`: the posture (n,) the reference leaves from, when it may be outside the
+        ranges (a homing reference: the measured posture); None for a candidate, which
+        leaves from the start posture (module docstring, 2)."""
         s, names = self.spec, self.arm.joint_names
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qd))):
             return Verdict(False, 'the reference is not finite', NOT_FINITE_VIOLATION)
         excess = np.maximum(self.low - q, q - self.high)                  # (T, n)
-        if np.any(excess > 0.0):
-            k, j = np.unravel_index(int(np.argmax(excess)), excess.shape)
+        dt = self.arm.task.control_period
+        if start is None:
+            allowed = np.zeros_like(excess)     # from inside: a joint's distance stays 0
+        else:                                   # from outside: it never grows
+            allowed = np.minimum.accumulate(np.vstack(
+                [self.outside(np.asarray(start, dtype=float))[None],
+                 np.maximum(excess[:-1], 0.0)]), axis=0)
+        over = excess - allowed                                           # (T, n)
+        if np.any(over > 0.0):
+            k, j = np.unravel_index(int(np.argmax(over)), over.shape)
             side = 'below' if q[k, j] < self.low[j] else 'above'
             bound = self.low[j] if side == 'below' else self.high[j]
+            farther = '' if start is None or allowed[0, j] == 0.0 else (
+                f', farther out than the {allowed[k, j]:.4g} rad it had come to (a homing '
+                'from outside its range may only come closer to it)')
             return Verdict(False, f'joint {names[j]!r} at {q[k, j]:.4g} is {side} its limit '
                            f'{bound:.4g} (range with margin {s.joint_margin:g}) at t = '
-                           f'{k * self.arm.task.control_period:.3f} s',
-                           float(np.clip(excess, 0.0, None).sum() * self.arm.task.control_period
-                                 + excess.max()))
-        dt = self.arm.task.control_period
+                           f'{k * dt:.3f} s{farther}',
+                           float(np.clip(over, 0.0, None).sum() * dt + over.max()))
+        if start is not None and np.any(excess[-1] > 0.0):
+            j = int(np.argmax(excess[-1]))
+            return Verdict(False, f'joint {names[j]!r} ends at {q[-1, j]:.4g}, outside its range '
+                           f'[{self.low[j]:.4g}, {self.high[j]:.4g}] (range with margin '
+                           f'{s.joint_margin:g})', float(excess[-1, j]))
         qdd = reference_acceleration(qd, dt)
         for what, values, limit, unit in (('velocity', qd, s.max_velocity, '/s'),
                                           ('acceleration', qdd, s.max_acceleration, '/s^2')):

@@ -69,6 +69,54 @@ def test_joint_ranges_with_a_margin(tmp_path):
     assert SafetyCheck(arm).check(task.tau_default, q, np.zeros_like(q)).safe
 
 
+
+def leaving_from(task, start: np.ndarray, path) -> tuple[np.ndarray, np.ndarray]:
+    """A reference from `start` (n,) along joint2's values `path`, the other joints still."""
+    q = np.tile(start, (len(path), 1))
+    q[:, 1] = path
+    return q, np.zeros_like(q)
+
+
+@pytest.mark.parametrize('path, reason', [
+    ([3.2, 3.1, 3.1, 3.0, 2.0], ''),                   # toward the range, pausing, inside
+    ([3.2, 3.2, 3.2, 3.2, 3.2], 'ends at 3.2, outside its range'),
+    ([3.2, 3.1, 3.15, 3.0, 2.0], "joint 'joint2' at 3.15 is above its limit 3"),   # back out
+    ([3.2, 3.25, 3.0, 2.0, 2.0], "joint 'joint2' at 3.25 is above its limit 3"),   # further
+    ([3.2, 2.5, -3.1, -2.0, 2.0], "joint 'joint2' at -3.1 is below its limit -3"),  # across
+])
+def test_a_homing_from_outside_may_only_come_closer_and_must_end_inside(path, reason):
+    """The law of the ranges with a start outside (a homing from where a foreign goal left
+    the arm: joint2 at 3.2, its limit 3): no joint's distance to its range grows from the
+    start's along the reference, and every joint ends inside. The same reference as a
+    candidate (no start: from the start posture, inside) is refused at its first point."""
+    task = load_task('reach_over_obstacle')
+    check = SafetyCheck(ArmModel(task))
+    start = np.array(task.start_posture, dtype=float)
+    start[1] = 3.2
+    q, qd = leaving_from(task, start, path)
+    verdict = check.check(task.tau_default, q, qd, start=start)
+    assert verdict.safe == (not reason) and reason in verdict.reason, verdict.reason
+    if reason:
+        assert verdict.violation > 0
+    candidate = check.check(task.tau_default, q, qd)
+    assert not candidate.safe and "joint 'joint2' at 3." in candidate.reason
+    assert 'come to' not in candidate.reason
+    np.testing.assert_array_equal(check.outside(start), [0.0, start[1] - 3.0, 0.0])
+
+
+def test_from_inside_the_homing_law_is_the_candidates(tmp_path):
+    """A start inside the ranges: every reference gets the candidate's verdict, reason and
+    violation (one law; the start only lets a reference begin outside)."""
+    task = variant(tmp_path, {'joint_margin': 0.1})
+    check = SafetyCheck(ArmModel(task))
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        q = task.start_posture + rng.uniform(-1.5, 1.5, (40, task.n_joints)).cumsum(axis=0) / 8
+        qd = np.zeros_like(q)
+        assert check.check(task.tau_default, q, qd, start=task.start_posture) == \
+            check.check(task.tau_default, q, qd)
+
+
 CART = """
 <mujoco model="cart">
   <option timestep="0.002" gravity="0 0 0"/>
