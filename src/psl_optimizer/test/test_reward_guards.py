@@ -136,14 +136,18 @@ def population(task, count: int = 3):
     geometry = RewardGeometry(ArmModel(task))
     world = {'obstacle': np.tile([0.6, 0.0, 0.5, 1.0, 0.0, 0.0, 0.0], (count, steps, 1))}
     measured = geometry.replay(q, taus, world)
-    return geometry, (q, torque, q_ref, measured, taus)
+    # goals given as after a goal change (graph mode): arrays of psl's, as the others
+    goal_positions = np.tile(geometry.end_effector_at(task.goal_posture), (count, 1))
+    goal_rotations = np.tile(np.eye(3), (count, 1, 1))
+    return geometry, (q, torque, q_ref, measured, taus, goal_positions, goal_rotations)
 
 
 def copies(inputs):
-    q, torque, q_ref, measured, taus = inputs
+    q, torque, q_ref, measured, taus, goal_positions, goal_rotations = inputs
     return [a.copy() for a in (q, torque, q_ref, measured.end_effector,
                                 measured.end_effector_quat, measured.distance,
-                                measured.world['obstacle'], taus)]
+                                measured.world['obstacle'], taus, goal_positions,
+                                goal_rotations)]
 
 
 @pytest.mark.parametrize('kind', WRITES)

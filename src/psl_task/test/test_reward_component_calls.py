@@ -112,11 +112,11 @@ def test_what_is_not_one_real_cost_per_rollout_is_refused(returned, reason):
 
 
 def test_real_costs_are_taken_as_floats_and_copied():
-    returned = np.array([1, 2, 3])
-    values = costs('mine', returned, 3)
-    assert values.dtype == float and values.tolist() == [1.0, 2.0, 3.0]
-    returned[0] = 7                          # the component keeps its array: ours stay
-    assert values[0] == 1.0
+    for returned in (np.array([1, 2, 3]), np.array([1.0, 2.0, 3.0])):
+        values = costs('mine', returned, 3)
+        assert values.dtype == float and values.tolist() == [1.0, 2.0, 3.0]
+        returned[0] = 7                      # the component keeps its array: ours stay
+        assert values[0] == 1.0
     assert costs('mine', np.array([True, False]), 2).tolist() == [1.0, 0.0]
     nan = costs('mine', np.array([np.nan, np.inf, 0.0]), 3)      # each its rollout's failure
     assert reward_components.failures('mine', nan) == {
@@ -167,7 +167,11 @@ def test_a_call_past_its_bound_fails_and_its_component_fails_at_once_until_it_re
 
 
 def test_calls_reuse_their_threads():
-    before = workers()
-    for k in range(50):
-        assert evaluate('fast', lambda r: np.full(len(r), k), [0, 0], 5.0).tolist() == [k, k]
-    assert workers() <= max(before, KEPT_WORKERS)
+    before, threads = workers(), []
+
+    def fast(rollouts):
+        threads.append(threading.current_thread())      # kept: no two alike by accident
+        return np.full(len(rollouts), len(threads))
+    for k in range(1, 51):
+        assert evaluate('fast', fast, [0, 0], 5.0).tolist() == [k, k]
+    assert len(set(threads)) <= KEPT_WORKERS and workers() <= max(before, KEPT_WORKERS)
