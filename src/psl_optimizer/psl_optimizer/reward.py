@@ -352,12 +352,21 @@ class Reward:
                                measured=measured, taus=read_only(taus),
                                goal_position=read_only(goal_position),
                                goal_rotation=read_only(goal_rotation), world=measured.world)
-        columns, failures = {}, {}
-        for name, function in self.components.items():
-            if len(failures) == len(q):     # none left to score
-                break
-            columns[name] = self._column(name, function, rollouts, failures,
-                                         self.spec.component_timeout)
+        failures: dict[int, str] = {}
+
+        def columns_of(call) -> dict[str, np.ndarray]:      # on a worker thread
+            columns = {}
+            for name, function in self.components.items():
+                if len(failures) == len(q):     # none left to score
+                    break
+                columns[name] = self._column(call, name, function, rollouts, failures)
+            return columns
+        try:
+            columns = reward_components.CALLS.run(columns_of, self.spec.component_timeout)
+        except ComponentTimedOut as late:       # every rollout not failed yet fails with it
+            columns = {}
+            for b in range(len(q)):
+                failures.setdefault(b, str(late))
         results = []
         for b in range(len(q)):
             if b in failures:
@@ -368,18 +377,15 @@ class Reward:
         return results
 
     @staticmethod
-    def _column(name: str, function, rollouts: RolloutData, failures: dict[int, str],
-                timeout: float) -> np.ndarray:
-        """One component's costs (B,); a rollout it fails on (it raised or returned what is
-        not a real cost on that rollout alone, or its cost is not finite) is entered in
-        `failures` with the reason (its cost NaN) and the others are scored. A call that did
-        not return within `timeout` s fails every rollout of the population."""
+    def _column(call, name: str, function, rollouts: RolloutData,
+                failures: dict[int, str]) -> np.ndarray:
+        """One component's costs (B,), called through `call` (`BoundedCalls.run`); a rollout
+        it fails on (it raised or returned what is not a real cost on that rollout alone, or
+        its cost is not finite) is entered in `failures` with the reason (its cost NaN) and
+        the others are scored (while its call that passed the bound still runs, each rollout
+        alone fails at once with the reason)."""
         try:
-            values = reward_components.evaluate(name, function, rollouts, timeout)
-        except ComponentTimedOut as late:           # not tried again one by one
-            for b in range(len(rollouts)):
-                failures.setdefault(b, str(late))
-            return np.full(len(rollouts), np.nan)
+            values = reward_components.evaluate(name, function, rollouts, call)
         except ComponentFailed as population_failure:
             if len(rollouts) == 1:
                 values = np.array([np.nan])
@@ -388,7 +394,7 @@ class Reward:
                 values = np.empty(len(rollouts))
                 for b in range(len(rollouts)):
                     one = _one(rollouts, b)
-                    values[b] = Reward._column(name, function, one, sub := {}, timeout)[0]
+                    values[b] = Reward._column(call, name, function, one, sub := {})[0]
                     if sub:
                         failures.setdefault(b, sub[0])
                 return values

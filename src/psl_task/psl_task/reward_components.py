@@ -44,6 +44,7 @@ import os
 import queue
 import sys
 import threading
+import time
 import types
 from importlib import metadata
 from typing import Any, Callable, Mapping
@@ -193,51 +194,63 @@ def read_only(value: Any) -> Any:
 
 
 # -- a component's call, bounded in time ------------------------------------------------------
-KEPT_WORKERS = 2        # idle worker threads kept for the next calls (more end)
+KEPT_WORKERS = 2        # idle worker threads kept for the next populations (more end)
+Call = Callable[[str, Function, Any], tuple[np.ndarray | None, BaseException | None]]
 
 
-class _Call:
-    """One call of a component, handed to a worker thread."""
+class _Abandoned(Exception):
+    """Ends the work of a population whose caller has given up on it."""
 
-    __slots__ = ('name', 'function', 'argument', 'lock', 'done', 'value', 'error', 'late')
 
-    def __init__(self, name: str, function: Function, argument):
-        self.name, self.function, self.argument = name, function, argument
-        self.lock = threading.Lock()         # the caller's giving up against the worker's end
+class _Job:
+    """The work of one population, handed to a worker thread."""
+
+    __slots__ = ('work', 'lock', 'done', 'value', 'error', 'running', 'abandoned')
+
+    def __init__(self, work: Callable[[Call], Any]):
+        self.work = work
+        self.lock = threading.Lock()     # the caller's giving up against the worker's progress
         self.done = threading.Event()
-        self.value: np.ndarray | None = None
+        self.value: Any = None
         self.error: BaseException | None = None
-        self.late = False                    # the caller gave up waiting for it
+        self.running: tuple[str, float] | None = None   # the component called, since when
+        self.abandoned = False           # the caller gave up: the work's results are dropped
 
 
 class _Worker(threading.Thread):
-    """A daemon thread that runs the calls put in its inbox (a call that never returns keeps
-    it, and the process can still end)."""
+    """A daemon thread that runs the jobs put in its inbox (a component that never returns
+    keeps it, and the process can still end)."""
 
     def __init__(self, calls: 'BoundedCalls'):
         super().__init__(name='psl reward component', daemon=True)
         self.calls = calls
-        self.inbox: queue.SimpleQueue[_Call] = queue.SimpleQueue()
+        self.inbox: queue.SimpleQueue[_Job] = queue.SimpleQueue()
 
     def run(self) -> None:
         while True:
-            call = self.inbox.get()
-            try:     # converted here, within the call's time (an __array__ of its own too)
-                call.value = np.asarray(call.function(call.argument))
-            except BaseException as exc:    # SystemExit of a plugin too: its call's failure
-                call.error = exc
-            if not self.calls.finished(self, call):
+            job = self.inbox.get()
+            try:
+                job.value = job.work(functools.partial(self.calls.call_in, job))
+            except _Abandoned:
+                pass
+            except BaseException as exc:    # psl's own error: raised again to the caller
+                job.error = exc
+            if not self.calls.finished(self, job):
                 return
 
 
 class BoundedCalls:
-    """Calls of reward components on worker threads, each bounded in time.
+    """The components' calls on a population, on a worker thread, each call bounded in time.
 
-    Python cannot stop a thread, so a call that passes its bound is left to run on its worker
-    while the caller goes on (the call fails with the reason); until it returns, further
-    calls of that component fail at once with the reason instead of piling up threads, and
-    the other components are called on another worker. Idle workers are kept (at most
-    `KEPT_WORKERS`): a call costs a hand-over to a waiting thread and back, no new thread.
+    The caller hands the whole work of a population (every component, and each rollout alone
+    where a component fails on the population) to a waiting worker thread in one hand-over
+    and waits for it; the worker calls each component through `call_in`, which notes the call
+    and its start. When a call passes its bound, the caller gives up on the population
+    (`ComponentTimedOut`) while the worker is inside that call. Python cannot stop a thread,
+    so the call is left to run; when it returns, its result and the rest of the population's
+    work are dropped. Until then, further calls of that component fail at once with the reason
+    instead of piling up threads, and other populations run on another worker. Idle workers
+    are kept (at most `KEPT_WORKERS`): no new thread per population.
     """
 
     def __init__(self):
@@ -248,49 +261,84 @@ class BoundedCalls:
         self._idle: list[_Worker] = []
         self._late: dict[str, float] = {}   # component -> the bound its running call passed
 
-    def call(self, name: str, function: Function, argument,
-             timeout: float) -> tuple[np.ndarray | None, BaseException | None]:
-        """`function(argument)` as an array (its value) or what it raised (its error), within
-        `timeout` s.
+    def run(self, work: Callable[[Call], Any], timeout: float) -> Any:
+        """``work(call)`` on a worker thread, where ``call(name, function, argument)`` is
+        `call_in`: each component's call bounded by `timeout` s. Returns what `work` returns.
 
         Raises:
-            ComponentTimedOut: it did not return within `timeout` s, or an earlier call of
-                the component `name` that did not still runs.
+            ComponentTimedOut: a component's call did not return within `timeout` s (the work
+                is left to end on its own; what it did so far stays as it was when the call
+                began, what it would do after is dropped).
+            BaseException: what `work` itself raised.
         """
         with self._lock:
+            worker = self._idle.pop() if self._idle else None
+        if worker is None:
+            worker = _Worker(self)
+            worker.start()
+        job = _Job(work)
+        worker.inbox.put(job)
+        wait = timeout
+        while not job.done.wait(wait):
+            with job.lock:
+                if job.done.is_set():
+                    break
+                now = time.monotonic()
+                if job.running is None:             # between two calls: psl's own work
+                    wait = timeout
+                    continue
+                name, started = job.running
+                if now - started < timeout:
+                    wait = started + timeout - now
+                    continue
+                job.abandoned = True
+                with self._lock:
+                    self._late[name] = timeout
+                raise ComponentTimedOut(f'reward component {name!r} did not return within '
+                                        f'{timeout:g} s (reward.component_timeout)')
+        if job.error is not None:
+            raise job.error
+        return job.value
+
+    def call_in(self, job: _Job, name: str, function: Function,
+                argument) -> tuple[np.ndarray | None, BaseException | None]:
+        """On the worker: `function(argument)` as an array (its value) or what it raised
+        (its error; SystemExit too), its start noted for the caller's bound.
+
+        Raises:
+            ComponentTimedOut: an earlier call of the component `name` that passed its bound
+                still runs.
+            _Abandoned: the caller gave up on the job while the call ran.
+        """
+        with job.lock, self._lock:
             if name in self._late:
                 raise ComponentTimedOut(
                     f'reward component {name!r} has not returned from a call that passed its '
                     f'{self._late[name]:g} s (reward.component_timeout): its rollouts fail '
                     'until it does')
-            worker = self._idle.pop() if self._idle else None
-        if worker is None:
-            worker = _Worker(self)
-            worker.start()
-        call = _Call(name, function, argument)
-        worker.inbox.put(call)
-        if not call.done.wait(timeout):
-            with call.lock:
-                if not call.done.is_set():
-                    call.late = True
-                    with self._lock:
-                        self._late[name] = timeout
-                    raise ComponentTimedOut(
-                        f'reward component {name!r} did not return within {timeout:g} s '
-                        '(reward.component_timeout)')
-        return call.value, call.error
+            job.running = (name, time.monotonic())
+        value = error = None
+        try:         # converted here, within the call's time (an __array__ of its own too)
+            value = np.asarray(function(argument))
+        except BaseException as exc:    # SystemExit of a plugin too: its call's failure
+            error = exc
+        with job.lock:
+            job.running = None
+            if job.abandoned:
+                with self._lock:
+                    self._late.pop(name, None)
+                raise _Abandoned
+        return value, error
 
-    def finished(self, worker: _Worker, call: _Call) -> bool:
-        """`worker` has ended `call`: hand it to its caller (a late call: its component may
-        be called again); True when the worker is kept for the next call."""
-        with call.lock:
+    def finished(self, worker: _Worker, job: _Job) -> bool:
+        """`worker` has ended `job`: hand it to its caller; True when the worker is kept for
+        the next job."""
+        with job.lock:
             with self._lock:
-                if call.late:
-                    self._late.pop(call.name, None)
                 keep = len(self._idle) < KEPT_WORKERS
                 if keep:
                     self._idle.append(worker)
-            call.done.set()
+            job.done.set()
         return keep
 
 
@@ -327,18 +375,17 @@ def _brief(value, width: int = 40) -> str:
     return text if len(text) <= width else text[:width - 3] + '...'
 
 
-def evaluate(name: str, function: Function, rollouts, timeout: float) -> np.ndarray:
+def evaluate(name: str, function: Function, rollouts, call: Call) -> np.ndarray:
     """The costs (B,) of `function` on the population `rollouts` (as a reward gives it:
-    `read_only`), called on a worker thread within `timeout` s (`CALLS`), checked: one real
-    number per rollout (a NaN or inf fails its rollout alone: `failures`).
+    `read_only`), called through `call` (the bounded call of `BoundedCalls.run`), checked: one
+    real number per rollout (a NaN or inf fails its rollout alone: `failures`).
 
     Raises:
-        ComponentTimedOut: it did not return in time, or its earlier call that did not still
-            runs.
+        ComponentTimedOut: its earlier call that did not return in time still runs.
         ComponentFailed: it raised (a write into its inputs too), or returned what is not one
             real number per rollout (`costs`); the message names the component.
     """
-    returned, error = CALLS.call(name, function, rollouts, timeout)
+    returned, error = call(name, function, rollouts)
     if error is not None:   # a plugin's bug: the rollout fails with the reason, no more
         raise ComponentFailed(f'reward component {name!r} raised {type(error).__name__}: '
                               f'{error}') from error

@@ -10,10 +10,16 @@ import pytest
 
 from psl_task import reward_components
 from psl_task.reward_components import (CALLS, KEPT_WORKERS, ComponentFailed, ComponentTimedOut,
-                                        costs, evaluate, read_only)
+                                        costs, read_only)
 from psl_task.task import load_task
 
 WAIT = 30.0     # s a test waits at most for an event that comes at once when all is well
+
+
+def evaluate(name: str, function, rollouts, timeout: float) -> np.ndarray:
+    """`reward_components.evaluate` of one component on a worker, bounded by `timeout` s."""
+    return CALLS.run(lambda call: reward_components.evaluate(name, function, rollouts, call),
+                     timeout)
 
 
 def wait_for(condition) -> bool:
