@@ -702,10 +702,10 @@ def tracking_comparison(rollouts: Rollouts, taus: np.ndarray,
 
 
 def nothing_scored(tasks: list[TaskRecord]) -> str:
-    """Why a session could score none of its rollouts — every one it ran failed to be scored
-    by a reward component (each got the task's penalty: the skill learned from nothing; those
-    the safety check refused never ran): the counts and the newest reason. '' when the reward
-    scored at least one rollout, or none failed."""
+    """Why a session could score none of its rollouts: every one it ran failed to be scored
+    by a reward component (each got the task's penalty, so its search learned nothing; the
+    candidates the safety check refused never ran), with the counts and the newest reason;
+    '' when the reward scored at least one rollout, or none failed."""
     rollouts = sum(t.rollouts for t in tasks)
     failed, refused = sum(t.failed for t in tasks), sum(t.refused for t in tasks)
     if failed == 0 or failed + refused < rollouts:

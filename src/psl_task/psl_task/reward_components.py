@@ -149,8 +149,9 @@ class ComponentFailed(Exception):
 
 
 class ComponentTimedOut(ComponentFailed):
-    """A component's call did not return within its bound, or its earlier call that did not
-    still runs: every rollout of the population fails (none is tried again alone)."""
+    """A component's call did not return within its bound (the population's rollouts not
+    failed yet fail with it), or its earlier call that did not still runs (its rollouts fail
+    with it)."""
 
 
 # -- what a component sees: read-only views ---------------------------------------------------
@@ -159,7 +160,7 @@ def read_only(value: Any) -> Any:
     other components (and psl) see: an array as a read-only view (a write raises ValueError:
     assignment destination is read-only; psl's array itself stays writeable), a mapping as a
     read-only mapping (`types.MappingProxyType`; an assignment raises TypeError) of such
-    values, a list or tuple as a tuple of them, a set as a frozenset, a frozen dataclass as a
+    values, a list or tuple as a tuple of them (a named tuple as its own type), a set as a frozenset, a frozen dataclass as a
     copy whose fields (and anything cached beside them) are such (an assignment raises
     FrozenInstanceError). Numbers, strings, paths, frozen pydantic models and other values
     are returned as they are. A component runs in psl's process: this stops writes through
@@ -176,8 +177,9 @@ def read_only(value: Any) -> Any:
         return view
     if isinstance(value, Mapping):
         return types.MappingProxyType({key: read_only(item) for key, item in value.items()})
-    if isinstance(value, (list, tuple)) and not hasattr(value, '_fields'):
-        return tuple(read_only(item) for item in value)
+    if isinstance(value, (list, tuple)):
+        items = (read_only(item) for item in value)
+        return type(value)(*items) if hasattr(value, '_fields') else tuple(items)   # namedtuple
     if isinstance(value, (set, frozenset)):
         return frozenset(value)
     if dataclasses.is_dataclass(value) and not isinstance(value, type):

@@ -1,6 +1,7 @@
 """How a reward component is called (psl_task.reward_components): the read-only views of its
 inputs, the check of what it returns, and the bound on its call's time (a worker thread that a
 call past its bound keeps, while the component's further calls fail at once)."""
+import collections
 import dataclasses
 import threading
 import time
@@ -38,11 +39,15 @@ class Inner:
     names: dict
 
 
+Pair = collections.namedtuple('Pair', 'left right')
+
+
 @dataclasses.dataclass(frozen=True)
 class Outer:
     inner: Inner
     rows: list
     label: str = 'x'
+    pair: Pair = Pair(np.zeros(1), 0)
 
 
 def test_a_view_refuses_every_write_and_psl_keeps_its_own_arrays():
@@ -60,6 +65,7 @@ def test_a_view_refuses_every_write_and_psl_keeps_its_own_arrays():
         'a list\'s array': lambda: view.rows[0].fill(5.0),
         'a field': lambda: setattr(view, 'label', 'y'),
         'a nested field': lambda: setattr(view.inner, 'values', None),
+        'a named tuple\'s array': lambda: view.pair.left.fill(1.0),
     }
     for what, write in writes.items():
         with pytest.raises((ValueError, TypeError, AttributeError)):
@@ -70,6 +76,7 @@ def test_a_view_refuses_every_write_and_psl_keeps_its_own_arrays():
     assert not weights['nested']['b'].any() and outer.rows[0].tolist() == [1.0, 1.0]
     assert np.array_equal(view.inner.values, array)       # the same numbers, read as before
     assert view.inner.names['a'] == 1.0 and view.label == 'x' and view.rows[1] == 3.0
+    assert type(view.pair) is Pair and view.pair.right == 0 and not outer.pair.left.any()
     array[0, 0] = -1.0                                    # psl writes its own: the view follows
     assert view.inner.values[0, 0] == -1.0
 
