@@ -1,7 +1,12 @@
 """Reward components from a user's own package: examples/psl_reward_example (hand_path_length)
 pip-installed into a temporary folder (not into psl's sources or venv), found by its entry point
 in batch mode, in the graph's processes and by `psl check`; and a package whose components
-raise or return NaN, which fail only the rollouts they cannot score."""
+raise or return NaN, which fail only the rollouts they cannot score, and whose components try
+to hurt the session (issue 46), in batch mode and in the graph's evaluator, which serves on: one
+writes into its inputs (it gets read-only views: the write fails its rollouts and changes
+nothing the others see), one returns 1+2j (refused), one does not return (bounded by the
+task's reward.component_timeout), one fails every rollout (psl learn exits 1 with the
+reason)."""
 import importlib
 import json
 import os
@@ -35,11 +40,22 @@ version = "0.0.1"
 [project.entry-points."psl.reward_components"]
 raises_far = "psl_faulty_costs:raises_far"
 nan_far = "psl_faulty_costs:nan_far"
+writes_hand_path = "psl_faulty_costs:writes_hand_path"
+zeroes_quietly = "psl_faulty_costs:zeroes_quietly"
+returns_complex = "psl_faulty_costs:returns_complex"
+sleeps_until_released = "psl_faulty_costs:sleeps_until_released"
+always_raises = "psl_faulty_costs:always_raises"
 [tool.setuptools]
 py-modules = ["psl_faulty_costs"]
 ''',
     'psl_faulty_costs.py': f'''
+import os
+import time
+
 import numpy as np
+
+ENTERED = []        # the populations sleeps_until_released was called on (this process)
+WRITTEN = []        # what zeroes_quietly could write into (this process)
 
 def raises_far(rollouts):
     if (rollouts.taus[:, 0] > {FAR}).any():
@@ -48,7 +64,41 @@ def raises_far(rollouts):
 
 def nan_far(rollouts):
     return np.where(rollouts.taus[:, 0] > {FAR}, np.nan, 0.0)
+
+def writes_hand_path(rollouts):
+    rollouts.measured.end_effector[:] = 0.0
+    return np.zeros(len(rollouts))
+
+def zeroes_quietly(rollouts):
+    """Writes wherever it can and goes on: the hand's path, the joint angles, the weights."""
+    writes = {{'hand': lambda: rollouts.measured.end_effector.fill(0.0),
+              'q': lambda: rollouts.q.fill(0.0),
+              'weights': lambda: rollouts.task.reward.weights.update(
+                  (name, 0.0) for name in list(rollouts.task.reward.weights))}}
+    for what, write in writes.items():
+        try:
+            write()
+            WRITTEN.append(what)
+        except Exception:
+            pass
+    return np.zeros(len(rollouts))
+
+def returns_complex(rollouts):
+    return np.full(len(rollouts), 1.0 + 2.0j)
+
+def sleeps_until_released(rollouts):
+    """Returns when the file PSL_FAULTY_RELEASE names exists (at most a minute)."""
+    ENTERED.append(len(rollouts))
+    deadline = time.monotonic() + 60.0
+    while not os.path.exists(os.environ['PSL_FAULTY_RELEASE']) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return np.zeros(len(rollouts))
+
+def always_raises(rollouts):
+    raise RuntimeError('no cost for anyone')
 '''}
+SLOW_TIMEOUT = 2.0      # s: reward.component_timeout of the task of sleeps_until_released
+NEAR = [0.6, 0.15]      # a task instance none of the faulty components treats apart
 
 
 def pip_install(source: Path, target: Path, build: Path) -> None:
@@ -76,17 +126,23 @@ def plugins(tmp_path_factory):
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv('PYTHONPATH', os.pathsep.join(
             [str(target)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p]))
+        patch.setenv('PSL_FAULTY_RELEASE', str(root / 'release'))   # sleeps_until_released
         patch.syspath_prepend(str(target))
         importlib.invalidate_caches()
         yield target
     importlib.invalidate_caches()
 
 
-def task_file(folder: Path, name: str, weights: dict, base: Path = EXAMPLE_TASK) -> Path:
-    """A copy of the task `base` named `name`, with `weights` added to its reward."""
+def task_file(folder: Path, name: str, weights: dict, base: Path = EXAMPLE_TASK,
+              first: bool = False, **reward_keys) -> Path:
+    """A copy of the task `base` named `name`, with `weights` added to its reward (`first`:
+    before its own, so their components are called before the task's own plugins) and
+    `reward_keys`."""
     data = yaml.safe_load(base.read_text())
     data['name'] = name
-    data['reward']['weights'].update(weights)
+    own = data['reward']['weights']
+    data['reward']['weights'] = {**weights, **own} if first else {**own, **weights}
+    data['reward'].update(reward_keys)
     path = folder / f'{name}.yaml'
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
@@ -201,6 +257,7 @@ def test_a_learning_session_goes_on_past_a_failing_component(faulty_task, tmp_pa
     done = subprocess.run(['psl', 'learn', '--task', str(faulty_task), '--tasks', '4',
                            '--budget', '6', '--seed', '3', '--test-tasks', '2', '--out',
                            str(out)], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr          # some rollouts were scored
     metrics = json.loads((out / 'metrics.json').read_text())
     assert metrics['complete'], done.stderr
     tasks = metrics['tasks']
@@ -245,3 +302,183 @@ def test_a_session_with_the_component_learns_the_same_in_batch_and_graph_mode(ta
     assert [t['fulfilled'] for t in tasks[0]] == [t['fulfilled'] for t in tasks[1]]
     for key in ('start_reward', 'best_reward'):
         assert tasks[0][0][key] == pytest.approx(tasks[1][0][key], rel=1e-7), key
+
+
+# -- components that try to hurt the session (issue 46) -----------------------------------------
+@pytest.fixture(scope='module')
+def unsafe(plugins, tmp_path_factory):
+    """The tasks of the components that try to hurt the session, by component."""
+    folder = tmp_path_factory.mktemp('unsafe')
+    return {
+        'writes_hand_path': task_file(folder, 'reach_writing_its_inputs',
+                                      {'writes_hand_path': 1.0}, first=True),
+        'zeroes_quietly': task_file(folder, 'reach_zeroing_quietly', {'zeroes_quietly': 1.0},
+                                    first=True),
+        'returns_complex': task_file(folder, 'reach_complex', {'returns_complex': 1.0}),
+        'sleeps_until_released': task_file(folder, 'reach_sleeping',
+                                           {'sleeps_until_released': 1.0},
+                                           component_timeout=SLOW_TIMEOUT),
+        'always_raises': task_file(folder, 'reach_never_scored', {'always_raises': 1.0}),
+    }
+
+
+WRITE_REFUSED = ("reward component 'writes_hand_path' raised ValueError: assignment "
+                 'destination is read-only')
+COMPLEX_REFUSED = ("reward component 'returns_complex' returned complex numbers ((1+2j), ...), "
+                   'not real costs')
+LATE = (f"reward component 'sleeps_until_released' did not return within {SLOW_TIMEOUT:g} s "
+        '(reward.component_timeout)')
+STILL_LATE = (f"reward component 'sleeps_until_released' has not returned from a call that "
+              f'passed its {SLOW_TIMEOUT:g} s (reward.component_timeout): its rollouts fail '
+              'until it does')
+
+
+def population_of(task, count: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """`count` copies of the default theta on near task instances."""
+    theta = policy_for(task).default_theta
+    return np.repeat(theta[None], count, axis=0), np.array([NEAR, [0.62, 0.12], [0.66, 0.18]])
+
+
+def test_batch_a_component_that_writes_into_its_inputs_fails_its_rollouts(task, unsafe):
+    rollouts = BatchRollouts(load_task(str(unsafe['writes_hand_path'])))
+    results = rollouts.run(*population_of(task))
+    assert [r.evaluation.failure for r in results] == [WRITE_REFUSED] * 3
+    assert rollouts.failed == 3 and not any(r.evaluation.fulfilled for r in results)
+
+
+def test_batch_a_component_that_writes_quietly_changes_nothing_the_others_see(task, unsafe):
+    import psl_faulty_costs
+
+    thetas, taus = population_of(task)
+    plain = BatchRollouts(task).run(thetas, taus)
+    written = len(psl_faulty_costs.WRITTEN)
+    quiet = BatchRollouts(load_task(str(unsafe['zeroes_quietly']))).run(thetas, taus)
+    assert psl_faulty_costs.WRITTEN[written:] == [], 'a write went through'
+    for mine, theirs in zip(quiet, plain):
+        assert mine.evaluation.failure == ''
+        assert mine.evaluation.components == {**theirs.evaluation.components,
+                                              'zeroes_quietly': 0.0}
+        assert mine.evaluation.reward == theirs.evaluation.reward
+        assert mine.evaluation.fulfilled == theirs.evaluation.fulfilled
+        assert np.array_equal(mine.q, theirs.q)
+    assert load_task(str(EXAMPLE_TASK)).reward.weights['hand_path_length'] == 0.1
+
+
+def test_batch_a_component_returning_a_complex_cost_fails_its_rollouts(task, unsafe):
+    rollouts = BatchRollouts(load_task(str(unsafe['returns_complex'])))
+    results = rollouts.run(*population_of(task))
+    assert [r.evaluation.failure for r in results] == [COMPLEX_REFUSED] * 3
+    assert rollouts.failed == 3
+
+
+@pytest.fixture
+def release(plugins):
+    """The file that releases sleeps_until_released: absent while the test runs, made at its
+    end (a call still sleeping returns), removed before the next."""
+    path = Path(os.environ['PSL_FAULTY_RELEASE'])
+    path.unlink(missing_ok=True)
+    try:
+        yield path
+    finally:
+        path.touch()
+
+
+def test_batch_a_component_that_does_not_return_fails_its_populations_until_it_does(
+        task, unsafe, release, wait_until):
+    import psl_faulty_costs
+
+    slow = BatchRollouts(load_task(str(unsafe['sleeps_until_released'])))
+    thetas, taus = population_of(task)
+    entered = len(psl_faulty_costs.ENTERED)
+    assert [r.evaluation.failure for r in slow.run(thetas, taus)] == [LATE] * 3
+    # its call still runs: the next populations fail with the reason, without calling it
+    assert [r.evaluation.failure for r in slow.run(thetas, taus)] == [STILL_LATE] * 3
+    assert [r.evaluation.failure for r in slow.run(thetas[:1], taus[:1])] == [STILL_LATE]
+    assert psl_faulty_costs.ENTERED[entered:] == [3] and slow.failed == 7
+    release.touch()
+    scored = []
+    assert wait_until(lambda: scored.append(slow.run(thetas, taus)) or
+                      scored[-1][0].evaluation.failure == '', timeout=30.0)
+    assert psl_faulty_costs.ENTERED[entered:] == [3, 3]     # called once more, when it could
+    plain = BatchRollouts(task).run(thetas, taus)
+    assert [r.evaluation.reward for r in scored[-1]] == [r.evaluation.reward for r in plain]
+
+
+def learn(task: Path, out: Path, *options: str) -> subprocess.CompletedProcess:
+    return subprocess.run(['psl', 'learn', '--task', str(task), '--tasks', '1', '--budget', '2',
+                           '--seed', '1', '--test-tasks', '1', '--out', str(out), *options],
+                          capture_output=True, text=True, timeout=600)
+
+
+def check_nothing_scored(done: subprocess.CompletedProcess, out: Path) -> None:
+    """psl learn exited 1 with the reason; the session's metrics were written."""
+    assert done.returncode == 1, (done.returncode, done.stderr)
+    metrics = json.loads((out / 'metrics.json').read_text())
+    assert metrics['complete']
+    rollouts, failed, refused = (sum(t[key] for t in metrics['tasks'])
+                                 for key in ('rollouts', 'failed', 'refused'))
+    assert failed > 0 and failed + refused == rollouts
+    refusals = f', {refused} refused by the safety check' if refused else ''
+    line = done.stderr.strip().splitlines()[-1]
+    assert line == (f"psl learn: the reward scored none of the session's {rollouts} rollouts "
+                    f"({failed} not scored{refusals}): reward component 'always_raises' raised "
+                    f"RuntimeError: no cost for anyone (metrics in {out / 'metrics.json'})"), \
+        done.stderr
+
+
+def test_batch_a_session_that_could_score_nothing_exits_1_with_the_reason(unsafe, tmp_path):
+    out = tmp_path / 'never_scored'
+    check_nothing_scored(learn(unsafe['always_raises'], out), out)
+
+
+def test_graph_a_component_that_writes_into_its_inputs_fails_the_rollout_and_the_graph_serves_on(
+        task, unsafe, client, graph_matches_batch):
+    theta = policy_for(task).default_theta
+    result = client.rollout(str(unsafe['writes_hand_path']), NEAR, theta)
+    assert result.success, result.message
+    assert result.evaluation.failure == WRITE_REFUSED and not result.evaluation.fulfilled
+    plain = client.rollout(str(EXAMPLE_TASK), NEAR, theta)
+    quiet = client.rollout(str(unsafe['zeroes_quietly']), NEAR, theta)
+    assert plain.success and quiet.success, (plain.message, quiet.message)
+    mine, theirs = quiet.evaluation, plain.evaluation
+    assert mine.failure == '' and mine.reward == theirs.reward
+    assert mine.fulfilled == theirs.fulfilled
+    components = dict(zip(theirs.component_names, theirs.component_values))
+    assert dict(zip(mine.component_names, mine.component_values)) == {**components,
+                                                                      'zeroes_quietly': 0.0}
+    assert components['hand_path_length'] > 0.5 and list(mine.position) == list(theirs.position)
+    graph_matches_batch(task, np.array(NEAR), theta)
+
+
+def test_graph_a_component_returning_a_complex_cost_fails_the_rollout_and_the_graph_serves_on(
+        task, unsafe, client, graph_matches_batch):
+    theta = policy_for(task).default_theta
+    result = client.rollout(str(unsafe['returns_complex']), NEAR, theta)
+    assert result.success, result.message
+    assert result.evaluation.failure == COMPLEX_REFUSED and not result.evaluation.fulfilled
+    graph_matches_batch(task, np.array(NEAR), theta)
+
+
+def test_graph_a_component_that_does_not_return_fails_its_rollouts_and_the_graph_serves_on(
+        task, unsafe, client, release, wait_until, graph_matches_batch):
+    theta = policy_for(task).default_theta
+    slow = str(unsafe['sleeps_until_released'])
+    first = client.rollout(slow, NEAR, theta)
+    assert first.success, first.message
+    assert first.evaluation.failure == LATE and not first.evaluation.fulfilled
+    second = client.rollout(slow, NEAR, theta)     # its call still runs in the evaluator
+    assert second.success and second.evaluation.failure == STILL_LATE, second.evaluation.failure
+    graph_matches_batch(task, np.array(NEAR), theta)        # the evaluator serves on
+    release.touch()
+    scored = []
+    assert wait_until(lambda: scored.append(client.rollout(slow, NEAR, theta)) or
+                      scored[-1].evaluation.failure == '', timeout=60.0), \
+        scored[-1].evaluation.failure
+    plain = client.rollout(str(EXAMPLE_TASK), NEAR, theta)
+    assert scored[-1].evaluation.reward == plain.evaluation.reward
+
+
+def test_graph_a_session_that_could_score_nothing_exits_1_with_the_reason(unsafe, client,
+                                                                         tmp_path):
+    out = tmp_path / 'never_scored'
+    check_nothing_scored(learn(unsafe['always_raises'], out, '--mode', 'graph'), out)

@@ -614,6 +614,17 @@ def _learn_here(args, task, out: Path, stop: threading.Event, progress, workers,
         return fail('psl learn', f'stopped after {len(metrics.tasks)} of {args.tasks} tasks; '
                     f'the same command resumes from {out}', 130)
     _print_summary(args, metrics, out)
+    return _outcome(metrics, out)
+
+
+def _outcome(metrics, out: Path) -> int:
+    """A finished session's exit status: 0, or 1 with the reason when the reward could score
+    none of its rollouts (`psl_optimizer.learning.nothing_scored`)."""
+    from psl_optimizer.learning import nothing_scored
+
+    reason = nothing_scored(metrics.tasks)
+    if reason:
+        return fail('psl learn', f"{reason} (metrics in {out / 'metrics.json'})", 1)
     return 0
 
 
@@ -655,8 +666,9 @@ def _learn_in_graph(args, task, out: Path, stop: threading.Event, progress) -> i
     progress.close(complete=result.success)
     if not result.success:
         return fail('psl learn', result.message, 1)
-    _print_summary(args, read_metrics(Path(result.metrics_path).parent), out)
-    return 0
+    metrics = read_metrics(Path(result.metrics_path).parent)
+    _print_summary(args, metrics, out)
+    return _outcome(metrics, out)
 
 
 def _learn_options(p: argparse.ArgumentParser) -> None:

@@ -749,3 +749,18 @@ def tracking_comparison(rollouts: Rollouts, taus: np.ndarray,
                 for r in rollouts.run(variant, taus)]
         out[name] = [float(v) for v in rmse]
     return out
+
+
+def nothing_scored(tasks: list[TaskRecord]) -> str:
+    """Why a session could score none of its rollouts: every one it ran failed to be scored
+    by a reward component (each got the task's penalty, so its search learned nothing; the
+    candidates the safety check refused never ran), with the counts and the newest reason;
+    '' when the reward scored at least one rollout, or none failed."""
+    rollouts = sum(t.rollouts for t in tasks)
+    failed, refused = sum(t.failed for t in tasks), sum(t.refused for t in tasks)
+    if failed == 0 or failed + refused < rollouts:
+        return ''
+    reason = next((t.failure for t in reversed(tasks) if t.failure), '')
+    refusals = f', {refused} refused by the safety check' if refused else ''
+    return (f'the reward scored none of the session\'s {rollouts} rollouts ({failed} not scored'
+            f'{refusals}): {reason}')

@@ -11,13 +11,17 @@ kinematic replay of the measured joint angles in graph mode). Imports no ROS.
 Components come from one registry (`psl_task.reward_components`, the entry point group
 ``psl.reward_components``): the seven built-ins below (the ``*_cost`` functions of a
 `RolloutData`, registered by this package's setup.cfg) and whatever a user's package
-registers. A component that raises, or returns a cost that is not finite, fails the rollouts
-it could not score: they get the task's penalty and the reason (`RewardResult.failure`); the
-others are scored.
+registers. A component sees read-only views of its inputs (`RolloutData`, the task included:
+`psl_task.reward_components.read_only`) and is called within the task's
+``reward.component_timeout``. One that raises (a write into its inputs too), returns what is
+not a finite real cost per rollout, or does not return in time fails the rollouts it could not
+score: they get the task's penalty and the reason (`RewardResult.failure`); the others are
+scored.
 """
 from __future__ import annotations
 
 import dataclasses
+import types
 from typing import Mapping
 
 import mujoco
@@ -25,7 +29,7 @@ import numpy as np
 
 from psl_task import quaternion
 from psl_task import reward_components
-from psl_task.reward_components import ComponentFailed
+from psl_task.reward_components import ComponentFailed, ComponentTimedOut, read_only
 from psl_task.reward_geometry import Measurements, RewardGeometry
 from psl_task.task import TaskDefinition
 
@@ -39,7 +43,8 @@ FAILED = 'component_failed'     # the one component of a rollout a component fai
 @dataclasses.dataclass(frozen=True)
 class RolloutData:
     """What a reward component sees of a population of B rollouts of one task, T states each
-    (S_0 .. S_N, one per control period)."""
+    (S_0 .. S_N, one per control period); a component gets it read-only (`Reward.evaluate`:
+    the arrays read-only views, the mappings and the task read-only)."""
 
     task: TaskDefinition            # its reward section, target, control period
     q: np.ndarray                   # (B, T, n) measured joint angles [rad]
@@ -234,7 +239,8 @@ def _one(rollouts: RolloutData, b: int) -> RolloutData:
     measured = Measurements(end_effector=m.end_effector[row],
                             end_effector_quat=m.end_effector_quat[row],
                             distance=None if m.distance is None else m.distance[row],
-                            world={k: v[row] for k, v in m.world.items()})
+                            world=types.MappingProxyType({k: v[row]
+                                                          for k, v in m.world.items()}))
     return dataclasses.replace(
         rollouts, q=rollouts.q[row], torque=rollouts.torque[row], q_ref=rollouts.q_ref[row],
         measured=measured, taus=rollouts.taus[row], goal_position=rollouts.goal_position[row],
@@ -257,6 +263,7 @@ class Reward:
         check_weights(task.reward.weights)
         self.task, self.geometry = task, geometry
         self.spec = task.reward
+        self.task_view = read_only(task)      # what the components see of the task
         # every component this reward scores, each loaded once (a plugin imported here)
         self.components = {name: reward_components.load(name)
                            for name in dict.fromkeys(COMPONENTS + tuple(self.spec.weights))}
@@ -339,12 +346,27 @@ class Reward:
             goal_position = _finite('goal_positions', goal_positions, 2)
         if goal_rotations is not None:
             goal_rotation = _finite('goal_rotations', goal_rotations, 3)
-        rollouts = RolloutData(task=self.task, q=q, torque=torque, q_ref=q_ref,
-                               measured=measured, taus=taus, goal_position=goal_position,
-                               goal_rotation=goal_rotation, world=measured.world)
-        columns, failures = {}, {}
-        for name, function in self.components.items():
-            columns[name] = self._column(name, function, rollouts, failures)
+        measured = read_only(measured)      # the components' views (psl's arrays stay)
+        rollouts = RolloutData(task=self.task_view, q=read_only(q), torque=read_only(torque),
+                               q_ref=read_only(np.asarray(q_ref, dtype=float)),
+                               measured=measured, taus=read_only(taus),
+                               goal_position=read_only(goal_position),
+                               goal_rotation=read_only(goal_rotation), world=measured.world)
+        failures: dict[int, str] = {}
+
+        def columns_of(call) -> dict[str, np.ndarray]:      # on a worker thread
+            columns = {}
+            for name, function in self.components.items():
+                if len(failures) == len(q):     # none left to score
+                    break
+                columns[name] = self._column(call, name, function, rollouts, failures)
+            return columns
+        try:
+            columns = reward_components.CALLS.run(columns_of, self.spec.component_timeout)
+        except ComponentTimedOut as late:       # every rollout not failed yet fails with it
+            columns = {}
+            for b in range(len(q)):
+                failures.setdefault(b, str(late))
         results = []
         for b in range(len(q)):
             if b in failures:
@@ -355,13 +377,15 @@ class Reward:
         return results
 
     @staticmethod
-    def _column(name: str, function, rollouts: RolloutData,
+    def _column(call, name: str, function, rollouts: RolloutData,
                 failures: dict[int, str]) -> np.ndarray:
-        """One component's costs (B,); a rollout it fails on (it raised on that rollout
-        alone, or its cost is not finite) is entered in `failures` with the reason (its cost
-        NaN) and the others are scored."""
+        """One component's costs (B,), called through `call` (`BoundedCalls.run`); a rollout
+        it fails on (it raised or returned what is not a real cost on that rollout alone, or
+        its cost is not finite) is entered in `failures` with the reason (its cost NaN) and
+        the others are scored (while its call that passed the bound still runs, each rollout
+        alone fails at once with the reason)."""
         try:
-            values = reward_components.evaluate(name, function, rollouts)
+            values = reward_components.evaluate(name, function, rollouts, call)
         except ComponentFailed as population_failure:
             if len(rollouts) == 1:
                 values = np.array([np.nan])
@@ -370,7 +394,7 @@ class Reward:
                 values = np.empty(len(rollouts))
                 for b in range(len(rollouts)):
                     one = _one(rollouts, b)
-                    values[b] = Reward._column(name, function, one, sub := {})[0]
+                    values[b] = Reward._column(call, name, function, one, sub := {})[0]
                     if sub:
                         failures.setdefault(b, sub[0])
                 return values

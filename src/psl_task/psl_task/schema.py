@@ -196,6 +196,10 @@ class RewardSpec:
     """Bodies the arm does not drive (a ball, a puck) whose poses the components read: MuJoCo's
     in simulation, world/<body>/pose (geometry_msgs/PoseStamped, remap it to a motion capture)
     on a robot."""
+    component_timeout: Positive = 5.0
+    """[s] each component's call on a population must return within this: a call that does
+    not fails the population's rollouts with the reason, and until it returns, the
+    component's further calls fail at once (psl_task.reward_components.BoundedCalls)."""
 
 
 @with_config(SECTION)
