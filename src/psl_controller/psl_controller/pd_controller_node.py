@@ -33,6 +33,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from psl_controller.follow_joint_trajectory import FollowJointTrajectoryServer
+from psl_controller.goal_limits import limits_of
 from psl_controller.parameters import ControllerParameters
 from psl_controller.pd_law import PDLaw, law_for
 from psl_controller.trajectory_controller import TrajectoryController
@@ -73,9 +74,10 @@ class PDController(Node):
         self._lost = False
         self._last_torque = np.zeros(self.n_joints)
         self.matches = MatchReport(self)        # what the loop's endpoints matched
-        self.server = FollowJointTrajectoryServer(self, self.controller,
-                                                  ReentrantCallbackGroup(),
-                                                  matches=self.matches)
+        p = self.parameters
+        self.server = FollowJointTrajectoryServer(
+            self, self.controller, ReentrantCallbackGroup(),
+            limits_of(task, p.max_points, p.max_duration, p.max_velocity), matches=self.matches)
         self.pub_command = self.matches.create_publisher(Float64MultiArray, names.EFFORT_COMMAND,
                                                          RELIABLE)
         self._command = Float64MultiArray()     # refilled every step (publish copies it)

@@ -80,7 +80,7 @@ class StandardRobotNode(Node):
         self._joint_state = JointState()
         self.matches = MatchReport(self)    # what its endpoints matched
         self.server = FollowJointTrajectoryServer(self, self.robot.controller,
-                                                  ReentrantCallbackGroup(),
+                                                  ReentrantCallbackGroup(), self.robot.limits,
                                                   matches=self.matches)
         self.pub_joints = self.matches.create_publisher(JointState, names.JOINT_STATES,
                                                         RELIABLE)
