@@ -12,8 +12,9 @@ on the wall clock). The client here knows only control_msgs.
 * an arm found outside its range is brought back by a goal whose points are inside, never
   sent further out; a goal with a point outside is rejected;
 * a generated family of goals (seeded: positions, velocities, accelerations, efforts, point
-  counts, times and stamps around the bounds): the arm never leaves its range by more than
-  ``EXCESS_BOUND``, and a normal goal afterwards succeeds;
+  counts, times and stamps around the bounds): the reference the server serves never leaves the
+  range, the arm passes it only by the give of its stop under an impact (``EXCESS_BOUND``; the
+  most is printed), and a normal goal afterwards succeeds and leaves it at rest inside;
 * 200 goals in 2 s right after a homing goal on the standard robot: every one answered, and
   every result.
 
@@ -58,13 +59,14 @@ NS, MS = 1_000_000_000, 1_000_000
 MAX_POINTS, MAX_DURATION = 200, 4.0     # the servers' size bounds here (their parameters)
 SIZE = {'max_points': MAX_POINTS, 'max_duration': MAX_DURATION}
 TIMEOUT = 30.0                          # s for any answer
-# how far the measured arm may pass its range. The reference the controllers serve stays
-# inside (held exactly), and with nothing to push it out (before: a reference at 10 rad held
-# the arm 0.14-0.54 rad into its stop) the arm rests inside. A goal inside the limits may still
-# drive the arm at its stop: a step of 4-5 rad to a limit at t = 0 under 40 N m reaches the
-# stop at speed, and MuJoCo's stop is a soft constraint (the family here on the standard robot
-# on a loaded machine, seeds 1-5 and 46: 0 to 0.116 rad in; the lockstep arm: 0)
-EXCESS_BOUND = 0.25                     # rad: an impact on the stop, not a push past it
+# how far the measured arm may pass its range while goals run. The reference the controllers
+# serve stays inside (held exactly); nothing pushes the arm through its stop any more (before: a
+# reference at 10 rad held it 0.14-0.54 rad in). A goal inside the limits may still drive the
+# arm into its stop at speed, which MuJoCo makes a soft constraint: a step of the reference
+# across a joint's range takes this arm up to 0.095 rad in (simulated here, the task's gains);
+# the family here on the standard robot on a loaded machine, where a step may come while the arm
+# still moves from the one before: 0 to 0.19 rad (seeds 1-5, 46). At rest it is inside.
+EXCESS_BOUND = 0.5                      # rad: impacts on the stop, not a push through it
 REST_BOUND = 0.01                       # rad: the arm at rest after the issue's goals
 FLOOD, FLOOD_SECONDS = 200, 2.0
 QOS = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
@@ -223,6 +225,9 @@ class LockstepArm(Client):
     def run(self, seconds: float) -> None:
         self.step(int(round(seconds * NS / PERIOD_NS)))
 
+    def position(self) -> np.ndarray:
+        return self.arm.q.copy()
+
     def newest_stamp(self) -> int:
         return self.newest
 
@@ -234,6 +239,7 @@ class WallClockArm(Client):
         super().__init__(client, graph, f'/{namespace}/standard_robot/follow_joint_trajectory',
                          'standard_robot')
         self.stamps: list[int] = []
+        self.q = START.copy()           # the newest measured position
         self.excess = 0.0               # the most the arm passed its range
         self.reference_excess = 0.0     # the most the served reference passed it
         self.node.create_subscription(JointState, f'/{namespace}/joint_states', self._on_state,
@@ -247,6 +253,11 @@ class WallClockArm(Client):
         with self.lock:
             self.stamps.append(to_ns(msg.header.stamp))
             self.excess = max(self.excess, excess(q))
+            self.q = q
+
+    def position(self) -> np.ndarray:
+        with self.lock:
+            return self.q.copy()
 
     def _on_reference(self, msg: JointTrajectoryControllerState) -> None:
         with self.lock:
@@ -483,8 +494,9 @@ def test_a_generated_family_of_goals_never_moves_the_arm_past_its_limits(arm):
     and 1e308 rad drove it 0.14-0.54 rad past), or a server that stops serving.
 
     24 goals (seeded) one after another, each run a while (a later one preempts it): the
-    reference the server served (its controller_state) never left the range, the most the
-    measured arm passed it is at most EXCESS_BOUND; a normal goal afterwards succeeds."""
+    reference the server served (its controller_state) never left the range; the most the
+    measured arm passed it (reported) is an impact on its stop, at most EXCESS_BOUND; a normal
+    goal afterwards succeeds and leaves the arm at rest inside."""
     rng = np.random.default_rng(46)
     taken = 0
     for _ in range(FAMILY_GOALS):
@@ -498,6 +510,7 @@ def test_a_generated_family_of_goals_never_moves_the_arm_past_its_limits(arm):
           f'served {arm.reference_excess:.3g} rad ({taken} of {FAMILY_GOALS} goals taken)')
     assert arm.reference_excess == 0.0, \
         f'the reference served left the range by {arm.reference_excess:.4g} rad'
+    assert excess(arm.position()) == 0.0, f'the arm rests outside: {arm.position()}'
     assert arm.excess <= EXCESS_BOUND, f'the arm passed its range by {arm.excess:.4g} rad'
 
 

@@ -31,6 +31,13 @@ action protocol gives a rejected goal no result to carry it. Accepting and then 
 accepted goal preempts the running one in JTC's semantics (a client that reads "accepted" as
 "it runs" would be wrong), and every such goal would hold a thread and its result for
 ``RESULT_KEPT`` s; a client written for a robot's own JTC expects rejection.
+
+Memory: rclpy hands a goal over as a Python object per point (about 0.65 kB a point of three
+joints: 64 MB for 100,000 points), before any check can refuse it. Its points are released
+once read (`release`: when the controller has taken the goal, or it is rejected; the goal
+handle keeps the rest of its request for ``RESULT_KEPT`` s), and after a goal of
+``TRIM_POINTS`` points or more the memory freed is handed back to the system (glibc's
+``malloc_trim``), so the node's memory follows the goals it holds, not the largest it read.
 """
 from __future__ import annotations
 
@@ -149,7 +156,7 @@ def goal_from_msg(msg: FollowJointTrajectory.Goal, joint_names: list[str], key,
 
 
 def release(msg: FollowJointTrajectory.Goal) -> None:
-    """Let go of a goal's points once read (module docstring: memory); after a long goal,
+    """Let go of a goal's points once read (module docstring, "Memory"); after a long goal,
     hand the memory they took back to the system."""
     n = len(msg.trajectory.points)
     msg.trajectory.points = []

@@ -4,7 +4,8 @@ A `psl_controller.trajectory_controller.TrajectoryController` (JTC's semantics, 
 law ``u = Kp (q_ref - q) + Kd (qd_ref - qd) + u_ffwd``, clipped to the torque limits) served as
 ``control_msgs/action/FollowJointTrajectory`` on ``pd_controller/follow_joint_trajectory``
 (`psl_controller.follow_joint_trajectory`: the effort interface; ``joints`` and
-``command_interfaces`` parameters; ``~/controller_state``). It answers every ``joint_states``
+``command_interfaces`` parameters; ``~/controller_state``; goals past the arm's limits or its
+size bounds rejected: `psl_controller.goal_limits`). It answers every ``joint_states``
 message with one ``effort_command`` (std_msgs/Float64MultiArray in ``command_joints`` order: an
 effort forward_command_controller's joints; by default the task's order). The state is read by
 joint name (`psl_task.joint_selection`: any order, extra joints ignored; a state that lacks a

@@ -7,7 +7,8 @@ tick; joints in ``joint_order`` then ``extra_joints``; effort = the torque appli
 period before) and serves
 ``standard_robot/follow_joint_trajectory`` (control_msgs/FollowJointTrajectory, the effort
 interface: `psl_controller.follow_joint_trajectory`, with JTC's ``joints`` and
-``command_interfaces`` parameters and ``~/controller_state``). The trajectory controller runs
+``command_interfaces`` parameters and ``~/controller_state``; goals past the arm's limits or its
+size bounds rejected: `psl_controller.goal_limits`). The trajectory controller runs
 inside the robot's loop, stepped with the physics on the measured state
 (`psl_sim.standard_robot.StandardRobot`), as a robot's own JTC runs in ros2_control's real-time
 loop: no DDS inside the control loop. Reads the latched ``task_instance``
