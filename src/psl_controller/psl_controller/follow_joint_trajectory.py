@@ -8,7 +8,10 @@ What a node that runs a `TrajectoryController` adds with `FollowJointTrajectoryS
   (`goal_from_msg`: the controller's joints, points with strictly increasing times, all points
   with the same fields, finite values, the last point at rest, no effort unless the command
   interface is ``effort``, a stamped trajectory that ends in the past, tolerances by joint name)
-  and rejected, or accepted and handed to the controller (which preempts the active goal); its
+  and against the arm's limits, whoever sends it (`psl_controller.goal_limits`: its size, its
+  points and the interpolation between them inside the joint ranges, the velocity bound and
+  the torque limits), and rejected, or accepted and handed to the controller (which preempts
+  the active goal); its
   execution answers with the controller's result (``error_code``, ``error_string``), sends
   feedback (desired, actual, error; ``desired.time_from_start`` = the sample time from the
   trajectory's start) at ``action_monitor_rate``, and a cancel request holds the position;
@@ -19,9 +22,28 @@ What a node that runs a `TrajectoryController` adds with `FollowJointTrajectoryS
   someone subscribes.
 
 The node calls `deliver` with the results `TrajectoryController.update` returns.
+
+A refused goal is **rejected**, as JTC rejects a goal it cannot run: nothing changes (the
+running goal goes on, nothing is kept for it), and the reason is one error line in the node's
+log, which rclpy also publishes on ``/rosout`` (rcl_interfaces/Log, ``name`` the node's): the
+action protocol gives a rejected goal no result to carry it. Accepting and then aborting with
+``INVALID_GOAL`` and the reason in ``error_string`` would hand the words to the client, but an
+accepted goal preempts the running one in JTC's semantics (a client that reads "accepted" as
+"it runs" would be wrong), and every such goal would hold a thread and its result for
+``RESULT_KEPT`` s; a client written for a robot's own JTC expects rejection.
+
+Memory: rclpy hands a goal over as a Python object per point (about 0.65 kB a point of three
+joints: 64 MB for 100,000 points), before any check can refuse it. Its points are released
+once read (`release`: when the controller has taken the goal, or it is rejected; the goal
+handle keeps the rest of its request for ``RESULT_KEPT`` s), and after a goal of
+``TRIM_POINTS`` points or more the memory freed is handed back to the system (glibc's
+``malloc_trim``), so the node's memory follows the goals it holds, not the largest it read.
 """
 from __future__ import annotations
 
+import array
+import ctypes
+import ctypes.util
 import threading
 import time
 
@@ -33,6 +55,7 @@ from rclpy.action import CancelResponse, GoalResponse
 from rclpy.node import Node
 from trajectory_msgs.msg import JointTrajectoryPoint
 
+from psl_controller.goal_limits import GoalLimits
 from psl_controller.trajectory_controller import (Goal, GoalRefused, Result, Snapshot,
                                                   Tolerances, TrajectoryController)
 from psl_controller.trajectory_sampling import SampledTrajectory
@@ -50,13 +73,20 @@ REPORTED = ('joints', 'command_interfaces')     # JTC's parameters a client read
 # (the 10-DOF arm on the standard robot). A client asks for the result as the goal is accepted.
 RESULT_KEPT = 10.0
 FLOAT_EPS = float(np.finfo(np.float32).eps)     # JTC's "zero" for the last point's velocity
+TRIM_POINTS = 10_000    # a goal this long hands the memory its message took back (malloc_trim)
+try:                    # glibc's: freed memory the allocator keeps is returned to the system
+    _malloc_trim = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6').malloc_trim
+except (OSError, AttributeError):
+    _malloc_trim = None
 
 
 def goal_from_msg(msg: FollowJointTrajectory.Goal, joint_names: list[str], key,
-                  defaults: Tolerances, effort_interface: bool = True,
+                  defaults: Tolerances, limits: GoalLimits, effort_interface: bool = True,
                   newest_ns: int | None = None) -> Goal:
-    """A controller `Goal` from an action goal (points reordered to `joint_names`); GoalRefused
-    with the reason JTC would log for a goal it rejects."""
+    """A controller `Goal` from an action goal (points reordered to `joint_names`), its
+    trajectory clamped into `limits` where it is sampled between points; GoalRefused with the
+    reason JTC would log for a goal it rejects, or the limit it breaks
+    (`psl_controller.goal_limits`)."""
     trajectory = msg.trajectory
     names = list(trajectory.joint_names)
     if msg.multi_dof_trajectory.joint_names or msg.multi_dof_trajectory.points:
@@ -68,6 +98,7 @@ def goal_from_msg(msg: FollowJointTrajectory.Goal, joint_names: list[str], key,
     points = trajectory.points
     if not points:
         raise GoalRefused('empty trajectory received')
+    limits.check_size(len(points))
     times = np.array([to_ns(p.time_from_start) for p in points], dtype=np.int64)
     if times[0] < 0 or np.any(np.diff(times) <= 0):
         raise GoalRefused('the times of the points must be >= 0 and strictly increasing')
@@ -80,10 +111,14 @@ def goal_from_msg(msg: FollowJointTrajectory.Goal, joint_names: list[str], key,
             return None
         if any(len(r) != n for r in rows):
             raise GoalRefused(f'every point needs {n} {field} (or none of them any)')
-        array = np.asarray(rows, dtype=float)[:, order]
-        if not np.all(np.isfinite(array)):
+        if all(type(r) is array.array and r.typecode == 'd' for r in rows):    # rclpy's
+            values = np.frombuffer(b''.join(rows), dtype=float).reshape(len(rows), n)
+        else:
+            values = np.asarray(rows, dtype=float)
+        table = values[:, order]
+        if not np.all(np.isfinite(table)):
             raise GoalRefused(f'the trajectory\'s {field} hold NaN or inf')
-        return array
+        return table
 
     positions, velocities = column('positions'), column('velocities')
     accelerations, effort = column('accelerations'), column('effort')
@@ -102,6 +137,7 @@ def goal_from_msg(msg: FollowJointTrajectory.Goal, joint_names: list[str], key,
     if start and newest_ns is not None and start + int(times[-1]) < newest_ns:
         raise GoalRefused(f'the trajectory stamped {start * 1e-9:.3f} s ends in the past '
                           f'(the newest state is at {newest_ns * 1e-9:.3f} s)')
+    limits.check_timing(start, int(times[-1]), newest_ns)
 
     def by_name(tolerances) -> dict[str, tuple[float, float]]:
         return {t.name: (t.position, t.velocity) for t in tolerances}
@@ -115,7 +151,17 @@ def goal_from_msg(msg: FollowJointTrajectory.Goal, joint_names: list[str], key,
         sampled = SampledTrajectory(times, positions, velocities, effort, accelerations)
     except ValueError as exc:
         raise GoalRefused(str(exc)) from None
-    return Goal(key, sampled, start, tolerances)
+    limits.check(sampled, times, positions, velocities, effort)
+    return Goal(key, limits.bound(sampled), start, tolerances)
+
+
+def release(msg: FollowJointTrajectory.Goal) -> None:
+    """Let go of a goal's points once read (module docstring, "Memory"); after a long goal,
+    hand the memory they took back to the system."""
+    n = len(msg.trajectory.points)
+    msg.trajectory.points = []
+    if n >= TRIM_POINTS and _malloc_trim is not None:
+        _malloc_trim(0)
 
 
 def point_msg(values, time_from_start_ns: int | None = None) -> JointTrajectoryPoint:
@@ -137,6 +183,7 @@ class FollowJointTrajectoryServer:
             parameters and the state topic.
         controller: the controller the node's loop updates.
         callback_group: a reentrant group (goals execute while others arrive).
+        limits: what a goal may ask of the arm (`psl_controller.goal_limits`).
         effort_interface: whether goals may carry effort (the command interface).
         monitor_rate: [Hz] of the feedback (JTC's action_monitor_rate).
         matches: the node's `psl_ros.matching.MatchReport`, which then reports the state
@@ -144,9 +191,12 @@ class FollowJointTrajectoryServer:
     """
 
     def __init__(self, node: Node, controller: TrajectoryController, callback_group,
-                 effort_interface: bool = True, monitor_rate: float = MONITOR_RATE,
-                 matches=None):
-        self.node, self.controller = node, controller
+                 limits: GoalLimits, effort_interface: bool = True,
+                 monitor_rate: float = MONITOR_RATE, matches=None):
+        if list(limits.joint_names) != list(controller.joint_names):
+            raise ValueError(f'the limits are of joints {list(limits.joint_names)}, the '
+                             f'controller drives {controller.joint_names}')
+        self.node, self.controller, self.limits = node, controller, limits
         self.effort_interface = effort_interface
         self.monitor_period = 1.0 / monitor_rate
         self._results: dict = {}            # goal key -> Result, until its execution ends
@@ -184,13 +234,15 @@ class FollowJointTrajectoryServer:
         key = bytes(0)
         last = self.controller.last
         return goal_from_msg(msg, self.controller.joint_names, key, self.controller.defaults,
-                             self.effort_interface, None if last is None else last.t_ns)
+                             self.limits, self.effort_interface,
+                             None if last is None else last.t_ns)
 
     def _on_goal(self, msg) -> GoalResponse:
         try:
             goal = self._parse(msg)
         except GoalRefused as exc:
             self.node.get_logger().error(f'goal rejected: {exc}')
+            release(msg)
             return GoalResponse.REJECT
         if len(self._parsed) > 16:      # goals accepted here but dropped by the server
             self._parsed.clear()
@@ -207,6 +259,7 @@ class FollowJointTrajectoryServer:
         key = bytes(goal_handle.goal_id.uuid)
         goal = Goal(key, goal.trajectory, goal.start_ns, goal.tolerances)
         self.deliver(self.controller.submit(goal))
+        release(msg)
 
     def _on_cancel(self, goal_handle) -> CancelResponse:
         self.deliver(self.controller.cancel(bytes(goal_handle.goal_id.uuid)))

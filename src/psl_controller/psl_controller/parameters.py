@@ -17,6 +17,42 @@ STATE_TIMEOUT = 0.3     # [s] the watchdog's default (0.105 s gaps seen in a Pyt
 # (its sim/reset starts each episode: lockstep or realtime), or the robot's own wall clock
 CLOCKS = ('simulator', 'robot')
 COMMAND_INTERFACES = ('effort', 'position')     # a JointTrajectoryController's (psl's: effort)
+# What a goal may ask of a controller psl serves (`psl_controller.goal_limits`): the defaults of
+# pd_controller's and the standard robot's parameters. psl's own goals are a point per control
+# period; the longest, homing from one end of a joint's range at homing.max_velocity, is 4,947
+# points for an embedded task (reach_over_obstacle: 9.6 s + 0.3 s settling at 500 Hz) and 6,042
+# for the examples (xarm7_point_reach), an episode at most 1,251 (payload_transport_timed).
+# 20,000 points are 40 s at 500 Hz. A goal's message takes about 0.65 kB of Python objects per
+# point of 3 joints while it is read; it is released once read.
+GOAL_MAX_POINTS = 20_000
+GOAL_MAX_DURATION = 600.0       # [s] as the simulator's longest episode (max_episode_duration)
+# [rad/s (m/s)] for a model and task that give none (an MJCF has no velocity limit; MuJoCo drops
+# a URDF's): arms' joints are far slower (2-4 rad/s for industrial arms, 10-20 for small fast
+# ones); psl's demonstrations on the embedded tasks reach 4 rad/s
+GOAL_MAX_VELOCITY = 100.0
+
+
+GOAL_DOCS = {
+    'max_points': 'the most points a FollowJointTrajectory goal may have (more: rejected)',
+    'max_duration': ('[s] the longest a goal may last from its start to its last point, and '
+                     'the latest it may start after the newest state (later: rejected)'),
+    'max_velocity': ('[rad/s] the velocity bound of every joint where neither the model (a '
+                     "URDF's <limit velocity>) nor the task (safety.max_velocity) gives a "
+                     'lower one: a goal whose points or interpolation exceed it is rejected')}
+
+
+def check_goal_bounds(parameters) -> None:
+    """ValueError unless `parameters`' max_points, max_duration and max_velocity are a
+    whole number >= 2 and two numbers > 0 (the duration finite)."""
+    points, duration, velocity = (parameters.max_points, parameters.max_duration,
+                                  parameters.max_velocity)
+    if isinstance(points, bool) or not isinstance(points, int) or points < 2:
+        raise ValueError(f'max_points must be a whole number >= 2, got {points!r}')
+    if not (duration > 0.0 and math.isfinite(duration)):
+        raise ValueError(f'max_duration must be a finite number of seconds > 0, got '
+                         f'{duration!r}')
+    if not velocity > 0.0:
+        raise ValueError(f'max_velocity must be > 0, got {velocity!r}')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,6 +81,11 @@ class ControllerParameters:
         "off (psl's simulator, which pauses between episodes)")})
     on_state_loss: str = field(default='zero', metadata={'dynamic': True, 'doc': (
         'what the watchdog commands: zero (zero torque) | hold (the last torque sent)')})
+    max_points: int = field(default=GOAL_MAX_POINTS, metadata={'doc': GOAL_DOCS['max_points']})
+    max_duration: float = field(default=GOAL_MAX_DURATION, metadata={
+        'doc': GOAL_DOCS['max_duration']})
+    max_velocity: float = field(default=GOAL_MAX_VELOCITY, metadata={
+        'doc': GOAL_DOCS['max_velocity']})
 
     def __post_init__(self):
         if not (self.state_timeout >= 0.0 and math.isfinite(self.state_timeout)):
@@ -53,6 +94,7 @@ class ControllerParameters:
         if self.on_state_loss not in STATE_LOSS:
             raise ValueError(f'on_state_loss must be one of {", ".join(STATE_LOSS)}, got '
                              f'{self.on_state_loss!r}')
+        check_goal_bounds(self)
 
 
 @dataclasses.dataclass(frozen=True)

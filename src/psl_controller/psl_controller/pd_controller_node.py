@@ -4,7 +4,8 @@ A `psl_controller.trajectory_controller.TrajectoryController` (JTC's semantics, 
 law ``u = Kp (q_ref - q) + Kd (qd_ref - qd) + u_ffwd``, clipped to the torque limits) served as
 ``control_msgs/action/FollowJointTrajectory`` on ``pd_controller/follow_joint_trajectory``
 (`psl_controller.follow_joint_trajectory`: the effort interface; ``joints`` and
-``command_interfaces`` parameters; ``~/controller_state``). It answers every ``joint_states``
+``command_interfaces`` parameters; ``~/controller_state``; goals past the arm's limits or its
+size bounds rejected: `psl_controller.goal_limits`). It answers every ``joint_states``
 message with one ``effort_command`` (std_msgs/Float64MultiArray in ``command_joints`` order: an
 effort forward_command_controller's joints; by default the task's order). The state is read by
 joint name (`psl_task.joint_selection`: any order, extra joints ignored; a state that lacks a
@@ -33,6 +34,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from psl_controller.follow_joint_trajectory import FollowJointTrajectoryServer
+from psl_controller.goal_limits import limits_of
 from psl_controller.parameters import ControllerParameters
 from psl_controller.pd_law import PDLaw, law_for
 from psl_controller.trajectory_controller import TrajectoryController
@@ -73,9 +75,10 @@ class PDController(Node):
         self._lost = False
         self._last_torque = np.zeros(self.n_joints)
         self.matches = MatchReport(self)        # what the loop's endpoints matched
-        self.server = FollowJointTrajectoryServer(self, self.controller,
-                                                  ReentrantCallbackGroup(),
-                                                  matches=self.matches)
+        p = self.parameters
+        self.server = FollowJointTrajectoryServer(
+            self, self.controller, ReentrantCallbackGroup(),
+            limits_of(task, p.max_points, p.max_duration, p.max_velocity), matches=self.matches)
         self.pub_command = self.matches.create_publisher(Float64MultiArray, names.EFFORT_COMMAND,
                                                          RELIABLE)
         self._command = Float64MultiArray()     # refilled every step (publish copies it)

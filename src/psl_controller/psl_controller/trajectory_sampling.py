@@ -29,11 +29,25 @@ Edge cases, for a query time ``t`` and point times ``t_0 < t_1 < ... < t_{N-1}``
   accepts ends at rest).
 * single-point trajectory: the rules above with ``t_0 = t_{N-1}``.
 
+Limits (`SampledTrajectory.within`: a goal's trajectory on a controller with joint limits,
+`psl_controller.goal_limits`): the reference sampled between points (a segment's polynomial,
+and the segment from the state before the trajectory) is clamped into the position range and
+the velocity bound: a position outside the range is put on its bound, with zero velocity and
+acceleration; a velocity beyond its bound is put on it. The segment from the state before the
+trajectory keeps a range widened to that state's position (an arm found outside its range is
+brought back, never sent further out). A point is never changed: the controller refuses a
+trajectory whose points or segments leave the limits (`control_points` and `maxima` give each
+segment's extremes exactly, to rounding), so what the clamp catches is the interpolation's
+overshoot within the refusal's slack, and the segment from a state the controller meets only
+when the trajectory starts.
+
 Differences from JTC, deliberately: times are integer nanoseconds, not floating seconds; a
-point's fields are all-or-none for the whole trajectory (JTC allows them per point).
+point's fields are all-or-none for the whole trajectory (JTC allows them per point); the
+limits above (JTC's trajectory knows none).
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import numpy as np
@@ -113,6 +127,28 @@ class SampledTrajectory:
         self._efforts = zeros if efforts is None else efforts               # (N, n)
         self.has_effort = efforts is not None
         self._before: tuple[int, np.ndarray, np.ndarray] | None = None     # (t_b, q, qd)
+        self._bounds: _Bounds | None = None         # between points (`within`)
+        self._start_bounds: _Bounds | None = None   # from the point before the trajectory
+
+    def within(self, low: np.ndarray, high: np.ndarray,
+               speed: np.ndarray) -> 'SampledTrajectory':
+        """This trajectory with its samples between points clamped into the position range
+        [low, high] and the velocity bound |qd| <= speed, each (n,) (module docstring)."""
+        bounds = _Bounds(*(np.array(np.broadcast_to(np.asarray(v, dtype=float),
+                                                    (self.n_joints,))) for v in (low, high,
+                                                                                   speed)))
+        if np.any(bounds.low > bounds.high) or np.any(bounds.speed < 0.0):
+            raise ValueError('the limits need low <= high and a speed >= 0')
+        copy = self._copy()
+        copy._bounds = bounds
+        if self._before is not None:
+            copy._start_bounds = bounds.widened(self._before[1])
+        return copy
+
+    def _copy(self) -> 'SampledTrajectory':
+        copy = object.__new__(SampledTrajectory)
+        copy.__dict__.update(self.__dict__)
+        return copy
 
     def starting_from(self, t_ns: int, positions: np.ndarray,
                       velocities: np.ndarray) -> 'SampledTrajectory':
@@ -121,14 +157,15 @@ class SampledTrajectory:
         `velocities`; between then and the first point the reference is the segment between
         the two (module docstring). No effect when `t_ns` is at or past the first point."""
         t_ns = _as_int_ns(t_ns)
-        copy = object.__new__(SampledTrajectory)
-        copy.__dict__.update(self.__dict__)
-        copy._before = None
+        copy = self._copy()
+        copy._before, copy._start_bounds = None, None
         if t_ns < self._times_ns[0]:
             q, qd = (np.asarray(v, dtype=float).reshape(self.n_joints)
                      for v in (positions, velocities))
             copy._before = (t_ns, q.copy(), qd.copy() if self.interpolation != LINEAR
                             else np.zeros(self.n_joints))
+            if self._bounds is not None:
+                copy._start_bounds = self._bounds.widened(q)
         return copy
 
     @property
@@ -168,8 +205,9 @@ class SampledTrajectory:
                                         self._efforts[0].copy())
             t_b, q_b, qd_b = before
             zeros = np.zeros(self.n_joints)
-            return _segment(self.interpolation, t_ns - t_b, int(times[0]) - t_b,
-                            (q_b, qd_b, zeros, zeros), self._values(0))
+            return _clamped(_segment(self.interpolation, t_ns - t_b, int(times[0]) - t_b,
+                                     (q_b, qd_b, zeros, zeros), self._values(0)),
+                            self._start_bounds)
         if t_ns >= times[-1]:
             return self._point(-1)
         # times[i - 1] < t_ns <= times[i]
@@ -177,8 +215,31 @@ class SampledTrajectory:
         if times[i] == t_ns:
             return self._point(i)
         t_prev = int(times[i - 1])
-        return _segment(self.interpolation, t_ns - t_prev, int(times[i]) - t_prev,
-                        self._values(i - 1), self._values(i))
+        return _clamped(_segment(self.interpolation, t_ns - t_prev, int(times[i]) - t_prev,
+                                 self._values(i - 1), self._values(i)), self._bounds)
+
+    def control_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """The Bernstein control points of each segment's position and velocity polynomial
+        over its own time s in [0, 1]: positions (d + 1, N - 1, n) [rad] and velocities
+        (d, N - 1, n) [rad/s] for the interpolation's degree d (1, 3, 5). A polynomial lies
+        within the convex hull of its control points, and its first and last are its values
+        at the segment's ends (Farin, *Curves and Surfaces for CAGD*, 5th ed., 2002, ch. 4-5);
+        `maxima` finds each joint's extremes from them. The Hermite conditions give them: a
+        cubic's are q0, q0 + v0 T/3, q1 - v1 T/3, q1; a quintic's q0, q0 + v0 T/5,
+        q0 + 2 v0 T/5 + a0 T^2/20, q1 - 2 v1 T/5 + a1 T^2/20, q1 - v1 T/5, q1 (T the segment's
+        length); the velocity's are d (b_{i+1} - b_i) / T."""
+        q, v, a = self._positions, self._velocities, self._accelerations
+        big_t = (np.diff(self._times_ns) * 1e-9)[:, None]                  # (N-1, 1) s
+        q0, q1, v0, v1, a0, a1 = q[:-1], q[1:], v[:-1], v[1:], a[:-1], a[1:]
+        if self.interpolation == LINEAR:
+            b = np.stack([q0, q1])
+        elif self.interpolation == CUBIC:
+            b = np.stack([q0, q0 + v0 * big_t / 3.0, q1 - v1 * big_t / 3.0, q1])
+        else:
+            t2 = big_t ** 2 / 20.0
+            b = np.stack([q0, q0 + v0 * big_t / 5.0, q0 + 0.4 * v0 * big_t + a0 * t2,
+                          q1 - 0.4 * v1 * big_t + a1 * t2, q1 - v1 * big_t / 5.0, q1])
+        return b, (len(b) - 1) * np.diff(b, axis=0) / big_t
 
     def _values(self, i: int) -> tuple[np.ndarray, ...]:
         return (self._positions[i], self._velocities[i], self._accelerations[i],
@@ -192,7 +253,108 @@ class SampledTrajectory:
         if self.interpolation == LINEAR and i % self.n_points != self.n_points - 1:
             qd = (self._positions[i + 1] - q) / ((self._times_ns[i + 1] - self._times_ns[i])
                                                  * 1e-9)
+            return _clamped(TrajectorySample(q, qd, qdd, effort), self._bounds)
         return TrajectorySample(q, qd, qdd, effort)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Bounds:
+    """A position range and a velocity bound, each (n,)."""
+
+    low: np.ndarray
+    high: np.ndarray
+    speed: np.ndarray
+
+    def widened(self, q: np.ndarray) -> '_Bounds':
+        """The range widened to the position q (the state before a trajectory)."""
+        return _Bounds(np.minimum(self.low, q), np.maximum(self.high, q), self.speed)
+
+
+def _clamped(sample: TrajectorySample, bounds: _Bounds | None) -> TrajectorySample:
+    """`sample` within `bounds` (module docstring): a position outside the range on its
+    bound at rest, a velocity beyond its bound on it; unchanged (the same arrays) inside."""
+    if bounds is None:
+        return sample
+    q, qd, qdd, effort = sample
+    outside = (q < bounds.low) | (q > bounds.high)
+    if outside.any():
+        q = np.clip(q, bounds.low, bounds.high)
+        qd, qdd = np.where(outside, 0.0, qd), np.where(outside, 0.0, qdd)
+    if np.any(np.abs(qd) > bounds.speed):
+        qd = np.clip(qd, -bounds.speed, bounds.speed)
+    return TrajectorySample(q, qd, qdd, effort)
+
+
+MAX_SUBDIVISIONS = 48       # halvings of a segment in `maxima` (a width of 2^-48 of it)
+MAX_CANDIDATES = 1 << 16    # subintervals `maxima` keeps at once (then it stops: a bound)
+
+
+def maxima(points: np.ndarray, above: np.ndarray | None = None
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each joint's largest value over m polynomials on [0, 1], given by their Bernstein
+    control points (k, m, n) (`SampledTrajectory.control_points`): (value (n,), the polynomial
+    it is reached on (n,), s there (n,)); -inf, 0, 0 for m = 0. With `above` (n,), only
+    whether a joint's maximum exceeds it is sought: a joint's value is then a value reached
+    beyond `above` (not necessarily the largest), or, where none is, the largest reached at
+    the polynomials' ends and halvings that were looked at (at most `above` + its rounding).
+
+    Branch and bound on the convex hull property: the value at an interval's ends is reached,
+    the largest control point bounds the interval from above; an interval whose bound does
+    not exceed the best value reached (by more than 1e-12 of its size) or `above` is dropped,
+    the others are halved (de Casteljau) until none is left. Without `above` the value is the
+    maximum to 1e-12 (relative); intervals left after MAX_SUBDIVISIONS halvings or beyond
+    MAX_CANDIDATES (pathological input) add their bound.
+    """
+    k, m, n = points.shape
+    best, where, at = np.full(n, -np.inf), np.zeros(n, dtype=np.int64), np.zeros(n)
+    if m == 0:
+        return best, where, at
+    floor = np.full(n, -np.inf) if above is None else np.asarray(above, dtype=float)
+    ends = np.concatenate([points[0], points[-1]])                      # (2m, n)
+    row = ends.argmax(axis=0)
+    best, where, at = ends[row, np.arange(n)], row % m, (row // m).astype(float)
+
+    def threshold() -> np.ndarray:
+        """Below it an interval cannot matter; inf for a joint found beyond `above`."""
+        tight = np.maximum(best + 1e-12 * np.maximum(1.0, np.abs(best)), floor)
+        return tight if above is None else np.where(best > floor, np.inf, tight)
+    segment, joint = np.nonzero(points.max(axis=0) > threshold())
+    b = points[:, segment, joint]                                       # (k, r)
+    start, width = np.zeros(segment.size), 1.0
+    for _ in range(MAX_SUBDIVISIONS):
+        if segment.size == 0 or segment.size > MAX_CANDIDATES:
+            break
+        left, right = _halves(b)
+        width /= 2.0
+        middle = left[-1]                                               # reached: (r,)
+        for j in np.unique(joint):
+            mine = np.flatnonzero(joint == j)
+            i = mine[int(np.argmax(middle[mine]))]
+            if middle[i] > best[j]:
+                best[j], where[j], at[j] = middle[i], segment[i], start[i] + width
+        b = np.concatenate([left, right], axis=1)
+        segment, joint = np.tile(segment, 2), np.tile(joint, 2)
+        start = np.concatenate([start, start + width])
+        keep = b.max(axis=0) > threshold()[joint]
+        b, segment, joint, start = b[:, keep], segment[keep], joint[keep], start[keep]
+    if segment.size:                     # not resolved: their bound (never below the truth)
+        bound = b.max(axis=0)
+        for j in np.unique(joint):
+            mine = np.flatnonzero(joint == j)
+            i = mine[int(np.argmax(bound[mine]))]
+            if bound[i] > best[j]:
+                best[j], where[j], at[j] = bound[i], segment[i], start[i] + width / 2.0
+    return best, where, at
+
+
+def _halves(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """de Casteljau at s = 1/2: the control points (k, r) of the left and right halves."""
+    left, right, current = [b[0]], [b[-1]], b
+    for _ in range(len(b) - 1):
+        current = 0.5 * (current[:-1] + current[1:])
+        left.append(current[0])
+        right.append(current[-1])
+    return np.stack(left), np.stack(right[::-1])
 
 
 def _segment(kind: str, t_ns: int, length_ns: int, a: tuple, b: tuple) -> TrajectorySample:

@@ -7,6 +7,10 @@ between, ``execute`` drops it ("Ignoring unexpected goal response") and the futu
 completes: ros2/rclpy#1123, fixed upstream by ros2/rclpy#1308 (backported to Jazzy in #1519,
 not in the 7.1.6 wheels this workspace installs). Here the request and its registration
 happen under one lock that ``execute`` takes before it looks an answer up.
+
+The action's services keep `psl_ros.qos.SERVICES` here as on psl's servers
+(`psl_ros.action_server`: with rclpy's keep-last 10 a client taking answers slower than a busy
+server sends them loses the oldest).
 """
 from __future__ import annotations
 
@@ -14,11 +18,16 @@ import threading
 
 from rclpy.action import ActionClient as _RclpyActionClient
 
+from psl_ros.action_server import SERVICE_QOS
+from psl_ros.qos import SERVICES
+
 
 class ActionClient(_RclpyActionClient):
     """Drop-in replacement for ``rclpy.action.ActionClient``."""
 
     def __init__(self, *args, **kwargs):
+        for service in SERVICE_QOS:
+            kwargs.setdefault(service, SERVICES)
         super().__init__(*args, **kwargs)
         self._registering = threading.Lock()
 

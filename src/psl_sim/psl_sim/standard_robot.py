@@ -27,6 +27,7 @@ import dataclasses
 import mujoco
 import numpy as np
 
+from psl_controller.goal_limits import GoalLimits
 from psl_controller.pd_law import PDLaw, law_for
 from psl_controller.trajectory_controller import Result, TrajectoryController
 from psl_sim.standard_robot_parameters import FROM_TASK, NOT_GIVEN, StandardRobotParameters
@@ -66,8 +67,10 @@ class StandardRobot:
         # the robot is not the model: changed before anything runs (ModelError.apply)
         self.model_error = ModelError.parse(p.model_error)
         self.model_error.apply(arm.model, arm.joint_ids)
-        # its controller: the task's law with the robot's own gains, if given
+        # its controller: the task's law with the robot's own gains, if given, and what a
+        # goal may ask of the arm (whoever sends it)
         self.controller = TrajectoryController(driven, self._law(law_for(task)))
+        self.limits = GoalLimits.of(arm, p.max_points, p.max_duration, p.max_velocity)
         # orders: index into the task's order of each joint of joint_order
         self.joint_order = driven if p.joint_order == NOT_GIVEN else list(p.joint_order)
         self._state_index = np.array([driven.index(j) for j in self.joint_order])

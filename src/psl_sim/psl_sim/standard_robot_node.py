@@ -7,7 +7,8 @@ tick; joints in ``joint_order`` then ``extra_joints``; effort = the torque appli
 period before) and serves
 ``standard_robot/follow_joint_trajectory`` (control_msgs/FollowJointTrajectory, the effort
 interface: `psl_controller.follow_joint_trajectory`, with JTC's ``joints`` and
-``command_interfaces`` parameters and ``~/controller_state``). The trajectory controller runs
+``command_interfaces`` parameters and ``~/controller_state``; goals past the arm's limits or its
+size bounds rejected: `psl_controller.goal_limits`). The trajectory controller runs
 inside the robot's loop, stepped with the physics on the measured state
 (`psl_sim.standard_robot.StandardRobot`), as a robot's own JTC runs in ros2_control's real-time
 loop: no DDS inside the control loop. Reads the latched ``task_instance``
@@ -80,7 +81,7 @@ class StandardRobotNode(Node):
         self._joint_state = JointState()
         self.matches = MatchReport(self)    # what its endpoints matched
         self.server = FollowJointTrajectoryServer(self, self.robot.controller,
-                                                  ReentrantCallbackGroup(),
+                                                  ReentrantCallbackGroup(), self.robot.limits,
                                                   matches=self.matches)
         self.pub_joints = self.matches.create_publisher(JointState, names.JOINT_STATES,
                                                         RELIABLE)

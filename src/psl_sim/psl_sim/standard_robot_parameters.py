@@ -7,6 +7,8 @@ import dataclasses
 import math
 from dataclasses import field
 
+from psl_controller.parameters import (GOAL_DOCS, GOAL_MAX_DURATION, GOAL_MAX_POINTS,
+                                       GOAL_MAX_VELOCITY, check_goal_bounds)
 from psl_task import DEFAULT_TASK
 from psl_task.model_error import ModelError
 
@@ -18,8 +20,9 @@ REALTIME_PRIORITY = 50      # ros2_control's controller manager's default (its t
 @dataclasses.dataclass(frozen=True)
 class StandardRobotParameters:
     """A ros2_control robot played by the task's MuJoCo model: its joint order, its extra
-    joints, its controller's gains, and how it differs from the model (noise, latency, model
-    error). The joint lists are checked against the task's driven joints."""
+    joints, its controller's gains and what goals it takes, and how it differs from the model
+    (noise, latency, model error). The joint lists are checked against the task's driven
+    joints."""
 
     task: str = field(default=DEFAULT_TASK, metadata={'doc': (
         'task whose model is the robot (name or YAML path); it is never switched')})
@@ -51,8 +54,14 @@ class StandardRobotParameters:
     initial_posture: tuple[float, ...] = field(default=FROM_TASK, metadata={'doc': (
         "joint positions at start, in the task's joint order (its start_posture's); "
         "[0.0] = the task's start_posture")})
+    max_points: int = field(default=GOAL_MAX_POINTS, metadata={'doc': GOAL_DOCS['max_points']})
+    max_duration: float = field(default=GOAL_MAX_DURATION, metadata={
+        'doc': GOAL_DOCS['max_duration']})
+    max_velocity: float = field(default=GOAL_MAX_VELOCITY, metadata={
+        'doc': GOAL_DOCS['max_velocity']})
 
     def __post_init__(self):
+        check_goal_bounds(self)
         for name in ('position_noise', 'velocity_noise'):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0.0):
