@@ -134,7 +134,7 @@ class DMPExecutor(Node):
                                                     np.asarray(goal.new_goal))
                      if changes else policy.reference(theta, tau))
         safety = self._safety(task)
-        verdict = safety.check(tau, reference.q, reference.qd)
+        verdict = safety.check(tau, reference.q, reference.qd, reference.u_ffwd)
         if not verdict.safe:        # never sent: no goal, no episode
             self.get_logger().info(f'candidate refused by the safety check: {verdict.reason}')
             return (penalty_evaluation(goal.task, goal.tau, task, 'safety_violation', verdict),

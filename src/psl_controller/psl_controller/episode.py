@@ -14,12 +14,13 @@ An episode, from the goal the executor got:
    start posture when the primitive starts) or ``drive``: from the measured posture (the mean
    of the newest `SETTLE_STATES` states on a noisy robot) a homing quintic to the start
    posture (`psl_controller.homing`, its feed-forward the model's inverse dynamics with the
-   instance applied) as one goal, announced as a homing episode. An arm found outside its joint
+   instance applied, clipped into the torque limits: `Episode._homing_goal`) as one goal,
+   announced as a homing episode. An arm found outside its joint
    ranges (a foreign goal or a push left it there) is brought back inside: the safety check
    passes a homing reference that only moves such a joint toward its range
    (`psl_task.safety_check`, with the measured posture as its start), the episode says so in
    one line, and the goal's points start at the first one inside every range
-   (`psl_controller.homing.inside_from`): the segment from the measured state to it is the
+   (`psl_task.safety_check.inside_from`): the segment from the measured state to it is the
    controller's own. Then the arm must come within
    ``homing.tolerance`` of the start posture, at rest, within ``homing.settle_time`` more; an
    arm at rest off the start (the robot is not its model) is held again with a corrected torque
@@ -35,7 +36,11 @@ An episode, from the goal the executor got:
    ``INVALID_GOAL`` with JTC's words, `PREEMPTION_WORDS`) raises `Preempted`: no outcome, and
    not the candidate's doing (the executor says so; the session runs the rollout again).
 
-Every reference that reaches the controller has passed the task's safety check. A live goal
+Every reference that reaches the controller has passed the task's safety check, and every goal
+is checked against the model's limits as the controllers psl serves check it before it is sent
+(`psl_controller.goal_limits.GoalLimits.check_reference`, their default bounds): a controller
+that rejects it has narrower limits than the model's (a node parameter, a robot's own
+JointTrajectoryController), and the rollout fails saying so (`Robot.send`). A live goal
 change (`Episode.change_goal`) replaces the running goal with one of the same start whose
 reference is the old one up to a switch step and the new goal's from there; the controller takes
 it only if it has not served that step yet (psl's controller refuses a replacement that would
@@ -52,15 +57,15 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from psl_controller.homing import (corrected_hold, hold_stiffness, homing_reference,
-                                   inside_from)
+from psl_controller.goal_limits import GoalLimits
+from psl_controller.homing import corrected_hold, hold_stiffness, homing_reference
 from psl_controller.policy import Reference, TaskPolicy
 from psl_controller.trajectory_controller import (GOAL_TOLERANCE_VIOLATED, INVALID_GOAL,
                                                   OLD_HEADER_TIMESTAMP,
                                                   PATH_TOLERANCE_VIOLATED, PREEMPTED,
-                                                  SUCCESSFUL)
+                                                  SUCCESSFUL, GoalRefused)
 from psl_task.arm_model import joint_names_of
-from psl_task.safety_check import SafetyCheck
+from psl_task.safety_check import SafetyCheck, inside_from
 from psl_task.task import TaskDefinition
 
 SETTLE_STATES = 25      # the newest states averaged for the homing check on a noisy robot
@@ -133,7 +138,8 @@ class Robot(Protocol):
         again (`attempt` > 0: the one before came late)."""
 
     def send(self, goal: GoalSpec) -> object:
-        """Send a goal; its handle once accepted (RobotError if rejected)."""
+        """Send a goal; its handle once accepted (RobotError if rejected: the controller's
+        limits may be narrower than the model's, see its log)."""
 
     def taken(self, handle: object, before_ns: int) -> bool:
         """Whether the controller took the goal before the robot's clock passed `before_ns`
@@ -209,6 +215,7 @@ class Episode:
                  cancelled: Callable[[], bool] = lambda: False):
         self.robot, self.task, self.tau = robot, task, np.asarray(tau, dtype=float)
         self.policy, self.safety = policy, safety
+        self.limits = GoalLimits.of(safety.arm)     # what a controller psl serves takes
         self.inverse_dynamics, self.kp = inverse_dynamics, np.asarray(kp, dtype=float)
         self.task_id, self.margin, self.log = task_id, timeout_margin, log
         self.cancelled = cancelled
@@ -235,11 +242,9 @@ class Episode:
         if self._homed(q0, qd0):
             return
         safety = self.safety
-        reference = homing_reference(q0, qd0, task.start_posture, spec, task.control_period,
-                                     self.inverse_dynamics, safety.low, safety.high)
-        verdict = safety.check(self.tau, reference.q, reference.qd, start=q0)
-        if not verdict.safe:
-            raise ValueError(f'homing refused by the safety check: {verdict.reason}')
+        reference = self._homing_goal(homing_reference(
+            q0, qd0, task.start_posture, spec, task.control_period, self.inverse_dynamics,
+            safety.low, safety.high), start=q0)
         outside = safety.outside(q0)
         if outside.any():
             self._say(f'the arm is outside its joint ranges ({self._where(q0, outside)}): '
@@ -259,8 +264,8 @@ class Episode:
                     break                             # there, or it does not come to rest
             if stiffness is None:
                 stiffness = hold_stiffness(self.kp, self.inverse_dynamics, task.start_posture)
-            hold = corrected_hold(task.start_posture, held, stiffness, q, spec.settle_time,
-                                  task.control_period)
+            hold = self._homing_goal(corrected_hold(task.start_posture, held, stiffness, q,
+                                                    spec.settle_time, task.control_period))
             held = hold.u_ffwd[-1]
             self._hold(hold)
             q, qd = self._settled()
@@ -274,6 +279,30 @@ class Episode:
                 f'{q[j]:.4g} rad ({qd[j]:.3g} rad/s), start posture {start[j]:.4g}, after '
                 f'{waited:.2f} s (tolerance {spec.tolerance:g}): raise the controller gains '
                 'or homing.settle_time, or relax homing.tolerance')
+
+    def _homing_goal(self, reference: Reference, start: np.ndarray | None = None
+                     ) -> Reference:
+        """A homing reference as it is sent: its feed-forward clipped into the torque limits
+        (`psl_controller.homing`: the law clips the total torque anyway, and a controller
+        rejects an effort beyond them), checked by the safety check (`start`: the measured
+        posture it leaves from). ValueError if the check refuses it."""
+        limits = self.limits
+        reference = Reference(reference.t, reference.q, reference.qd,
+                              np.clip(reference.u_ffwd, limits.effort_low, limits.effort_high))
+        verdict = self.safety.check(self.tau, reference.q, reference.qd, reference.u_ffwd,
+                                    start=start)
+        if not verdict.safe:
+            raise ValueError(f'homing refused by the safety check: {verdict.reason}')
+        return reference
+
+    def _send(self, goal: GoalSpec) -> object:
+        """Send a goal that keeps the model's limits as a controller psl serves checks them
+        (module docstring); RobotError, nothing sent, for one that does not."""
+        try:
+            self.limits.check_reference(goal.reference)
+        except GoalRefused as exc:
+            raise RobotError(f"psl's goal breaks the model's limits, not sent: {exc}") from None
+        return self.robot.send(goal)
 
     def _say(self, line: str) -> None:
         """A note for people: logged, and kept for the rollout's result."""
@@ -399,7 +428,7 @@ class Episode:
             robot.announce(Instance(start, self.task_id, self.tau, num_steps,
                                     task.control_period, homing))
             sending = time.monotonic()
-            handle = robot.send(GoalSpec(reference, start, _bound(path), progress))
+            handle = self._send(GoalSpec(reference, start, _bound(path), progress))
             self.send_cost = time.monotonic() - sending
             if robot.taken(handle, start):
                 began = robot.begin(start, num_steps, mode)
@@ -447,7 +476,7 @@ class Episode:
         computing = time.monotonic()
         asked = splice(outcome.reference, self.policy.reference_with_new_goal(
             theta, self.tau, wanted * dt, goal), wanted)
-        verdict = self.safety.check(self.tau, asked.q, asked.qd)
+        verdict = self.safety.check(self.tau, asked.q, asked.qd, asked.u_ffwd)
         if not verdict.safe:
             raise ValueError(f'refused by the safety check: {verdict.reason}')
         # [s] to compute, check and send it, the loop busy on every core meanwhile
@@ -460,7 +489,7 @@ class Episode:
                         f'could change (at {k * dt:g} s at the earliest)')
             reference = splice(outcome.reference, self.policy.reference_with_new_goal(
                 theta, self.tau, k * dt, goal), k)
-            verdict = self.safety.check(self.tau, reference.q, reference.qd)
+            verdict = self.safety.check(self.tau, reference.q, reference.qd, reference.u_ffwd)
             if not verdict.safe:
                 raise ValueError(f'refused by the safety check: {verdict.reason}')
             if self._step_bound() + self._steps_in(LOAD_FACTOR * self.send_cost) >= k:
@@ -469,7 +498,7 @@ class Episode:
             replaced = self.handle          # the new goal preempts it: psl's own doing
             self._superseded.add(replaced)
             try:
-                handle = self.robot.send(GoalSpec(
+                handle = self._send(GoalSpec(
                     reference, outcome.start_ns, _bound(task.safety.max_tracking_error),
                     self._progress))
             except RobotError as exc:

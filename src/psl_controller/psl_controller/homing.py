@@ -28,8 +28,9 @@ range's bound ahead of each joint: its velocity is cut to ``2 room / Tb`` (`brak
 room the distance from q0 to that bound, none for a joint outside moving away from its range
 (the reference then starts at rest there, and the controller brakes the arm). Sent to the
 controller, a homing from outside starts at its first point inside every range
-(`inside_from`): the points of the goal are all inside, and the segment from the measured
-state to that point is the controller's own (JTC's: a first point later than the start).
+(`psl_task.safety_check.inside_from`): the points of the goal are all inside, and the segment
+from the measured state to that point is the controller's own (JTC's: a first point later than
+the start).
 
 Its feed-forward is the model's inverse dynamics along the quintic when one is given
 (``feed_forward(q, qd, qdd)``, e.g. `psl_task.arm_model.ArmModel.inverse_dynamics` with the
@@ -38,7 +39,11 @@ posture, so that PD corrects only the model's error (a payload arm under PD alon
 ``g(q) / kp``). On a robot the model does not match, the arm still comes to rest off the start,
 by about ``(g_robot - g_model) / kp``: a hold with the held torque raised by
 ``(kp + dg/dq) (q1 - q)`` measured cancels that to first order (a Newton step on the held
-torque, `corrected_hold`). Imports no ROS.
+torque, `corrected_hold`). Sent to the controller, every homing goal's feed-forward is clipped
+into the torque limits (`psl_controller.episode.Episode`): the PD law clips the total torque
+there anyway, and a controller rejects a goal whose effort passes them, while the model's
+inverse dynamics may ask for more (ball_throw's shoulder held at 3 rad needs 192 N m of its 80;
+a reference touching a joint's stop adds the stop's force). Imports no ROS.
 """
 from __future__ import annotations
 
@@ -106,13 +111,6 @@ def braking_velocity(q0: np.ndarray, qd0: np.ndarray, duration: float, low: np.n
     room = np.maximum(np.where(qd0 > 0.0, high - q0, q0 - low), 0.0)    # inf: unlimited
     cap = 2.0 * ROOM_SHARE * room / duration
     return np.sign(qd0) * np.minimum(np.abs(qd0), cap)
-
-
-def inside_from(q: np.ndarray, low: np.ndarray, high: np.ndarray) -> int:
-    """The first index of the samples q (T, n) from which every sample is inside every
-    range [low, high] (0: all are; T: the last is not)."""
-    outside = np.any((q < low) | (q > high), axis=1)
-    return int(len(q) - np.argmax(outside[::-1])) if outside.any() else 0
 
 
 def homing_reference(q0: np.ndarray, qd0: np.ndarray, q1: np.ndarray, spec: HomingSpec,

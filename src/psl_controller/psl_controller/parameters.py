@@ -26,19 +26,19 @@ COMMAND_INTERFACES = ('effort', 'position')     # a JointTrajectoryController's 
 # point of 3 joints while it is read; it is released once read.
 GOAL_MAX_POINTS = 20_000
 GOAL_MAX_DURATION = 600.0       # [s] as the simulator's longest episode (max_episode_duration)
-# [rad/s (m/s)] for a model and task that give none (an MJCF has no velocity limit; MuJoCo drops
-# a URDF's): arms' joints are far slower (2-4 rad/s for industrial arms, 10-20 for small fast
-# ones); psl's demonstrations on the embedded tasks reach 4 rad/s
-GOAL_MAX_VELOCITY = 100.0
+# [rad/s (m/s)] the controller's own velocity bound, which can only narrow the arm's
+# (`psl_task.joint_limits`: a URDF's velocity limits, else 100 rad/s; safety.max_velocity): none
+GOAL_MAX_VELOCITY = float('inf')
 
 
 GOAL_DOCS = {
     'max_points': 'the most points a FollowJointTrajectory goal may have (more: rejected)',
     'max_duration': ('[s] the longest a goal may last from its start to its last point, and '
                      'the latest it may start after the newest state (later: rejected)'),
-    'max_velocity': ('[rad/s] the velocity bound of every joint where neither the model (a '
-                     "URDF's <limit velocity>) nor the task (safety.max_velocity) gives a "
-                     'lower one: a goal whose points or interpolation exceed it is rejected')}
+    'max_velocity': ('[rad/s] a velocity bound of every joint, narrowing the arm\'s (a '
+                     "URDF's <limit velocity>, else 100 rad/s; the task's safety.max_velocity): "
+                     'a goal whose points or interpolation exceed it is rejected; inf = the '
+                     "arm's")}
 
 
 def check_goal_bounds(parameters) -> None:

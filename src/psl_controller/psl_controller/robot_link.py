@@ -43,6 +43,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from psl_controller.episode import GoalResult, GoalSpec, Instance, RobotError
 from psl_controller.follow_joint_trajectory import ACTION
+from psl_controller.goal_limits import goal_points
 from psl_controller.parameters import COMMAND_INTERFACES
 from psl_controller.policy import Reference
 from psl_controller.trajectory_controller import OLD_HEADER_TIMESTAMP
@@ -50,7 +51,7 @@ from psl_msgs.msg import TaskInstance
 from psl_msgs.srv import ResetTask
 from psl_ros import names
 from psl_ros.action_client import ActionClient
-from psl_ros.client import send_goal
+from psl_ros.client import GoalRejected, send_goal
 from psl_ros.futures import ask, wait_for
 from psl_ros.hot_path import HotPath
 from psl_ros.qos import LATCHED, SERVICES
@@ -72,23 +73,17 @@ REPORT_WAIT = 1.0       # s a live goal change waits for the controller's feedba
 
 def trajectory_msg(joint_names: list[str], ref: Reference, start_ns: int, effort: bool,
                    at_rest: bool = True) -> JointTrajectory:
-    """A reference as a JointTrajectory stamped `start_ns`: a point per control period from
-    its first (at ``ref.t[0]``: 0, or later for a homing from outside the joint ranges, whose
-    first segment is the controller's), positions and velocities (with `at_rest` the last
-    velocity zero: a JTC refuses a trajectory that ends moving; a reference ends at rest but
-    for rounding), the feed-forward as effort if `effort`."""
+    """A reference as a JointTrajectory stamped `start_ns`: its points as psl sends them
+    (`psl_controller.goal_limits.goal_points`: a point per control period from its first,
+    positions and velocities, with `at_rest` the last velocity zero), the feed-forward as
+    effort if `effort`."""
     msg = JointTrajectory(joint_names=list(joint_names))
     msg.header.stamp = time_msg(start_ns)
-    dt_ns = int(round((ref.t[1] - ref.t[0]) * 1e9)) if len(ref.t) > 1 else 0
-    first = int(round(ref.t[0] * 1e9 / dt_ns)) if dt_ns else 0     # the first point's index
-    qd = ref.qd.copy()
-    if at_rest:
-        qd[-1] = 0.0
-    q, u = ref.q.tolist(), ref.u_ffwd.tolist()
-    qd = qd.tolist()
+    times, q, qd, u = goal_points(ref, at_rest)
+    q, qd, u = q.tolist(), qd.tolist(), u.tolist()
     msg.points = [JointTrajectoryPoint(positions=q[k], velocities=qd[k],
                                        effort=u[k] if effort else [],
-                                       time_from_start=duration_msg((first + k) * dt_ns))
+                                       time_from_start=duration_msg(int(times[k])))
                   for k in range(len(q))]
     return msg
 
@@ -384,6 +379,9 @@ class RobotLink:
         try:
             handle = send_goal(self.client, msg, ACK_TIMEOUT, self.action_name,
                                feedback=on_feedback)
+        except GoalRejected:        # psl checked it against the model's limits (`Episode`)
+            raise RobotError(f'the controller {self.controller} rejected the goal (its limits '
+                             "may be narrower than the model's: see its log)") from None
         except (TimeoutError, RuntimeError) as exc:
             raise RobotError(f'the controller did not take the goal: {exc}') from None
         duration = int(round(float(goal.reference.t[-1]) * 1e9))

@@ -36,10 +36,10 @@ the velocity bound: a position outside the range is put on its bound, with zero 
 acceleration; a velocity beyond its bound is put on it. The segment from the state before the
 trajectory keeps a range widened to that state's position (an arm found outside its range is
 brought back, never sent further out). A point is never changed: the controller refuses a
-trajectory whose points or segments leave the limits (`control_points` and `maxima` give each
-segment's extremes exactly, to rounding), so what the clamp catches is the interpolation's
-overshoot within the refusal's slack, and the segment from a state the controller meets only
-when the trajectory starts.
+trajectory whose points or segments leave the limits (`control_points` and
+`psl_task.joint_limits.maxima` give each segment's extremes exactly, to rounding), so what the
+clamp catches is the interpolation's overshoot within the refusal's slack, and the segment from
+a state the controller meets only when the trajectory starts.
 
 Differences from JTC, deliberately: times are integer nanoseconds, not floating seconds; a
 point's fields are all-or-none for the whole trajectory (JTC allows them per point); the
@@ -51,6 +51,8 @@ import dataclasses
 from typing import NamedTuple
 
 import numpy as np
+
+from psl_task.joint_limits import control_points
 
 LINEAR, CUBIC, QUINTIC = 'linear', 'cubic', 'quintic'
 
@@ -221,25 +223,13 @@ class SampledTrajectory:
     def control_points(self) -> tuple[np.ndarray, np.ndarray]:
         """The Bernstein control points of each segment's position and velocity polynomial
         over its own time s in [0, 1]: positions (d + 1, N - 1, n) [rad] and velocities
-        (d, N - 1, n) [rad/s] for the interpolation's degree d (1, 3, 5). A polynomial lies
-        within the convex hull of its control points, and its first and last are its values
-        at the segment's ends (Farin, *Curves and Surfaces for CAGD*, 5th ed., 2002, ch. 4-5);
-        `maxima` finds each joint's extremes from them. The Hermite conditions give them: a
-        cubic's are q0, q0 + v0 T/3, q1 - v1 T/3, q1; a quintic's q0, q0 + v0 T/5,
-        q0 + 2 v0 T/5 + a0 T^2/20, q1 - 2 v1 T/5 + a1 T^2/20, q1 - v1 T/5, q1 (T the segment's
-        length); the velocity's are d (b_{i+1} - b_i) / T."""
-        q, v, a = self._positions, self._velocities, self._accelerations
-        big_t = (np.diff(self._times_ns) * 1e-9)[:, None]                  # (N-1, 1) s
-        q0, q1, v0, v1, a0, a1 = q[:-1], q[1:], v[:-1], v[1:], a[:-1], a[1:]
-        if self.interpolation == LINEAR:
-            b = np.stack([q0, q1])
-        elif self.interpolation == CUBIC:
-            b = np.stack([q0, q0 + v0 * big_t / 3.0, q1 - v1 * big_t / 3.0, q1])
-        else:
-            t2 = big_t ** 2 / 20.0
-            b = np.stack([q0, q0 + v0 * big_t / 5.0, q0 + 0.4 * v0 * big_t + a0 * t2,
-                          q1 - 0.4 * v1 * big_t + a1 * t2, q1 - v1 * big_t / 5.0, q1])
-        return b, (len(b) - 1) * np.diff(b, axis=0) / big_t
+        (d, N - 1, n) [rad/s] for the interpolation's degree d (1, 3, 5)
+        (`psl_task.joint_limits.control_points`: the one law of what a goal's points
+        interpolate to, shared with the safety check; `psl_task.joint_limits.maxima` finds
+        each joint's extremes from them)."""
+        return control_points(np.diff(self._times_ns) * 1e-9, self._positions,
+                              None if self.interpolation == LINEAR else self._velocities,
+                              self._accelerations if self.interpolation == QUINTIC else None)
 
     def _values(self, i: int) -> tuple[np.ndarray, ...]:
         return (self._positions[i], self._velocities[i], self._accelerations[i],
@@ -283,78 +273,6 @@ def _clamped(sample: TrajectorySample, bounds: _Bounds | None) -> TrajectorySamp
     if np.any(np.abs(qd) > bounds.speed):
         qd = np.clip(qd, -bounds.speed, bounds.speed)
     return TrajectorySample(q, qd, qdd, effort)
-
-
-MAX_SUBDIVISIONS = 48       # halvings of a segment in `maxima` (a width of 2^-48 of it)
-MAX_CANDIDATES = 1 << 16    # subintervals `maxima` keeps at once (then it stops: a bound)
-
-
-def maxima(points: np.ndarray, above: np.ndarray | None = None
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each joint's largest value over m polynomials on [0, 1], given by their Bernstein
-    control points (k, m, n) (`SampledTrajectory.control_points`): (value (n,), the polynomial
-    it is reached on (n,), s there (n,)); -inf, 0, 0 for m = 0. With `above` (n,), only
-    whether a joint's maximum exceeds it is sought: a joint's value is then a value reached
-    beyond `above` (not necessarily the largest), or, where none is, the largest reached at
-    the polynomials' ends and halvings that were looked at (at most `above` + its rounding).
-
-    Branch and bound on the convex hull property: the value at an interval's ends is reached,
-    the largest control point bounds the interval from above; an interval whose bound does
-    not exceed the best value reached (by more than 1e-12 of its size) or `above` is dropped,
-    the others are halved (de Casteljau) until none is left. Without `above` the value is the
-    maximum to 1e-12 (relative); intervals left after MAX_SUBDIVISIONS halvings or beyond
-    MAX_CANDIDATES (pathological input) add their bound.
-    """
-    k, m, n = points.shape
-    best, where, at = np.full(n, -np.inf), np.zeros(n, dtype=np.int64), np.zeros(n)
-    if m == 0:
-        return best, where, at
-    floor = np.full(n, -np.inf) if above is None else np.asarray(above, dtype=float)
-    ends = np.concatenate([points[0], points[-1]])                      # (2m, n)
-    row = ends.argmax(axis=0)
-    best, where, at = ends[row, np.arange(n)], row % m, (row // m).astype(float)
-
-    def threshold() -> np.ndarray:
-        """Below it an interval cannot matter; inf for a joint found beyond `above`."""
-        tight = np.maximum(best + 1e-12 * np.maximum(1.0, np.abs(best)), floor)
-        return tight if above is None else np.where(best > floor, np.inf, tight)
-    segment, joint = np.nonzero(points.max(axis=0) > threshold())
-    b = points[:, segment, joint]                                       # (k, r)
-    start, width = np.zeros(segment.size), 1.0
-    for _ in range(MAX_SUBDIVISIONS):
-        if segment.size == 0 or segment.size > MAX_CANDIDATES:
-            break
-        left, right = _halves(b)
-        width /= 2.0
-        middle = left[-1]                                               # reached: (r,)
-        for j in np.unique(joint):
-            mine = np.flatnonzero(joint == j)
-            i = mine[int(np.argmax(middle[mine]))]
-            if middle[i] > best[j]:
-                best[j], where[j], at[j] = middle[i], segment[i], start[i] + width
-        b = np.concatenate([left, right], axis=1)
-        segment, joint = np.tile(segment, 2), np.tile(joint, 2)
-        start = np.concatenate([start, start + width])
-        keep = b.max(axis=0) > threshold()[joint]
-        b, segment, joint, start = b[:, keep], segment[keep], joint[keep], start[keep]
-    if segment.size:                     # not resolved: their bound (never below the truth)
-        bound = b.max(axis=0)
-        for j in np.unique(joint):
-            mine = np.flatnonzero(joint == j)
-            i = mine[int(np.argmax(bound[mine]))]
-            if bound[i] > best[j]:
-                best[j], where[j], at[j] = bound[i], segment[i], start[i] + width / 2.0
-    return best, where, at
-
-
-def _halves(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """de Casteljau at s = 1/2: the control points (k, r) of the left and right halves."""
-    left, right, current = [b[0]], [b[-1]], b
-    for _ in range(len(b) - 1):
-        current = 0.5 * (current[:-1] + current[1:])
-        left.append(current[0])
-        right.append(current[-1])
-    return np.stack(left), np.stack(right[::-1])
 
 
 def _segment(kind: str, t_ns: int, length_ns: int, a: tuple, b: tuple) -> TrajectorySample:

@@ -20,11 +20,13 @@ import pytest
 from psl_controller import episode as episode_module
 from psl_controller.episode import (PREEMPTION_WORDS, SETTLE_STATES, START_ATTEMPTS, Episode,
                                     GoalResult, GoalSpec, Instance, Preempted, RobotError)
+from psl_controller.goal_limits import limits_of
+from psl_controller.homing import homing_reference
 from psl_controller.pd_law import law_for
-from psl_controller.policy import policy_for
+from psl_controller.policy import Reference, policy_for
 from psl_controller.trajectory_controller import (INVALID_GOAL, OLD_HEADER_TIMESTAMP,
                                                   PATH_TOLERANCE_VIOLATED, SUCCESSFUL, Goal,
-                                                  Result, TrajectoryController)
+                                                  GoalRefused, Result, TrajectoryController)
 from psl_controller.trajectory_sampling import SampledTrajectory
 from psl_task.arm_model import ArmModel
 from psl_task.model_error import ModelError
@@ -45,6 +47,8 @@ class FakeRobot:
     and qd when asked: sensor noise the executor sees, the controller gets the true state).
     The clock advances only in `begin`, `finish`, `wait` and a late `send`; `hooks` (time ->
     callable) run once the state of that time was served, the clock standing still meanwhile.
+    A goal past the model's limits is rejected as the controllers psl serves reject it
+    (`psl_controller.goal_limits`, their default parameters).
 
     Args:
         task: the task; tau: the instance the robot really is (its payload, ...).
@@ -65,6 +69,8 @@ class FakeRobot:
             mujoco.mj_forward(self.arm.model, self.arm.data)
         self.law = law_for(task)
         self.controller = TrajectoryController(self.arm.joint_names, self.law)
+        self.limits = limits_of(task)           # the controller's, its default parameters
+        self.rejected: list[str] = []           # why it rejected goals
         self.can_teleport = can_teleport
         self.noise, self.rng = noise, np.random.default_rng(seed)
         self.late_sends = late_sends
@@ -121,6 +127,11 @@ class FakeRobot:
         qd[-1] = 0.0                            # as robot_link sends it: ends at rest
         times = np.round(ref.t * NS).astype(np.int64)
         trajectory = SampledTrajectory(times, ref.q, qd, ref.u_ffwd)
+        try:                    # what every controller psl serves rejects (goal_limits)
+            self.limits.check(trajectory, times, ref.q, qd, ref.u_ffwd)
+        except GoalRefused as exc:
+            self.rejected.append(str(exc))
+            raise RobotError(f'the controller rejected the goal: {exc}') from None
         names = self.controller.joint_names
         path = {j: (goal.path_tolerance, 0.0) for j in names} if goal.path_tolerance else {}
         tolerances = self.controller.defaults.resolved(
@@ -614,6 +625,57 @@ def test_an_arm_running_toward_its_limit_is_braked_inside_and_homed():
     assert np.all((goal.reference.q >= episode.safety.low)
                   & (goal.reference.q <= episode.safety.high))
     assert robot.error_from_start() <= reach.homing.tolerance
+
+
+def test_a_homing_whose_model_needs_more_than_the_torque_limits_is_taken():
+    """ball_throw's arm at rest at its shoulder's limit (3 rad): along the homing to the start
+    posture the model's inverse dynamics asks up to 188 N m of the shoulder, whose limit is
+    80 (the ball in its cup, resting on the pedestal, near the start). The goal's
+    feed-forward is clipped into the torque limits (the law clips the torque there anyway),
+    so the controller takes it (it rejects an effort past them, as psl's controllers do) and
+    the arm is homed. Catches: the model's torque sent as it is (before issue 46's
+    controllers' limits it was taken and clipped by the law; then rejected)."""
+    task = with_homing(load_task('ball_throw'), reset='drive')
+    robot = FakeRobot(task, task.tau_default, q0=np.array([3.0, 0.0, 0.0]))
+    episode = make_episode(task, robot)
+    model = ArmModel(task)
+    first = homing_reference(np.array([3.0, 0.0, 0.0]), np.zeros(3), task.start_posture,
+                             task.homing, task.control_period,
+                             lambda q, qd, qdd: model.inverse_dynamics(task.tau_default, q,
+                                                                       qd, qdd))
+    assert np.abs(first.u_ffwd).max() > 150.0          # what the model asks
+    episode.begin('drive')
+    assert robot.rejected == []
+    low, high = model.torque_low, model.torque_high
+    for goal in robot.goals.values():
+        assert np.all((goal.reference.u_ffwd >= low) & (goal.reference.u_ffwd <= high))
+    sent = next(iter(robot.goals.values())).reference
+    np.testing.assert_array_equal(sent.u_ffwd, np.clip(first.u_ffwd, low, high))
+    np.testing.assert_array_equal(sent.q, first.q)
+    assert robot.error_from_start() <= task.homing.tolerance
+
+
+def test_a_goal_past_the_controllers_bounds_is_not_sent():
+    """An episode of 50.5 s at 500 Hz, 25,251 points: more than a controller psl serves takes
+    by default (max_points 20,000). The episode checks its goal against the model's limits
+    as those controllers do before it sends it: the rollout fails saying why, and nothing
+    reaches the robot. Catches: goals sent unchecked (the controller's rejection then says
+    nothing of why)."""
+    short = load_task('reach_over_obstacle')
+    reach = dataclasses.replace(short, duration=50.0)
+    robot = FakeRobot(reach, reach.tau_default)
+    episode = Episode(robot, reach, reach.tau_default, policy_for(short),     # its DMP: 1.5 s
+                      SafetyCheck(ArmModel(reach)), lambda q, qd, qdd: 0 * q,
+                      reach.controller.kp, reach.name)
+    t = np.arange(reach.num_steps + 1) * reach.control_period     # held at the start
+    q = np.tile(reach.start_posture, (len(t), 1))
+    reference = Reference(t, q, np.zeros_like(q), np.zeros_like(q))
+    assert len(t) > 25_000
+    with pytest.raises(RobotError, match="psl's goal breaks the model's limits, not sent: the "
+                                         f'trajectory has {len(t)} points, more than '
+                                         'max_points 20000'):
+        episode.run(reference, 'teleport')
+    assert robot.goals == {}
 
 
 def foreign_goal(robot: FakeRobot, q: np.ndarray) -> None:

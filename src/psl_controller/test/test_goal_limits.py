@@ -1,5 +1,5 @@
 """Tests of what a goal may ask of the arm (`psl_controller.goal_limits`), of the segment
-extremes it is held to (`trajectory_sampling.maxima` over `SampledTrajectory.control_points`)
+extremes it is held to (`psl_task.joint_limits.maxima` over `SampledTrajectory.control_points`)
 and of the clamp of what the controller samples (`SampledTrajectory.within`), against
 references written here:
 
@@ -26,17 +26,19 @@ from control_msgs.action import FollowJointTrajectory
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from psl_controller.follow_joint_trajectory import goal_from_msg
-from psl_controller.goal_limits import (POSITION_SLACK, VELOCITY_SLACK, GoalLimits,
-                                        limits_of, urdf_velocity_limits)
+from psl_controller.goal_limits import GoalLimits, limits_of
 from psl_controller.homing import homing_reference
 from psl_controller.parameters import (GOAL_MAX_DURATION, GOAL_MAX_POINTS,
                                        GOAL_MAX_VELOCITY, ControllerParameters)
 from psl_controller.policy import policy_for
+from psl_controller.robot_link import trajectory_msg
 from psl_controller.trajectory_controller import GoalRefused, Tolerances
 from psl_controller.trajectory_sampling import (CUBIC, LINEAR, QUINTIC, SampledTrajectory,
-                                                _segment, maxima)
+                                                _segment)
 from psl_ros.stamps import duration_msg, time_msg
 from psl_task.arm_model import ArmModel
+from psl_task.joint_limits import MAX_VELOCITY, POSITION_SLACK, VELOCITY_SLACK, maxima
+from psl_task.model_spec import urdf_velocity_limits
 from psl_task.task import EMBEDDED_TASKS, load_task
 
 NS = 1_000_000_000
@@ -368,14 +370,17 @@ def test_psls_own_goals_are_taken_with_the_default_parameters(name):
 
 
 def test_the_defaults_are_the_parameters_and_the_velocity_the_smallest_given(tmp_path):
-    """Catches: a default kept twice, or a task's safety.max_velocity or a URDF's velocity
-    limit ignored."""
+    """The arm's velocity bound (``ArmModel.limits``: a URDF's, else MAX_VELOCITY, within the
+    task's safety.max_velocity) narrowed by the node's max_velocity, which by default narrows
+    nothing. Catches: a default kept twice, a task's safety.max_velocity or a URDF's velocity
+    limit ignored, or a node default that narrows the arm's bound (a URDF's 150 rad/s)."""
     parameters = ControllerParameters()
     assert (parameters.max_points, parameters.max_duration, parameters.max_velocity) == \
         (GOAL_MAX_POINTS, GOAL_MAX_DURATION, GOAL_MAX_VELOCITY)
+    assert GOAL_MAX_VELOCITY == np.inf
     task = load_task('reach_over_obstacle')
     lim = limits_of(task)
-    np.testing.assert_array_equal(lim.velocity, GOAL_MAX_VELOCITY)
+    np.testing.assert_array_equal(lim.velocity, MAX_VELOCITY)
     np.testing.assert_array_equal(lim.position_high, 3.0)
     np.testing.assert_array_equal(lim.effort_high, 40.0)
     assert limits_of(task, max_velocity=2.5).velocity.tolist() == [2.5] * 3
@@ -384,11 +389,14 @@ def test_the_defaults_are_the_parameters_and_the_velocity_the_smallest_given(tmp
     urdf = tmp_path / 'arm.urdf'
     urdf.write_text('<robot name="r"><joint name="j1" type="revolute"><limit velocity="3.15" '
                     'effort="1"/></joint><joint name="j2" type="revolute"><limit effort="1"/>'
-                    '</joint></robot>')
+                    '</joint><joint name="j3" type="revolute"><limit velocity="150" '
+                    'effort="1"/></joint><joint name="j4" type="revolute"><limit '
+                    'velocity="inf" effort="1"/></joint></robot>')
 
     class Urdf:
         model_path = urdf
-    assert urdf_velocity_limits(Urdf, ['j2', 'j1']).tolist() == [np.inf, 3.15]
+    assert urdf_velocity_limits(Urdf, ['j2', 'j1', 'j3', 'j4']).tolist() == \
+        [np.inf, 3.15, 150.0, np.inf]
     assert VELOCITY_SLACK < 0.1
 
 
@@ -446,3 +454,49 @@ def test_a_goals_points_are_released_once_read():
         server.destroy()
         node.destroy_node()
         rclpy.try_shutdown(context=context)
+
+
+# -- the safety check and the controllers agree (one rule, one set of limits) -----------------
+@pytest.mark.parametrize('name, count, seed, sigmas', [
+    ('reach_over_obstacle', 48, 46, (0.5, 2.5)), ('payload_transport', 48, 46, (0.5, 2.5)),
+    ('pose_reach_3d', 8, 3, (0.6, 1.6))])       # 8: its inverse kinematics take ~0.1 s a path
+def test_the_safety_check_passes_exactly_the_candidates_a_controller_takes(name, count, seed,
+                                                                           sigmas):
+    """A generated family of candidates (CMA-ES draws around the default theta, `sigmas` of
+    the search's units: the kinds a session meets, and far more violent ones), each sent
+    as psl sends it (`robot_link.trajectory_msg`) to the controllers' goal parser with the
+    default parameters: the safety check passes a candidate exactly when the controller takes
+    its goal, so batch mode (which runs what the check passes) never runs one the graph's
+    controller rejects, and graph mode never sends one. The family holds refusals of every
+    kind (a range, the velocity bound, the feed-forward beyond the torque limits, the cubic
+    between points). Catches: a rule or a limit in one place and not the other."""
+    from psl_optimizer.learning import search_normalisation
+    from psl_task.safety_check import SafetyCheck
+    task = load_task(name)
+    lim = limits_of(task)
+    joints = list(lim.joint_names)
+    policy = policy_for(task)
+    safety = SafetyCheck(ArmModel(task))
+    centre, scale = search_normalisation(task, policy.default_theta)
+    rng = np.random.default_rng(seed)
+    steps = np.linspace(*sigmas, count)[:, None] * rng.standard_normal((count, centre.size))
+    thetas = centre + scale * steps
+    taus = np.array([task.sample_tau(rng) for _ in range(count)])
+    kinds = {}
+    for theta, tau, reference in zip(thetas, taus, policy.references(thetas, taus)):
+        verdict = safety.check(tau, reference.q, reference.qd, reference.u_ffwd)
+        msg = FollowJointTrajectory.Goal(trajectory=trajectory_msg(joints, reference, 0, True))
+        try:
+            goal_from_msg(msg, joints, b'', Tolerances.none(len(joints)), lim)
+            taken = ''
+        except GoalRefused as exc:
+            taken = str(exc)
+        assert verdict.safe == (not taken), (verdict.reason, taken)
+        kind = ('safe' if verdict.safe else 'velocity' if 'velocity of' in verdict.reason
+                else 'feed-forward' if 'feed-forward' in verdict.reason
+                else 'between' if 'between the points' in verdict.reason else 'range')
+        kinds[kind] = kinds.get(kind, 0) + 1
+    wanted = {'reach_over_obstacle': ('safe', 'range'),
+              'payload_transport': ('safe', 'range', 'feed-forward'),
+              'pose_reach_3d': ('safe', 'velocity', 'feed-forward', 'between')}[name]
+    assert all(kinds.get(kind) for kind in wanted), kinds

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from psl_controller.homing import (braking_duration, braking_velocity, corrected_hold,
-                                   hold_stiffness, homing_duration, homing_reference,
-                                   inside_from, quintic)
+                                   hold_stiffness, homing_duration, homing_reference, quintic)
 from psl_controller.pd_law import law_for
 from psl_task.arm_model import ArmModel
 from psl_task.model_error import ModelError
+from psl_task.safety_check import inside_from
 from psl_task.task import load_task
 
 Q0 = np.array([0.4, -0.3])
@@ -314,7 +314,8 @@ def test_a_homing_from_outside_only_comes_closer_to_the_ranges_and_ends_inside(t
         assert first == 0 or np.any((reference.q[first - 1] < low)
                                     | (reference.q[first - 1] > high))
         assert (first > 0) == bool(np.any(where > 0))
-        verdict = safety.check(task.tau_default, reference.q, reference.qd, start=q0)
+        verdict = safety.check(task.tau_default, reference.q, reference.qd,
+                               reference.u_ffwd, start=q0)
         assert verdict.safe, (q0, qd0, verdict.reason)
         outside_seen += bool(np.any(where > 0))
         moving_out += bool(np.any(((where == 1) & (qd0 > 0)) | ((where == 2) & (qd0 < 0))))

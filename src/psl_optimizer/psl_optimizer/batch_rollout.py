@@ -229,7 +229,7 @@ class BatchRollouts(Rollouts):
             index = np.flatnonzero(lengths == length)
             group = [references[i] for i in index]
             arrays = stacked(group)                                  # each (B, N+1, n)
-            verdicts = self.safety.screen(taus[index], arrays[0], arrays[1])
+            verdicts = self.safety.screen(taus[index], *arrays)
             for i, verdict in zip(index, verdicts):
                 if not verdict.safe:         # not executed: the penalty and the reason
                     results[i] = refused_result(verdict.reason,

@@ -400,7 +400,8 @@ def teach_one(task: TaskDefinition, policy: TaskPolicy, t: np.ndarray, q: np.nda
         return refuse(f'the fitted movement stays {error:.3f} rad from it (tolerance '
                       f'{fit_tolerance:g}: a goal the policy cannot learn, or a motion its '
                       f'{task.policy.n_basis} basis functions cannot follow)', error)
-    verdict = (safety or SafetyCheck(ArmModel(task))).check(tau, reference.q, reference.qd)
+    verdict = (safety or SafetyCheck(ArmModel(task))).check(tau, reference.q, reference.qd,
+                                                          reference.u_ffwd)
     if not verdict.safe:
         return refuse(f'the safety check refuses its movement: {verdict.reason}', error)
     return Outcome(*span, tau=tau, theta=theta, fit_error=error)

@@ -97,6 +97,30 @@ def test_a_candidate_leaving_the_joint_ranges_is_refused_and_not_simulated(task,
     assert (batch.checked - checked, batch.refused - refused) == (4, 2)
 
 
+def test_a_feed_forward_a_controller_would_reject_is_refused_and_not_simulated():
+    """payload_transport's theta_D (the feed-forward on the DMP's basis) scaled until its
+    torque passes the joints' limits: before issue 46's controllers' limits batch mode ran
+    it (the law clips the torque), the graph's controller now rejects its goal: refused here
+    too, with the safety check's reason, not simulated, its penalty growing with the excess;
+    the same theta_D within the limits runs."""
+    task = load_task('payload_transport')
+    batch = BatchRollouts(task)
+    policy = batch.policy
+    theta = policy.default_theta.copy()
+    limit = batch.arm.torque_high.min()
+    thetas = np.tile(theta, (3, 1))
+    for row, weight in zip(thetas, (0.4, 5.0, 10.0)):     # x the limit, on every basis
+        row[policy.dynamics] = weight * limit
+    peaks = [np.abs(policy.reference(t, task.tau_default).u_ffwd).max() for t in thetas]
+    assert peaks[0] <= limit < peaks[1] < peaks[2]
+    results = batch.run(thetas, task.tau_default)
+    assert not results[0].refused and results[0].q is not None
+    for result in results[1:]:
+        assert 'the feed-forward of' in result.refused and 'its torque limit' in result.refused
+        assert result.q is None and result.evaluation.reward < task.safety.penalty
+    assert results[2].evaluation.reward < results[1].evaluation.reward
+
+
 def test_each_member_sees_its_own_task_instance(task, batch):
     theta = policy_for(task).default_theta
     low, high = task.tau_low, task.tau_high

@@ -85,6 +85,10 @@ class Stopped(Exception):
     """A wait ended because the caller's `stop` event was set (e.g. Ctrl-C)."""
 
 
+class GoalRejected(RuntimeError):
+    """An action server answered a goal by rejecting it (`send_goal`)."""
+
+
 class ServerWatch:
     """Whether an action server has gone: unseen for GONE_AFTER s (its process ended: Fast DDS
     drops a dead participant after its lease, 4 s with the profile scripts/env.sh sets)."""
@@ -115,8 +119,8 @@ def send_goal(action_client: ActionClient, goal, timeout: float, what: str, feed
     The wait ends as soon as the server has gone (`ServerWatch`).
 
     Raises:
-        TimeoutError: no server, or no answer within `timeout`; RuntimeError: rejected, or
-        the server has gone.
+        TimeoutError: no server, or no answer within `timeout`; GoalRejected (a RuntimeError):
+        rejected; RuntimeError: the server has gone.
     """
     deadline = time.monotonic() + timeout
     if not wait_for_server(action_client, timeout):
@@ -138,7 +142,7 @@ def send_goal(action_client: ActionClient, goal, timeout: float, what: str, feed
             raise TimeoutError(f'no answer from {what} (goal) within {timeout:.0f} s')
         wait *= 2
     if not handle.accepted:
-        raise RuntimeError(f'{what} rejected the goal (is it busy with another one?)')
+        raise GoalRejected(f'{what} rejected the goal (is it busy with another one?)')
     return handle
 
 

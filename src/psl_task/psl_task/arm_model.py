@@ -1,9 +1,10 @@
 """The physics of a task: its MuJoCo model with the task parameters applied.
 
 `ArmModel` steps the simulation with joint torques (held over the control period's
-`n_substeps` physics steps) and
-gives named accessors (joint names, torque limits, end-effector pose) and the task parameters'
-bindings. What the reward measures on it is `psl_task.reward_geometry`. Imports no ROS.
+`n_substeps` physics steps) and gives named accessors (joint names, torque limits,
+end-effector pose), the limits psl holds the arm to (`limits`: `psl_task.joint_limits`) and the
+task parameters' bindings. What the reward measures on it is `psl_task.reward_geometry`.
+Imports no ROS.
 """
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ import functools
 import mujoco
 import numpy as np
 
-from psl_task.model_spec import robot_geoms, task_model
+from psl_task.joint_limits import MAX_VELOCITY, JointLimits
+from psl_task.model_spec import robot_geoms, task_model, urdf_velocity_limits
 from psl_task.task import TaskDefinition, TaskError
 
 
@@ -74,6 +76,7 @@ class ArmModel:
             limited = limited.astype(bool)
             self.torque_low[limited] = np.maximum(self.torque_low, limits[:, 0])[limited]
             self.torque_high[limited] = np.minimum(self.torque_high, limits[:, 1])[limited]
+        self.limits = self._limits()
         self.ee_site = self._id(mujoco.mjtObj.mjOBJ_SITE, task.end_effector_site)
         # the geoms the reward measures against the obstacles: reward.arm_geoms, or every geom
         # of the bodies the joints move when omitted
@@ -128,6 +131,20 @@ class ArmModel:
                 raise TaskError(f'{task.path}: {what} puts joint {self.joint_names[j]!r} at '
                                 f'{q[j]:g}, outside its range [{low[j]:g}, {high[j]:g}] in '
                                 f'{task.model_path.name}: move it inside')
+
+    def _limits(self) -> JointLimits:
+        """The limits psl holds the arm to (`psl_task.joint_limits`): the joint ranges, the
+        URDF's velocity limits (else MAX_VELOCITY) within the task's safety.max_velocity, the
+        torque limits."""
+        m, ids = self.model, self.joint_ids
+        limited = m.jnt_limited[ids].astype(bool)
+        velocity = urdf_velocity_limits(self.task, self.joint_names)
+        velocity = np.minimum(np.where(np.isfinite(velocity), velocity, MAX_VELOCITY),
+                              float(self.task.safety.max_velocity))
+        return JointLimits(tuple(self.joint_names),
+                           np.where(limited, m.jnt_range[ids, 0], -np.inf),
+                           np.where(limited, m.jnt_range[ids, 1], np.inf),
+                           velocity, self.torque_low, self.torque_high)
 
     def geom(self, name: str) -> int:
         """The id of the geom called `name`; TaskError if the model has none."""

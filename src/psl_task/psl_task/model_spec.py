@@ -187,6 +187,30 @@ def urdf_text(task: TaskDefinition) -> str:
     return ElementTree.tostring(root, encoding='unicode')
 
 
+def urdf_velocity_limits(task: TaskDefinition, joint_names: list[str]) -> np.ndarray:
+    """The URDF's ``<limit velocity="...">`` of each joint (inf where it gives none, or no
+    finite number > 0, or the model is not a URDF): MuJoCo's URDF import drops them; psl holds
+    the arm to them (`psl_task.joint_limits`)."""
+    limits = np.full(len(joint_names), np.inf)
+    if task.model_path.suffix.lower() != '.urdf':
+        return limits
+    try:
+        root = ElementTree.parse(task.model_path).getroot()
+    except (OSError, ElementTree.ParseError):     # MuJoCo read it: nothing to add here
+        return limits
+    for joint in root.iter('joint'):
+        limit = joint.find('limit')
+        if limit is None or joint.get('name') not in joint_names:
+            continue
+        try:
+            velocity = float(limit.get('velocity', 'inf'))
+        except ValueError:
+            continue
+        if 0.0 < velocity < np.inf:
+            limits[joint_names.index(joint.get('name'))] = velocity
+    return limits
+
+
 ONE_DOF = (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)
 
 

@@ -206,13 +206,17 @@ class RewardSpec:
 @dataclasses.dataclass(frozen=True)
 class SafetySpec:
     """The ``safety`` section: what a candidate's commanded trajectory must keep before it is
-    executed (`psl_task.safety_check`), in either rollout mode. By default the reference must be
-    finite and inside the joint ranges; every other limit is off until the task sets it."""
+    executed (`psl_task.safety_check`), in either rollout mode. Always, what every controller
+    psl serves holds a goal to: the reference finite, inside the joint ranges and within the
+    arm's velocity limits (a URDF's, else 100 rad/s), its feed-forward within the torque
+    limits, and so between its points as a controller interpolates them; every other limit is
+    off until the task sets it."""
 
     joint_margin: NonNegative = 0.0
     """[rad (m)] kept inside each limited joint's range."""
     max_velocity: NonNegative = float('inf')
-    """[rad/s (m/s)] bound on |qd_ref| of every driven joint."""
+    """[rad/s (m/s)] bound on |qd_ref| of every driven joint, where lower than the arm's own
+    (a URDF's ``<limit velocity>``, else 100 rad/s)."""
     max_acceleration: NonNegative = float('inf')
     """[rad/s^2] bound on |qdd_ref|."""
     torque_share: NonNegative = float('inf')
