@@ -189,8 +189,8 @@ def urdf_text(task: TaskDefinition) -> str:
 
 def urdf_velocity_limits(task: TaskDefinition, joint_names: list[str]) -> np.ndarray:
     """The URDF's ``<limit velocity="...">`` of each joint (inf where it gives none, or no
-    finite number > 0, or the model is not a URDF): MuJoCo's URDF import drops them; psl holds
-    the arm to them (`psl_task.joint_limits`)."""
+    number > 0, or the model is not a URDF): MuJoCo's URDF import drops them; psl holds the arm
+    to them (`psl_task.joint_limits`)."""
     limits = np.full(len(joint_names), np.inf)
     if task.model_path.suffix.lower() != '.urdf':
         return limits
@@ -206,7 +206,7 @@ def urdf_velocity_limits(task: TaskDefinition, joint_names: list[str]) -> np.nda
             velocity = float(limit.get('velocity', 'inf'))
         except ValueError:
             continue
-        if 0.0 < velocity < np.inf:
+        if velocity > 0.0:
             limits[joint_names.index(joint.get('name'))] = velocity
     return limits
 

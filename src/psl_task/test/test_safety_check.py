@@ -295,6 +295,19 @@ def touching(task, wobble: float) -> tuple[np.ndarray, np.ndarray]:
     return q, qd
 
 
+def cruising(task, speed: float) -> tuple[np.ndarray, np.ndarray]:
+    """joint3 speeding up to `speed` rad/s (a smoothstep over 30 ms), cruising 4 ms, slowing
+    to rest; its positions the trapezoidal sums of the velocities, so the cubic between two
+    points stays within their velocities."""
+    t = np.arange(task.num_steps + 1) * task.control_period
+    s = np.clip((t - 0.1) / 0.03, 0, 1) - np.clip((t - 0.134) / 0.03, 0, 1)
+    qd = np.zeros((len(t), task.n_joints))
+    qd[:, 2] = speed * s ** 2 * (3 - 2 * s)
+    q = task.start_posture + np.concatenate([np.zeros((1, task.n_joints)), np.cumsum(
+        0.5 * (qd[1:] + qd[:-1]) * task.control_period, axis=0)])
+    return q, qd
+
+
 @pytest.mark.parametrize('safety', [{}, {'max_velocity': 2.0}, {'max_acceleration': 50.0}])
 def test_screening_a_population_gives_the_verdicts_of_one_by_one(tmp_path, safety):
     """The vectorised pass (default limits) and the detailed check agree on every member:
@@ -310,6 +323,7 @@ def test_screening_a_population_gives_the_verdicts_of_one_by_one(tmp_path, safet
              (q + rng.normal(0.0, 0.5, q.shape), qd, 0 * q),     # out of range, jumpy
              (q, qd * 3.0, 0 * q), (q, qd * 0.5, 0 * q),
              (fast_q, fast_qd, 0 * q),                           # velocity
+             (*cruising(task, 100.5), 0 * q),                    # at its points only
              (q, qd, 1.5 * limit + 0 * q),                       # feed-forward
              (*touching(task, 5.0), 0 * q)]                      # between points
     qs, qds, us = (np.stack([case[i] for case in cases]) for i in range(3))
@@ -412,6 +426,26 @@ def test_a_bulge_between_points_is_refused_and_its_violation_grows():
         assert 'above its limit 3 rad by' in verdict.reason
         assert 'more than the 0.001 rad the controllers psl serve tolerate' in verdict.reason
     assert violations[0] == violations[1] == 0.0 < violations[2] < violations[3]
+
+
+def test_a_reference_ending_in_motion_is_checked_as_it_is_sent():
+    """joint3 speeding up to 90 rad/s at the episode's last point (within the bound at every
+    point): psl sends the last point at rest (a JTC refuses a trajectory that ends moving),
+    and the cubic of the last segment then reaches 109 rad/s, past the bound and its slack:
+    refused, as the controllers reject that goal. Catches: the reference checked with the
+    velocity it does not send."""
+    task = load_task('reach_over_obstacle')
+    dt = task.control_period
+    t = np.arange(task.num_steps + 1) * dt
+    s = np.clip((t - (t[-1] - 0.02)) / 0.02, 0.0, 1.0)      # the last 20 ms
+    q = np.tile(task.start_posture, (len(t), 1))
+    qd = np.zeros_like(q)
+    qd[:, 2] = 90.0 * s ** 2
+    q[:, 2] += 90.0 * 0.02 * s ** 3 / 3
+    verdict = SafetyCheck(ArmModel(task)).check(task.tau_default, q, qd, np.zeros_like(q))
+    assert np.abs(qd).max() == 90.0
+    assert "joint 'joint3': between the points at t = 1.998 and 2.000 s" in verdict.reason
+    assert 'reaches velocity 108.' in verdict.reason, verdict.reason
 
 
 def test_a_urdfs_velocity_limits_are_the_arms(tmp_path):
