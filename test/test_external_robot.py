@@ -502,11 +502,8 @@ class TestMinimalRobot:
         assert zero - last >= STATE_TIMEOUT * 1e9, (
             f'zero torque {(zero - last) * 1e-9:.3f} s after the last state, before the '
             f'watchdog\'s {STATE_TIMEOUT} s:\n{timeline}')
-        # and within one more timeout (the watchdog's timer runs every control period: one a
-        # whole timeout late is a watchdog that reacts late; conftest.check_watchdog_silence)
-        assert zero - last <= 2 * STATE_TIMEOUT * 1e9, (
-            f'zero torque {(zero - last) * 1e-9:.3f} s after the last state, more than twice '
-            f'the watchdog\'s {STATE_TIMEOUT} s:\n{timeline}')
+        # no bound above: how late is the busy controller process's timer (its first look past
+        # the timeout fires: src/psl_controller/test/test_watchdog.py)
         torque = [u for sent, u in commands if zero <= sent < back and np.any(u)]
         assert not torque, f'torque sent after the zero, in the silence:\n{timeline}'
         # the states are back: the session can go on
