@@ -86,3 +86,14 @@ def memory_folder(tmp_path_factory) -> Path:
     folder = tmp_path_factory.getbasetemp()
     os.environ['PSL_MEMORY_DIR'] = str(folder)
     return folder
+
+
+@pytest.fixture(scope='session')
+def ray_cluster():
+    """One local Ray cluster for the tests of this process that run sweeps on Ray (the sweeps
+    join it: `psl_bench.sessions.cluster`), started at the first of them and ended with the
+    process's tests: a cluster's start and its workers' imports once, not per test (its
+    workers are this process's descendants, through its raylet)."""
+    from psl_bench import sessions
+    with sessions.cluster('ray'):
+        yield

@@ -42,7 +42,7 @@ def serial(tmp_path_factory):
     return out, bench_learn.run(out=out, runner='serial', **SWEEP)
 
 
-def test_ray_gives_the_records_of_a_serial_run_bit_for_bit(serial, tmp_path):
+def test_ray_gives_the_records_of_a_serial_run_bit_for_bit(serial, tmp_path, ray_cluster):
     out, report = serial
     on_ray = bench_learn.run(out=tmp_path, runner='ray', **SWEEP)
     assert on_ray['runner'].startswith('ray') and report['runner'] == 'serial'
@@ -132,7 +132,8 @@ def test_a_worker_of_another_sweep_is_not_mine():
         os.kill(other, signal.SIGKILL)
 
 
-def test_a_worker_killed_mid_session_is_run_again_and_the_table_is_complete(serial, tmp_path):
+def test_a_worker_killed_mid_session_is_run_again_and_the_table_is_complete(serial, tmp_path,
+                                                                             ray_cluster):
     out, report = serial
     sweep = {**SWEEP, 'num_tasks': 3}
     result, errors = {}, []
@@ -178,8 +179,10 @@ def failing_session(fail: bool) -> dict:
 
 
 @pytest.mark.parametrize('runner', sessions.RUNNERS)
-def test_a_session_that_fails_twice_is_named_and_the_rest_comes_out(runner):
+def test_a_session_that_fails_twice_is_named_and_the_rest_comes_out(runner, request):
     import sys
+    if runner == 'ray':
+        request.getfixturevalue('ray_cluster')
 
     from ray import cloudpickle
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
