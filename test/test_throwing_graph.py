@@ -116,15 +116,16 @@ def test_a_noisy_motion_capture_moves_the_landing_point_by_its_noise(task, clien
 
 
 def test_a_session_learns_on_the_motion_captures_poses(task, client, tmp_path):
+    """A graph-mode session scored on the noisy poses of the ball fulfils its task (seed 1:
+    batch mode, without the noise, fulfils it after one generation of 12 rollouts)."""
     try:
         set_noise(client, NOISE)
-        result = client.learn(timeout=900, task=TASK, strategy='bootstrap', num_tasks=2,
-                              max_rollouts_per_task=40, seed=2, num_test=2, mode='graph',
+        result = client.learn(timeout=900, task=TASK, strategy='bootstrap', num_tasks=1,
+                              max_rollouts_per_task=40, seed=1, num_test=1, mode='graph',
                               output_dir=str(tmp_path / 'session'))
         assert result.success, result.message
         tasks = json.loads(Path(result.metrics_path).read_text())['tasks']
-        assert len(tasks) == 2 and all(t['failed'] == 0 for t in tasks)
-        assert any(t['fulfilled'] for t in tasks)
+        assert len(tasks) == 1 and tasks[0]['failed'] == 0 and tasks[0]['fulfilled']
     finally:
         set_noise(client, 0.0)
 
