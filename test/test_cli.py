@@ -136,9 +136,11 @@ def wait_for_checkpoint(learn: subprocess.Popen, out, timeout: float = 120.0) ->
 
 def test_learn_in_graph_mode_cancels_on_ctrl_c_and_resumes(start_up, tmp_path):
     """`psl learn --mode graph` runs the session in the graph's learner node (with the
-    command's --test-tasks); Ctrl-C cancels the goal (finished tasks stay in the checkpoint),
-    the same command resumes it, and the result equals batch mode's (graph rollouts give the
-    batch rewards)."""
+    command's --test-tasks, its progress from the node's feedback); Ctrl-C cancels the goal
+    (finished tasks stay in the checkpoint), the same command resumes it, and the result is
+    batch mode's: rollouts through the graph give the batch rewards to 1e-9, so CMA-ES takes
+    the same path (the same instances, rollouts, fulfilled tasks, best and held-out
+    rewards)."""
     up = start_up()
     out = tmp_path / 'graph'
     learn = PSL + ['learn', '--mode', 'graph', '--tasks', '3', '--budget', '12', '--seed', '3',
@@ -159,6 +161,8 @@ def test_learn_in_graph_mode_cancels_on_ctrl_c_and_resumes(start_up, tmp_path):
     assert 1 <= len(kept) < 3
     again = subprocess.run(learn, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
+    # its progress lines come from the learner's feedback, the last task's too
+    assert 'task 3/3 ' in again.stderr, again.stderr
     up.end()
     graph = json.loads((out / 'metrics.json').read_text())
     assert graph['tasks'][:len(kept)] == kept
@@ -170,8 +174,12 @@ def test_learn_in_graph_mode_cancels_on_ctrl_c_and_resumes(start_up, tmp_path):
     assert batch.returncode == 0, batch.stderr
     batch = json.loads((tmp_path / 'batch' / 'metrics.json').read_text())
     assert [t['rollouts'] for t in graph['tasks']] == [t['rollouts'] for t in batch['tasks']]
+    assert [t['fulfilled'] for t in graph['tasks']] == [t['fulfilled'] for t in batch['tasks']]
+    assert [t['tau'] for t in graph['tasks']] == [t['tau'] for t in batch['tasks']]
     assert [t['best_reward'] for t in graph['tasks']] == pytest.approx(
         [t['best_reward'] for t in batch['tasks']], abs=1e-9)
+    assert graph['summary']['test_rewards'] == pytest.approx(
+        batch['summary']['test_rewards'], abs=1e-9)
 
 
 def test_where_a_session_runs_and_how_its_rollouts_run_are_two_choices(start_up, tmp_path,
