@@ -124,6 +124,9 @@ def test_a_worker_of_another_sweep_is_not_mine():
         capture_output=True, text=True, check=True)
     other = int(detached.stdout)
     try:
+        deadline = time.monotonic() + 10.0      # its title once bash has exec'd the sleep
+        while _status(other)[0] != 'ray::_run' and time.monotonic() < deadline:
+            time.sleep(0.01)
         assert _status(other)[0] == 'ray::_run' and not started_here(other)
         assert other not in my_ray_workers()
         assert not kill_my_worker(other)
