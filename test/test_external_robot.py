@@ -341,10 +341,11 @@ def default_rollout(task):
 
 
 def learn(client: RosClient, out: Path, budget: int):
-    """A learning session in graph mode: two instances, `budget` rollouts each at most, one
-    held-out instance; the rollouts it executed."""
+    """A learning session in graph mode: one instance, `budget` rollouts at most, one
+    held-out instance (two episodes or more, each homed from where the last one left the
+    arm); the rollouts it executed."""
     result = client.learn(timeout=SESSION_TIMEOUT, task=TASK, strategy='bootstrap',
-                          num_tasks=2, max_rollouts_per_task=budget, seed=1, mode='graph',
+                          num_tasks=1, max_rollouts_per_task=budget, seed=1, mode='graph',
                           output_dir=str(out), num_test=1)
     assert result.success, result.message
     metrics = read_metrics(Path(result.metrics_path).parent)
@@ -426,7 +427,8 @@ class TestMinimalRobot:
         robot, graph, client = minimal
         task = load_task(TASK)
         recorder = record()
-        # one rollout per instance: what is shown here is the motion across the episodes
+        # one rollout, then the held-out one: what is shown here is the motion across the
+        # episodes
         with announced(client, observer) as instances:
             executed = learn(client, tmp_path / 'session', budget=1)
         with recorder.lock:
