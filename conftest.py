@@ -33,6 +33,9 @@ import pytest
 # 1..100; 0 (ROS's default) and 42 (scripts/env.sh's) are where a user's own graph runs
 DOMAINS = tuple(i for i in range(1, 101) if i != 42)
 LOCK_FILE = 'psl-ros-domain-{}.lock'
+# the system's temporary folder, where every run finds the lock files (read before this
+# process's TMPDIR becomes its own: `memory_folder`)
+SYSTEM_TMP = Path(tempfile.gettempdir())
 _claimed: dict[int, int] = {}       # domain -> the locked file's descriptor, open for life
 
 
@@ -44,7 +47,7 @@ def claim_domain(private: bool = False) -> int:
     order = [d for d in DOMAINS if d >= first] + [d for d in DOMAINS if d < first]
     if private:
         order = list(reversed(DOMAINS))
-    folder = Path(tempfile.gettempdir())
+    folder = SYSTEM_TMP
     for domain in order:
         if domain in _claimed:
             continue
@@ -79,12 +82,17 @@ def private_ros_domain() -> int:
 
 @pytest.fixture(scope='session', autouse=True)
 def memory_folder(tmp_path_factory) -> Path:
-    """The memory nodes the tests start keep their files in this process's own temporary
-    folder (pytest's base folder: every tmp_path lies in it), ``PSL_MEMORY_DIR``; a memory
-    node refuses paths outside its memory_dir, and a bare name lands here, never in the
-    system's temporary folder."""
+    """This process's own temporary folder (pytest's base folder: every tmp_path lies in it)
+    for what the tests and the processes they start keep: the memory nodes' files
+    (``PSL_MEMORY_DIR``: a memory node refuses paths outside its memory_dir, and a bare name
+    lands here) and every temporary file (``TMPDIR``: its ``tmp``), never the system's
+    temporary folder; Ray's session folders stay where Ray keeps them (``RAY_TMPDIR``: its
+    sockets' paths must stay short)."""
     folder = tmp_path_factory.getbasetemp()
     os.environ['PSL_MEMORY_DIR'] = str(folder)
+    (folder / 'tmp').mkdir(exist_ok=True)
+    os.environ.setdefault('RAY_TMPDIR', str(SYSTEM_TMP))
+    os.environ['TMPDIR'] = str(folder / 'tmp')
     return folder
 
 

@@ -265,7 +265,10 @@ def run_document(document: str, tmp_path: Path) -> None:
     what the document says."""
     folder = tmp_path / 'reader'
     folder.mkdir()
-    env = dict(os.environ, PSL_VIEW_PORT=str(_free_port()), PSL_LOG_DIR=str(tmp_path / 'logs'))
+    (tmp_path / 'tmp').mkdir()
+    # its temporary files in its folder too (TMPDIR: `psl bench dynamics` keeps a folder there)
+    env = dict(os.environ, PSL_VIEW_PORT=str(_free_port()), PSL_LOG_DIR=str(tmp_path / 'logs'),
+               TMPDIR=str(tmp_path / 'tmp'))
     env.pop('PSL_MEMORY_DIR', None)     # the graph keeps its memory files where it was started
     background: dict[tuple, Background] = {}
     left: list[str] = []        # processes a background command left behind (killed)
