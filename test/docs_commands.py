@@ -296,8 +296,9 @@ def run_document(document: str, tmp_path: Path) -> None:
         took.append((time.monotonic() - start, None))
         print(f'\n{document}: {sum(t for t, _ in took):.1f} s')
         for seconds, command in took:
-            print(f'  {seconds:6.1f} s  ' + (f'{command.where} {command.text[:70]}'
-                                            if command else 'Ctrl-C to what runs in the background'))
+            print(f'  {seconds:6.1f} s  ' + (
+                f'{command.where} {command.text[:70]}' if command
+                else 'Ctrl-C to what runs in the background'))
     assert not left, f'left behind after Ctrl-C (killed now): {left}'
 
 
