@@ -42,16 +42,17 @@ def wait_until():
 def check_watchdog_silence(reason: str) -> float:
     """The silence the controller's watchdog measured on its own clock when it fired, read
     from its abort reason ('joint states stopped: none for X s (state_timeout T s)'), held to
-    T <= X <= 2 T: it fired after its timeout, and within one more timeout (its timer runs
-    every control period; a timer late by a whole timeout is a watchdog that reacts late).
-    Returns X."""
+    X >= T: it did not fire before its timeout. No upper bound: X is measured on a Python
+    process's clock, late by whatever the machine's load keeps it from running; that the
+    watchdog looks every control period and fires at the first look past T is held on its
+    own ticks (src/psl_controller/test/test_watchdog.py). Returns X."""
     import re
     found = re.search(r'none for ([0-9.]+) s \(state_timeout ([0-9.eE+-]+) s\)', reason)
     assert found, f'no measured silence in the reason: {reason!r}'
     silence, timeout = float(found[1]), float(found[2])
     # X is printed to the millisecond: above T within that rounding
-    assert timeout - 5e-4 <= silence <= 2 * timeout, (
-        f'the watchdog fired after {silence} s of silence, its timeout {timeout} s')
+    assert silence >= timeout - 5e-4, (
+        f'the watchdog fired after {silence} s of silence, before its timeout {timeout} s')
     return silence
 
 

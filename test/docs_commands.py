@@ -265,7 +265,10 @@ def run_document(document: str, tmp_path: Path) -> None:
     what the document says."""
     folder = tmp_path / 'reader'
     folder.mkdir()
-    env = dict(os.environ, PSL_VIEW_PORT=str(_free_port()), PSL_LOG_DIR=str(tmp_path / 'logs'))
+    (tmp_path / 'tmp').mkdir()
+    # its temporary files in its folder too (TMPDIR: `psl bench dynamics` keeps a folder there)
+    env = dict(os.environ, PSL_VIEW_PORT=str(_free_port()), PSL_LOG_DIR=str(tmp_path / 'logs'),
+               TMPDIR=str(tmp_path / 'tmp'))
     env.pop('PSL_MEMORY_DIR', None)     # the graph keeps its memory files where it was started
     background: dict[tuple, Background] = {}
     left: list[str] = []        # processes a background command left behind (killed)
@@ -293,8 +296,9 @@ def run_document(document: str, tmp_path: Path) -> None:
         took.append((time.monotonic() - start, None))
         print(f'\n{document}: {sum(t for t, _ in took):.1f} s')
         for seconds, command in took:
-            print(f'  {seconds:6.1f} s  ' + (f'{command.where} {command.text[:70]}'
-                                            if command else 'Ctrl-C to what runs in the background'))
+            print(f'  {seconds:6.1f} s  ' + (
+                f'{command.where} {command.text[:70]}' if command
+                else 'Ctrl-C to what runs in the background'))
     assert not left, f'left behind after Ctrl-C (killed now): {left}'
 
 

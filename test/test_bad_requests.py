@@ -5,9 +5,6 @@ processes; every case below is a request that once killed a node or was answered
 a generated family of bad values for every numeric and string field of every psl_msgs
 request. After each, every node still answers and still works (a rollout, a query)."""
 import math
-import os
-import shutil
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -30,16 +27,19 @@ BAD_STRINGS = ('', 'x' * 256, 'x' * 5000, '../../etc/passwd', '/dev/zero', 'a/b\
                'nö_ascii_✓')
 
 
-# the memory node's folder (the system's temporary folder: conftest.py); this run's files in it
-MEMORY_DIR = Path(tempfile.gettempdir())
-MINE = f'psl-bad-requests-{os.getpid()}'
+MINE = 'psl-bad-requests'      # the files this module saves, in its memory folder
 
 
-@pytest.fixture(scope='module', autouse=True)
-def remove_my_files():
-    yield
-    for path in MEMORY_DIR.glob(f'{MINE}*'):
-        path.unlink(missing_ok=True)
+@pytest.fixture(scope='module')
+def memory_dir(tmp_path_factory) -> Path:
+    """The graph's memory folder (its skill_memory's memory_dir), the module's own: the saves
+    by bare names below (generated ones among them: 'a/b\\c d') land there and nowhere else."""
+    return tmp_path_factory.mktemp('memory')
+
+
+@pytest.fixture(scope='module')
+def graph_options(memory_dir):
+    return {'extra_params': {'skill_memory': {'memory_dir': str(memory_dir)}}}
 
 
 @pytest.fixture(scope='module')
@@ -78,7 +78,8 @@ def test_a_reset_of_a_bad_duration_is_refused(graph, client, task, duration, wor
 
 
 @pytest.mark.parametrize('name', ['a' * 256, 'a' * 5000, 'x/' * 300 + 'y.yaml'])
-def test_a_long_task_name_is_refused_by_every_node_that_takes_one(graph, client, task, name):
+def test_a_long_task_name_is_refused_by_every_node_that_takes_one(graph, client, task, name,
+                                                                  memory_dir):
     response = call(client, ResetTask, names.RESET, task=name, tau=task.tau_default.tolist())
     assert not response.success and response.message, response.message
     result = client.rollout(name, task.tau_default, policy_for(task).default_theta)
@@ -86,7 +87,7 @@ def test_a_long_task_name_is_refused_by_every_node_that_takes_one(graph, client,
         'characters', 'File name too long', 'does not exist')), result.message
     learned = client.learn(timeout=60, task=name, strategy='bootstrap', num_tasks=1,
                            max_rollouts_per_task=2, seed=0, mode='batch',
-                           output_dir=str(MEMORY_DIR / MINE / 'never'))
+                           output_dir=str(memory_dir / 'never'))
     assert not learned.success and learned.message, learned.message
     assert_the_graph_serves(graph, client, task)
 
@@ -94,7 +95,7 @@ def test_a_long_task_name_is_refused_by_every_node_that_takes_one(graph, client,
 @pytest.mark.parametrize('path', ['a' * 256, '{mine}-ok.npz/x.npz', 'a' * 5000, '\0'])
 def test_a_memory_path_that_raises_is_refused(graph, client, task, path):
     assert client.memory('save', path=f'{MINE}-ok.npz').success
-    path = path.format(mine=MINE)      # test ids alike on every xdist worker: no pid in them
+    path = path.format(mine=MINE)
     before = client.memory('info').message
     response = client.memory('load', path=path)
     assert not response.success and response.message, response.message
@@ -103,8 +104,8 @@ def test_a_memory_path_that_raises_is_refused(graph, client, task, path):
 
 
 def test_a_session_into_a_folder_outside_the_memory_folder_is_refused_before_any_work(
-        graph, client, task):
-    outside = Path('/var/tmp' if MEMORY_DIR != Path('/var/tmp') else '/') / MINE / 'run'
+        graph, client, task, tmp_path):
+    outside = tmp_path / 'outside' / 'run'          # beside the memory folder, not in it
     before = client.memory('info').message
     result = client.learn(timeout=60, task=TASK, strategy='bootstrap', num_tasks=1,
                           max_rollouts_per_task=5, seed=0, mode='batch',
@@ -116,19 +117,19 @@ def test_a_session_into_a_folder_outside_the_memory_folder_is_refused_before_any
 
 
 def test_a_load_during_a_graph_mode_session_is_refused_and_the_skill_holds_its_samples(
-        graph, client, task, tmp_path):
+        graph, client, task, memory_dir):
     import json
 
     from psl_memory.skill_memory import SkillMemory
     other = SkillMemory()
     other.create(TASK, task.tau_low, task.tau_high, policy_for(task).default_theta)
     other.add(TASK, task.tau_default, policy_for(task).default_theta)
-    other.save(MEMORY_DIR / f'{MINE}-other.npz')
+    other.save(memory_dir / f'{MINE}-other.npz')
     feedback = threading.Event()
     handle = client.send_learn_goal(feedback=lambda _: feedback.set(), task=TASK,
                                     strategy='bootstrap', num_tasks=2, max_rollouts_per_task=12,
                                     seed=3, num_test=2, mode='graph',
-                                    output_dir=str(tmp_path / 'session'))
+                                    output_dir=str(memory_dir / 'session'))
     try:
         assert feedback.wait(60), 'the session sent no feedback'
         for replace in (False, True):
@@ -337,28 +338,27 @@ VALID = {f'{names.RESET}.mode=' + repr(''), f'{names.RESET}.duration=0.0',
            for service in ('save', 'load') for name in ('a/b\\c d', 'nö_ascii_✓'))}
 
 
-def test_a_generated_family_of_bad_requests_leaves_every_node_serving(graph, client, task):
+def test_a_generated_family_of_bad_requests_leaves_every_node_serving(graph, client, task,
+                                                                      memory_dir):
     """Every generated request is answered, the ones documented as valid accepted and every
-    other one refused with a reason; no node dies, and the graph serves afterwards."""
+    other one refused with a reason; no node dies, and the graph serves afterwards. The
+    valid saves wrote into the graph's memory folder, the module's own."""
     # the one-bad-entry vectors are refused for that entry: no BAD_NUMBERS value is in range
     assert not any(low <= x <= high for x in BAD_NUMBERS
                    for low, high in zip(task.tau_low, task.tau_high))
     cases = list(bad_requests(task))
     assert VALID <= {label for label, *_ in cases}, VALID - {label for label, *_ in cases}
-    try:
-        for label, srv, name, fields in cases:
-            try:
-                response = call(client, srv, name, timeout=30, **fields)
-            except TimeoutError as exc:
-                raise AssertionError(f'{label}: no answer ({exc})') from None
-            if label in VALID:
-                assert response.success, f'{label}: refused ({response.message})'
-            else:
-                assert not response.success, f'{label}: accepted ({response.message})'
-                assert response.message, f'{label}: refused without a reason'
-            dead = [p.name for p in graph.processes if not pid_alive(p.pid)]
-            assert not dead, f'{label} killed {dead}'
-    finally:            # the valid saves wrote into the memory folder
-        shutil.rmtree(MEMORY_DIR / 'a', ignore_errors=True)
-        (MEMORY_DIR / 'nö_ascii_✓').unlink(missing_ok=True)
+    for label, srv, name, fields in cases:
+        try:
+            response = call(client, srv, name, timeout=30, **fields)
+        except TimeoutError as exc:
+            raise AssertionError(f'{label}: no answer ({exc})') from None
+        if label in VALID:
+            assert response.success, f'{label}: refused ({response.message})'
+        else:
+            assert not response.success, f'{label}: accepted ({response.message})'
+            assert response.message, f'{label}: refused without a reason'
+        dead = [p.name for p in graph.processes if not pid_alive(p.pid)]
+        assert not dead, f'{label} killed {dead}'
+    assert (memory_dir / 'a' / 'b\\c d').is_file() and (memory_dir / 'nö_ascii_✓').is_file()
     assert_the_graph_serves(graph, client, task)

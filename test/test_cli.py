@@ -93,10 +93,19 @@ def start_up(tmp_path):
             up.end()
 
 
-def test_up_serves_rollouts_and_ends_its_processes_on_sigterm(start_up):
-    up = start_up()
+def test_up_serves_rollouts_and_a_view_and_ends_its_processes_on_sigterm(start_up):
+    """psl up --view: the graph serves rollouts and queries, the view node starts with it,
+    psl up says where it serves, a Foxglove viewer sees the graph's channels there, and
+    SIGTERM ends every node, the view as well."""
+    from psl_bench.foxglove_client import FoxgloveClient
+
+    up = start_up('--view', '0')
+    assert 'view' in up.nodes
     up.wait_for_line('graph ready')
     assert not set(up.nodes) - set(up.alive_nodes())
+    url = re.search(r'view: (ws://\S+)', up.output())[1]
+    with FoxgloveClient(url) as viewer:
+        assert viewer.wait_channels(['/scene', '/joint_states', '/learning_progress'], 30.0)
     out = subprocess.run(PSL + ['rollout', '--json', '--timeout', '60'],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
@@ -116,22 +125,6 @@ def test_up_serves_rollouts_and_ends_its_processes_on_sigterm(start_up):
     assert not up.alive_nodes()
 
 
-def test_up_with_view_serves_foxglove_and_ends_the_view_too(start_up):
-    """psl up --view: the view node starts with the graph, psl up says where it serves, a
-    Foxglove viewer sees the graph's channels there, and SIGTERM ends the view as well."""
-    from psl_bench.foxglove_client import FoxgloveClient
-
-    up = start_up('--view', '0')
-    assert 'view' in up.nodes
-    up.wait_for_line('graph ready')
-    url = re.search(r'view: (ws://\S+)', up.output())[1]
-    with FoxgloveClient(url) as viewer:
-        assert viewer.wait_channels(['/scene', '/joint_states', '/learning_progress'], 30.0)
-    up.proc.send_signal(signal.SIGTERM)
-    assert up.proc.wait(timeout=30) == 0
-    assert not up.alive_nodes()
-
-
 def wait_for_checkpoint(learn: subprocess.Popen, out, timeout: float = 120.0) -> None:
     """Until the session running in `learn` has written its first checkpoint (a task done)."""
     deadline = time.monotonic() + timeout
@@ -142,9 +135,12 @@ def wait_for_checkpoint(learn: subprocess.Popen, out, timeout: float = 120.0) ->
 
 
 def test_learn_in_graph_mode_cancels_on_ctrl_c_and_resumes(start_up, tmp_path):
-    """`psl learn --mode graph` runs the session in the graph's learner node; Ctrl-C cancels
-    the goal (finished tasks stay in the checkpoint), the same command resumes it, and the
-    result equals batch mode's (graph rollouts give the batch rewards)."""
+    """`psl learn --mode graph` runs the session in the graph's learner node (with the
+    command's --test-tasks, its progress from the node's feedback); Ctrl-C cancels the goal
+    (finished tasks stay in the checkpoint), the same command resumes it, and the result is
+    batch mode's: rollouts through the graph give the batch rewards to 1e-9, so CMA-ES takes
+    the same path (the same instances, rollouts, fulfilled tasks, best and held-out
+    rewards)."""
     up = start_up()
     out = tmp_path / 'graph'
     learn = PSL + ['learn', '--mode', 'graph', '--tasks', '3', '--budget', '12', '--seed', '3',
@@ -165,17 +161,25 @@ def test_learn_in_graph_mode_cancels_on_ctrl_c_and_resumes(start_up, tmp_path):
     assert 1 <= len(kept) < 3
     again = subprocess.run(learn, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
+    # its progress lines come from the learner's feedback, the last task's too
+    assert 'task 3/3 ' in again.stderr, again.stderr
     up.end()
     graph = json.loads((out / 'metrics.json').read_text())
     assert graph['tasks'][:len(kept)] == kept
+    # the session tested --test-tasks held-out instances, not the learner node's default
+    assert len(graph['summary']['test_rewards']) == 1
     batch = subprocess.run(PSL + ['learn', '--tasks', '3', '--budget', '12', '--seed', '3',
                                   '--test-tasks', '1', '--out', str(tmp_path / 'batch')],
                            capture_output=True, text=True, timeout=300)
     assert batch.returncode == 0, batch.stderr
     batch = json.loads((tmp_path / 'batch' / 'metrics.json').read_text())
     assert [t['rollouts'] for t in graph['tasks']] == [t['rollouts'] for t in batch['tasks']]
+    assert [t['fulfilled'] for t in graph['tasks']] == [t['fulfilled'] for t in batch['tasks']]
+    assert [t['tau'] for t in graph['tasks']] == [t['tau'] for t in batch['tasks']]
     assert [t['best_reward'] for t in graph['tasks']] == pytest.approx(
         [t['best_reward'] for t in batch['tasks']], abs=1e-9)
+    assert graph['summary']['test_rewards'] == pytest.approx(
+        batch['summary']['test_rewards'], abs=1e-9)
 
 
 def test_where_a_session_runs_and_how_its_rollouts_run_are_two_choices(start_up, tmp_path,
@@ -239,16 +243,17 @@ NOTICE_DEADLINE = 60.0      # s
 
 
 def test_learn_in_graph_mode_ends_when_the_graph_dies(start_up, tmp_path):
-    """SIGKILL a node mid-session: psl up ends the graph, and psl learn notices that the
-    learner has gone (no wait forever) and says so."""
+    """SIGKILL a node mid-session: psl up reports the dead node and ends the others, and
+    psl learn notices that the learner has gone (no wait forever) and says so."""
     up = start_up()
     out = tmp_path / 'graph'
-    up.wait_for_line('graph ready')
+    up.wait_for_line('graph ready')        # psl up watches the graph it has started
     learn = subprocess.Popen(PSL + ['learn', '--mode', 'graph', '--tasks', '20', '--out',
                                     str(out)], stdout=subprocess.PIPE,
                              stderr=subprocess.PIPE, text=True)
     try:
         wait_for_checkpoint(learn, out)
+        pid = up.nodes['pd_controller'].pid
         assert up.nodes['pd_controller'].kill(), 'pd_controller had ended before the kill'
         try:
             _, stderr = learn.communicate(timeout=NOTICE_DEADLINE)
@@ -261,13 +266,6 @@ def test_learn_in_graph_mode_ends_when_the_graph_dies(start_up, tmp_path):
             learn.wait()
     assert learn.returncode == 1, stderr
     assert 'has gone' in stderr and 'learn_skill' in stderr, stderr
-
-
-def test_up_reports_a_dead_node_and_ends_the_others(start_up):
-    up = start_up()
-    up.wait_for_line('graph ready')        # psl up watches the graph it has started
-    pid = up.nodes['pd_controller'].pid
-    assert up.nodes['pd_controller'].kill()
     assert up.proc.wait(timeout=30) == 1
     assert f"pd_controller (pid {pid}) ended with signal SIGKILL" in up.output()
     assert not up.alive_nodes()

@@ -57,24 +57,3 @@ def test_a_graph_mode_payload_session_runs_ilc_as_batch_mode_does(tmp_path):
     # the learned feed-forward tracks better than PD alone, in both modes alike
     assert metrics['summary']['tracking_rmse_learned_mean'] < \
         metrics['summary']['tracking_rmse_pd_only_mean']
-
-
-def test_psl_learn_in_graph_mode_passes_its_test_task_count(tmp_path):
-    """`psl learn --mode graph --test-tasks 3`: the session tests 3 held-out instances (the
-    goal's num_test), not the learner's default."""
-    import subprocess
-    import sys
-    g = Graph(task='reach_over_obstacle', log_dir=tmp_path / 'logs', extra_params={
-        'skill_memory': {'memory_dir': str(tmp_path)}})
-    try:
-        g.start()
-        g.wait_ready(timeout=60)
-        done = subprocess.run([sys.executable, '-m', 'psl_cli.main', 'learn', '--mode', 'graph',
-                               '--tasks', '1', '--budget', '2', '--test-tasks', '3', '-o',
-                               str(tmp_path / 'run')], capture_output=True, text=True,
-                              timeout=300, cwd=tmp_path)
-    finally:
-        g.stop()
-    assert done.returncode == 0, done.stderr
-    metrics = json.loads((tmp_path / 'run' / 'metrics.json').read_text())
-    assert len(metrics['summary']['test_rewards']) == 3

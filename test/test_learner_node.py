@@ -2,10 +2,10 @@
 
 A session through the nodes must give what the same session in-process gives (the nodes are
 adapters, not a second algorithm); a SIGKILLed learner, restarted, resumes from its checkpoint
-to the same result; bad goals get a reason and the node keeps serving. (Graph mode:
-the tests with a whole graph in the root namespace; the other tests run their nodes under
-namespaces of their own so no two learners answer the same goal; no test depends on another's
-state or order.)
+to the same result; bad goals get a reason and the node keeps serving. (Graph mode over two
+workers: the test with a whole graph in the root namespace; over one, through psl learn:
+test_cli.py. The other tests run their nodes under namespaces of their own so no two learners
+answer the same goal; no test depends on another's state or order.)
 """
 import dataclasses
 import json
@@ -319,27 +319,6 @@ def kill_the_learner_in_a_session(nodes: Graph, client, tmp_path):
     assert 2 <= len(before) < s.num_tasks, 'the kill came too late to test a resume'
     del handle
     return before, s, out
-
-
-def test_graph_mode_learns_what_batch_mode_learns(tmp_path):
-    """Rollouts through execute_rollout (sim, controller, executor, evaluator as processes)
-    give the batch rewards to 1e-9, so CMA-ES takes the same path."""
-    g = Graph(log_dir=tmp_path / 'logs', extra_params={
-        'skill_memory': MEMORY_PARAMS, 'learner': learner_params(tmp_path / 'runs')})
-    try:
-        g.start()
-        g.wait_ready(timeout=60)
-        with RosClient() as c:
-            s = settings('bootstrap', num_tasks=2, budget=12, seed=3)
-            feedback = []
-            result = c.learn(timeout=300, feedback=feedback.append,
-                             **goal(s, tmp_path / 'graph', mode='graph'))
-            assert result.success, result.message
-            assert feedback
-            metrics = json.loads(open(result.metrics_path).read())
-    finally:
-        stop(g)
-    assert_same_session(metrics, in_process(s, tmp_path / 'batch'))
 
 
 def test_two_rollout_workers_learn_what_batch_mode_learns(tmp_path, wait_until):

@@ -25,9 +25,9 @@ from psl_ros.stamps import NS_PER_S, to_ns
 from psl_task.task import load_task, task_id
 
 TASK = 'reach_over_obstacle'
-# back to back: 5 x 1001 messages per topic, more than a keep-last-1000 subscription holds
+# back to back: 2 x 1001 messages per topic, more than a keep-last-1000 subscription holds
 # (what the recorder had), fewer than a publisher's history (psl_ros.qos.RELIABLE: 5000)
-ROLLOUTS = 5
+ROLLOUTS = 2
 RECORDER_TIMEOUT = 120.0     # [s] for the recorder to take what the rollouts published
 # stamp of each message of the topics that carry one message per state
 PER_STATE_STAMP = {'/joint_states': lambda m: m.header.stamp,

@@ -14,7 +14,7 @@ def tiny(tmp_path_factory):
     return false_successes.run(**TINY, out=tmp_path_factory.mktemp('false'))
 
 
-def test_its_sessions_as_ray_tasks_give_the_same_rows(tiny, tmp_path):
+def test_its_sessions_as_ray_tasks_give_the_same_rows(tiny, tmp_path, ray_cluster):
     on_ray = false_successes.run(**TINY, out=tmp_path, runner='ray')
     assert on_ray['runner'].startswith('ray') and tiny['runner'] == 'serial'
     assert on_ray['missing'] == [] and on_ray['rows'] == tiny['rows']

@@ -20,7 +20,7 @@ def tiny(tmp_path_factory):
     return sim_to_real.run(**TINY, out=out), out
 
 
-def test_its_sessions_as_ray_tasks_give_the_same_report(tiny, tmp_path):
+def test_its_sessions_as_ray_tasks_give_the_same_report(tiny, tmp_path, ray_cluster):
     """Each session has its own noisy robot: run in any order, on other processes, the same
     numbers (noise included)."""
     report, _ = tiny

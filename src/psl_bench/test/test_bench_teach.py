@@ -27,7 +27,7 @@ def test_a_taught_session_starts_from_its_demonstrations(tmp_path):
     assert '| reach_over_obstacle | 3 |' in teach.format_table(report)
 
 
-def test_its_sessions_as_ray_tasks_give_the_same_rows(tmp_path):
+def test_its_sessions_as_ray_tasks_give_the_same_rows(tmp_path, ray_cluster):
     settings = dict(tasks=['reach_over_obstacle'], counts=[0, 2], seeds=[0, 1], num_tasks=21,
                     num_test=3, budget=40)
     serial = teach.run(**settings, out=tmp_path / 'serial')

@@ -42,7 +42,7 @@ def serial(tmp_path_factory):
     return out, bench_learn.run(out=out, runner='serial', **SWEEP)
 
 
-def test_ray_gives_the_records_of_a_serial_run_bit_for_bit(serial, tmp_path):
+def test_ray_gives_the_records_of_a_serial_run_bit_for_bit(serial, tmp_path, ray_cluster):
     out, report = serial
     on_ray = bench_learn.run(out=tmp_path, runner='ray', **SWEEP)
     assert on_ray['runner'].startswith('ray') and report['runner'] == 'serial'
@@ -56,22 +56,87 @@ def test_ray_gives_the_records_of_a_serial_run_bit_for_bit(serial, tmp_path):
             metrics_without_seconds(folder), folder.name
 
 
-def ray_workers_running(name: str = 'ray::_run') -> list[int]:
-    """PIDs of Ray worker processes executing a session now (Ray names the process after the
-    task it runs)."""
+def _status(pid: int) -> tuple[str, int]:
+    """(the process's title: its command line's first word, its parent's PID)."""
+    title = Path(f'/proc/{pid}/cmdline').read_bytes().split(b'\0')[0].decode(errors='replace')
+    with open(f'/proc/{pid}/status') as f:
+        parent = int(next(line for line in f if line.startswith('PPid:')).split()[1])
+    return title, parent
+
+
+def started_here(pid: int) -> bool:
+    """Whether this process is among `pid`'s ancestors: a process this one started, or one
+    started by such a process (a worker of the Ray cluster this process's ray.init started:
+    its parent is that cluster's raylet, whose parent is this process)."""
+    me = os.getpid()
+    while pid > 1:
+        try:
+            pid = _status(pid)[1]
+        except (OSError, StopIteration):
+            return False
+        if pid == me:
+            return True
+    return False
+
+
+def my_ray_workers(name: str = 'ray::_run') -> list[int]:
+    """PIDs of the Ray worker processes executing a session now (Ray names the process after
+    the task it runs) of the cluster this process started: never another test's sweep, nor
+    another run's."""
     found = []
     for entry in Path('/proc').iterdir():
         if entry.name.isdigit():
             try:
-                title = (entry / 'cmdline').read_bytes().split(b'\0')[0].decode()
-            except OSError:
+                title = _status(int(entry.name))[0]
+            except (OSError, StopIteration):
                 continue
-            if title.startswith(name):
+            if title.startswith(name) and started_here(int(entry.name)):
                 found.append(int(entry.name))
     return found
 
 
-def test_a_worker_killed_mid_session_is_run_again_and_the_table_is_complete(serial, tmp_path):
+def kill_my_worker(pid: int, name: str = 'ray::_run') -> bool:
+    """SIGKILL the worker `pid` if it is still one of `my_ray_workers`: checked while its
+    process is held (a pidfd), so a PID reused once it has gone is never signalled."""
+    try:
+        fd = os.pidfd_open(pid)
+    except ProcessLookupError:
+        return False
+    try:
+        try:
+            if not (_status(pid)[0].startswith(name) and started_here(pid)):
+                return False
+            signal.pidfd_send_signal(fd, signal.SIGKILL)
+        except (OSError, StopIteration):        # it ended meanwhile
+            return False
+        return True
+    finally:
+        os.close(fd)
+
+
+def test_a_worker_of_another_sweep_is_not_mine():
+    """A process titled as a session's worker that is not of this process's tree (another
+    test's sweep, another run's: here one this test detached from itself, its parent gone)
+    is never found among `my_ray_workers`, and never killed by `kill_my_worker`."""
+    import subprocess
+    detached = subprocess.run(
+        ['bash', '-c', '(exec -a "ray::_run" sleep 60 </dev/null >/dev/null 2>&1 & echo $!)'],
+        capture_output=True, text=True, check=True)
+    other = int(detached.stdout)
+    try:
+        deadline = time.monotonic() + 10.0      # its title once bash has exec'd the sleep
+        while _status(other)[0] != 'ray::_run' and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert _status(other)[0] == 'ray::_run' and not started_here(other)
+        assert other not in my_ray_workers()
+        assert not kill_my_worker(other)
+        assert _status(other)[0] == 'ray::_run'               # still running
+    finally:
+        os.kill(other, signal.SIGKILL)
+
+
+def test_a_worker_killed_mid_session_is_run_again_and_the_table_is_complete(serial, tmp_path,
+                                                                             ray_cluster):
     out, report = serial
     sweep = {**SWEEP, 'num_tasks': 3}
     result, errors = {}, []
@@ -88,14 +153,12 @@ def test_a_worker_killed_mid_session_is_run_again_and_the_table_is_complete(seri
     try:
         # a session that has finished its first task (its checkpoint) and runs on
         while killed is None and time.monotonic() < deadline and thread.is_alive():
-            running = ray_workers_running()
+            running = my_ray_workers()
             if running and any((f / 'checkpoint.json').is_file() and
                                not (f / 'metrics.json').is_file()
                                for f in tmp_path.glob('*-seed*')):
-                # still that worker (a PID is reused once its process has gone): then kill
-                if running[0] in ray_workers_running():
+                if kill_my_worker(running[0]):
                     killed = running[0]
-                    os.kill(killed, signal.SIGKILL)
             time.sleep(0.002)
     finally:
         thread.join(timeout=300)
@@ -119,8 +182,10 @@ def failing_session(fail: bool) -> dict:
 
 
 @pytest.mark.parametrize('runner', sessions.RUNNERS)
-def test_a_session_that_fails_twice_is_named_and_the_rest_comes_out(runner):
+def test_a_session_that_fails_twice_is_named_and_the_rest_comes_out(runner, request):
     import sys
+    if runner == 'ray':
+        request.getfixturevalue('ray_cluster')
 
     from ray import cloudpickle
     cloudpickle.register_pickle_by_value(sys.modules[__name__])

@@ -24,7 +24,6 @@ encoded on the same basis. Pure numpy/scipy; no ROS.
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 from scipy.linalg import expm
 
 from psl_controller.basis_functions import NormalizedGaussianBasis
@@ -523,6 +522,7 @@ def demonstration_from_waypoints(times, positions, dt: float) -> tuple[np.ndarra
         raise ValueError('waypoint times must be strictly increasing')
     if not (np.isfinite(dt) and dt > 0.0):
         raise ValueError(f'dt must be finite and > 0, got {dt!r}')
+    from scipy.interpolate import CubicSpline   # here: 0.4 s of every process's start else
     spline = CubicSpline(times, positions, bc_type='clamped', axis=0)
     n_steps = int(round((times[-1] - times[0]) / dt))
     t = times[0] + np.arange(n_steps + 1) * dt  # (N+1,)

@@ -19,7 +19,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from gmr import GMM
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,6 +52,7 @@ class GMRTrajectory:
         if y.ndim != 2 or y.shape != (t.size, self.n_dims):
             raise ValueError(f'fit needs y of shape ({t.size}, {self.n_dims}), got {y.shape}')
         samples = np.column_stack([t / self.duration, y])
+        from gmr import GMM     # here, not at import: gmr loads scipy.stats (1 s of a start)
         gmm = GMM(self.n_components, random_state=np.random.RandomState(seed))
         gmm.from_samples(samples, R_diff=1e-6, n_iter=200, init_params='kmeans++')
         order = np.argsort(gmm.means[:, 0])
@@ -84,7 +84,7 @@ class GMRTrajectory:
         self.means = theta[:half].reshape(self.n_components, self.n_dims).copy()
         self.slopes = theta[half:].reshape(self.n_components, self.n_dims).copy()
 
-    def mixture(self) -> GMM:
+    def mixture(self) -> 'GMM':
         """The joint mixture over [s, q] that theta stands for."""
         self._check_fitted()
         k, n = self.n_components, self.n_dims
@@ -95,6 +95,7 @@ class GMRTrajectory:
         cov[:, 1:, 1:] = self.residual + np.einsum('ki,kj->kij', cross, cross) \
             / self.phase_vars[:, None, None]
         means = np.column_stack([self.phase_means, self.means])
+        from gmr import GMM
         return GMM(k, priors=self.priors, means=means, covariances=cov)
 
     def integrate(self, dt: float, t_end: float | None = None) -> GMRTrajectorySample:

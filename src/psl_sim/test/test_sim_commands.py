@@ -14,11 +14,11 @@ from psl_sim.sim_node import SimNode
 
 
 @pytest.fixture(params=['lockstep', 'realtime'])
-def sim(request, monkeypatch):
-    """A simulator node of the given mode in this process, on a domain of its own (it publishes
-    nothing anyone here listens to); its realtime loop is not started, so nothing but the test
-    consumes a pending command."""
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(101 + (1 + hash(request.node.name)) % 100))
+def sim(request, monkeypatch, private_ros_domain):
+    """A simulator node of the given mode in this process, on a domain of its own (conftest.py:
+    it publishes nothing anyone here listens to, and no graph of the run commands it); its
+    realtime loop is not started, so nothing but the test consumes a pending command."""
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(private_ros_domain))
     rclpy.init(args=['sim', '--ros-args', '-p', f'mode:={request.param}'])
     node = None
     try:
