@@ -18,6 +18,7 @@ B. A foreign client sends the robot's controller a goal of its own (inside the r
 Every graph and client ends in a finally; every wait is on an event with a deadline.
 """
 import json
+import re
 import subprocess
 import sys
 import threading
@@ -36,7 +37,7 @@ from psl_msgs.msg import TaskInstance
 from psl_msgs.srv import ResetTask
 from psl_ros import names
 from psl_ros.action_client import ActionClient
-from psl_ros.client import RosClient, send_goal
+from psl_ros.client import RosClient, send_goal, wait_for_service
 from psl_ros.futures import wait_for
 from psl_ros.graph import Graph, pid_alive
 from psl_ros.qos import LATCHED
@@ -104,8 +105,13 @@ def test_psl_rollout_homes_an_arm_outside_its_range_back_inside(graph, tmp_path)
                             outside, [float(x) for x in task.goal_posture]]})
     driven = task_variant(tmp_path, 'driven', homing={'reset': 'drive'})
     with RosClient() as client:
-        placed = client.reset(str(wide), load_task(str(wide)).tau_default)
-        assert placed.success, placed.message
+        # an episode of one control period: whatever the controller holds (after a session:
+        # its last goal's end) acts on the arm for 2 ms only, not for the task's 2 s
+        assert wait_for_service(client.reset_client, 30.0)
+        placed = wait_for(client.reset_client.call_async(ResetTask.Request(
+            task=str(wide), tau=list(load_task(str(wide)).tau_default),
+            duration=task.control_period)), 30.0, 'sim/reset')
+        assert placed.success and placed.num_steps == 1, placed.message
         out = subprocess.run(PSL + ['rollout', '--json', '--task', str(driven)],
                              capture_output=True, text=True, timeout=TIMEOUT)
         # the state between episodes, as it is
@@ -115,7 +121,9 @@ def test_psl_rollout_homes_an_arm_outside_its_range_back_inside(graph, tmp_path)
     assert out.returncode == 0, out.stderr
     said = [line for line in out.stderr.splitlines() if 'outside its joint ranges' in line]
     assert len(said) == 1, out.stderr
-    assert f"joint 'joint2' at {-OUT:g} rad, below its limit -3" in said[0], said
+    # where the arm was when homing began: one control period after it was placed
+    where = re.search(r"joint 'joint2' at (\S+) rad, below its limit -3 by", said[0])
+    assert where and abs(float(where[1]) + OUT) < 0.01, said
     assert 'homing brings it back inside' in said[0]
     assert log(graph, 'dmp_executor').count('homing brings it back inside') == 1
     assert json.loads(out.stdout)['num_steps'] == task.num_steps

@@ -13,7 +13,6 @@ import os
 import shutil
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import mujoco
@@ -283,21 +282,18 @@ def test_a_failing_component_fails_the_graphs_rollout_and_the_graph_serves_on(
     graph_matches_batch(load_task(str(faulty_task)), np.array([0.6, 0.15]), theta)
 
 
-def test_a_session_with_the_component_learns_the_same_in_batch_and_graph_mode(task, client):
+def test_a_session_with_the_component_learns_the_same_in_batch_and_graph_mode(task, client,
+                                                                           tmp_path):
     settings = dict(task=str(EXAMPLE_TASK), strategy='bootstrap', num_tasks=1,
                     max_rollouts_per_task=4, seed=5, num_test=1)
-    # inside the memory node's folder (the graph's: the system's temporary folder)
-    out = Path(tempfile.gettempdir()) / f'psl-reward-plugins-{os.getpid()}'
-    try:
-        graph = client.learn(timeout=600, mode='graph', output_dir=str(out / 'graph'),
-                             **settings)
-        assert graph.success, graph.message
-        batch = client.learn(timeout=600, mode='batch', output_dir=str(out / 'batch'),
-                             **settings)
-        assert batch.success, batch.message
-        tasks = [json.loads(Path(r.metrics_path).read_text())['tasks'] for r in (graph, batch)]
-    finally:
-        shutil.rmtree(out, ignore_errors=True)
+    # inside the memory node's folder (the run's: conftest.py memory_folder)
+    graph = client.learn(timeout=600, mode='graph', output_dir=str(tmp_path / 'graph'),
+                         **settings)
+    assert graph.success, graph.message
+    batch = client.learn(timeout=600, mode='batch', output_dir=str(tmp_path / 'batch'),
+                         **settings)
+    assert batch.success, batch.message
+    tasks = [json.loads(Path(r.metrics_path).read_text())['tasks'] for r in (graph, batch)]
     assert [t['rollouts'] for t in tasks[0]] == [t['rollouts'] for t in tasks[1]]
     assert [t['fulfilled'] for t in tasks[0]] == [t['fulfilled'] for t in tasks[1]]
     for key in ('start_reward', 'best_reward'):
