@@ -310,6 +310,16 @@ def arm(request, tmp_path_factory):
         yield a
 
 
+@pytest.fixture(autouse=True)
+def excess_of_this_test(request):
+    """The arms' excess over the range counted from this test's start (the arms are the
+    module's: a test run after the family must not inherit its impacts)."""
+    for name in ('arm', 'standard'):
+        if name in request.fixturenames:
+            served = request.getfixturevalue(name)
+            served.excess = served.reference_excess = 0.0
+
+
 @pytest.fixture(scope='module')
 def standard(tmp_path_factory):
     with server('standard', tmp_path_factory.mktemp('limits_flood'), 'limits_flood') as a:
@@ -508,8 +518,13 @@ def test_a_generated_family_of_goals_never_moves_the_arm_past_its_limits(arm):
     home(arm)
     print(f'max excess over the range: the measured arm {arm.excess:.3g} rad, the reference '
           f'served {arm.reference_excess:.3g} rad ({taken} of {FAMILY_GOALS} goals taken)')
-    assert arm.reference_excess == 0.0, \
-        f'the reference served left the range by {arm.reference_excess:.4g} rad'
+    # a goal taken while the arm is outside (after an impact on its stop) starts from where
+    # the arm is: its reference may begin outside, never further out than the arm has been
+    assert arm.reference_excess <= arm.excess, \
+        f'the reference served left the range by {arm.reference_excess:.4g} rad, the arm ' \
+        f'by {arm.excess:.4g}'
+    if isinstance(arm, LockstepArm):      # no impact: the reference held exactly
+        assert arm.reference_excess == 0.0, arm.reference_excess
     assert excess(arm.position()) == 0.0, f'the arm rests outside: {arm.position()}'
     assert arm.excess <= EXCESS_BOUND, f'the arm passed its range by {arm.excess:.4g} rad'
 
