@@ -225,6 +225,8 @@ def test_the_closest_approach_to_a_singular_posture(tmp_path):
     assert (m.start, m.minimum) == (pytest.approx(w[0], rel=1e-9), pytest.approx(w[k], rel=1e-9))
     assert m.t == pytest.approx(k * task.control_period) and np.array_equal(m.q, q[k])
     assert not any('singular' in x for x in report.warnings)
+    planar = check_robot(load_task('reach_over_obstacle')).manipulability   # 3 joints, a plane
+    assert planar.rank == 2 and planar.minimum > 0.1
     assert 'closest to a singular posture along the demonstration: manipulability ' \
         f'{w[k]:.3g} of L^2 (L = 0.75 m) at t = {k * task.control_period:.3g} s' \
         in format_report(report)

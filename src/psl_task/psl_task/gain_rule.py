@@ -127,7 +127,7 @@ def model_gains(model: mujoco.MjModel, dof_ids: np.ndarray, posture_qpos: np.nda
         `Gains`; a joint whose bound binds has its lower bandwidth and a reason.
 
     Raises:
-        ValueError: sizes that differ, a value out of its range, a dof without inertia.
+        ValueError: sizes that differ, a value out of its range.
     """
     dof_ids = np.asarray(dof_ids, dtype=int).reshape(-1)
     limits = np.asarray(torque_limits, dtype=float).reshape(-1)
@@ -143,9 +143,7 @@ def model_gains(model: mujoco.MjModel, dof_ids: np.ndarray, posture_qpos: np.nda
             raise ValueError(f'{name} must be finite and > 0, got {value}')
     if np.any((dof_ids < 0) | (dof_ids >= model.nv)):
         raise ValueError(f'dof_ids {dof_ids} outside the model\'s {model.nv} dofs')
-    m = joint_inertia(model, dof_ids, posture_qpos)
-    if np.any(m <= 0.0):
-        raise ValueError(f'dofs {dof_ids[m <= 0.0]} have no inertia at the posture')
+    m = joint_inertia(model, dof_ids, posture_qpos)    # > 0: MuJoCo compiles no massless dof
     zeta, period = float(damping_ratio), float(control_period)
     e_max, v_max = float(max_position_error), float(max_velocity_error)
     asked = 2.0 * np.pi * float(bandwidth_hz)

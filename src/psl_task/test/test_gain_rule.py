@@ -145,7 +145,9 @@ def test_a_coarse_control_period_keeps_the_sampled_loop_stable():
     model = pendulum(timestep=period)
     m = closed_form_inertia()
     asked = 2 * np.pi * 20.0
-    _, unbounded = step_response(model, m * asked ** 2, 2 * 0.7 * asked * m, seconds=2.0)
+    # 20 periods: a pole at -1.77 grows the error 9e4 times (stopped before MuJoCo's own
+    # divergence warning, which would write MUJOCO_LOG.TXT into the working folder)
+    _, unbounded = step_response(model, m * asked ** 2, 2 * 0.7 * asked * m, seconds=0.2)
     assert np.abs(unbounded[-1]) > 100 * STEP                  # diverges
     gains = model_gains(model, np.array([0]), np.array([0.0]), np.array([1000.0]), period,
                         bandwidth_hz=20.0)
@@ -186,3 +188,26 @@ def test_bad_input_is_refused_with_the_reason():
         model_gains(model, dofs, np.zeros(3), np.array([1.0]), TIMESTEP)
     with pytest.raises(ValueError, match='outside the model'):
         model_gains(model, np.array([1]), posture, np.array([1.0]), TIMESTEP)
+    with pytest.raises(ValueError, match='posture_qpos must be finite'):
+        model_gains(model, dofs, np.array([np.nan]), np.array([1.0]), TIMESTEP)
+
+
+def test_a_tasks_arm_at_its_start_posture():
+    """arm_gains: the task's model, dofs, start posture, the smaller torque magnitude and
+    the control period; the inertia MuJoCo's mass matrix diagonal there."""
+    from psl_task.arm_model import ArmModel
+    from psl_task.gain_rule import arm_gains
+    from psl_task.task import load_task
+    task = load_task('point_reach_3d')
+    arm = ArmModel(task)
+    gains = arm_gains(arm)
+    data = mujoco.MjData(arm.model)
+    data.qpos[arm.qpos_adr] = task.start_posture
+    mujoco.mj_forward(arm.model, data)
+    dense = np.zeros((arm.model.nv, arm.model.nv))
+    mujoco.mj_fullM(arm.model, data, dense)
+    np.testing.assert_allclose(gains.inertia, np.diag(dense)[arm.dof_adr], rtol=1e-12)
+    same = model_gains(arm.model, arm.dof_adr, task.start_posture,
+                       np.minimum(-arm.torque_low, arm.torque_high), task.control_period)
+    np.testing.assert_array_equal(gains.kp, same.kp)
+    np.testing.assert_array_equal(gains.kd, same.kd)
