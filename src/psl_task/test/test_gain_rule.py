@@ -11,8 +11,8 @@ from scipy.optimize import curve_fit
 
 from psl_controller.pd_law import PDLaw
 from psl_task.gain_rule import (DEFAULT_DAMPING_RATIO, MAX_DAMPING_PERIOD, MAX_OMEGA_PERIOD,
-                                MAX_POSITION_ERROR, MAX_VELOCITY_ERROR, joint_inertia,
-                                model_gains)
+                                MAX_POSITION_ERROR, MAX_STIFFNESS_PERIOD, MAX_VELOCITY_ERROR,
+                                joint_inertia, model_gains)
 
 MASS, LENGTH = 1.5, 0.4                 # kg, m: the link's mass at LENGTH from the axis
 INERTIA_C = (0.01, 0.02, 0.03)          # kg m^2, about its centre of mass
@@ -103,7 +103,7 @@ def test_the_default_damping_fits_the_closed_form_step_response():
     e(t) = e0 exp(-zeta w t) (cos wd t + zeta / sqrt(1 - zeta^2) sin wd t)."""
     model = pendulum()
     gains = model_gains(model, np.array([0]), np.array([0.0]), np.array([1000.0]), TIMESTEP)
-    assert gains.damping_ratio == DEFAULT_DAMPING_RATIO
+    assert gains.damping_ratio[0] == pytest.approx(DEFAULT_DAMPING_RATIO, rel=1e-12)
     t, e = step_response(model, gains.kp[0], gains.kd[0], seconds=1.0)
 
     def closed_form(t, omega, zeta):
@@ -160,6 +160,7 @@ def test_a_coarse_control_period_keeps_the_sampled_loop_stable():
     strong = model_gains(model, np.array([0]), np.array([0.0]), np.array([1000.0]), period,
                          bandwidth_hz=20.0, damping_ratio=3.0)      # kd binds before omega
     assert strong.kd[0] * period / m == pytest.approx(MAX_DAMPING_PERIOD)
+    assert strong.damping_ratio[0] < 3.0 and 'damping ratio' in strong.reason[0]
 
 
 @pytest.mark.parametrize('scale', [0.01, 0.5, 7.0])
@@ -193,8 +194,9 @@ def test_bad_input_is_refused_with_the_reason():
 
 
 def test_a_tasks_arm_at_its_start_posture():
-    """arm_gains: the task's model, dofs, start posture, the smaller torque magnitude and
-    the control period; the inertia MuJoCo's mass matrix diagonal there."""
+    """arm_gains: the task's model, dofs, the smaller torque magnitude and the control
+    period; designed at the start posture (the inertia MuJoCo's mass matrix diagonal there),
+    its coupled modes bounded along the demonstration too."""
     from psl_task.arm_model import ArmModel
     from psl_task.gain_rule import arm_gains
     from psl_task.task import load_task
@@ -207,7 +209,126 @@ def test_a_tasks_arm_at_its_start_posture():
     dense = np.zeros((arm.model.nv, arm.model.nv))
     mujoco.mj_fullM(arm.model, data, dense)
     np.testing.assert_allclose(gains.inertia, np.diag(dense)[arm.dof_adr], rtol=1e-12)
-    same = model_gains(arm.model, arm.dof_adr, task.start_posture,
-                       np.minimum(-arm.torque_low, arm.torque_high), task.control_period)
-    np.testing.assert_array_equal(gains.kp, same.kp)
-    np.testing.assert_array_equal(gains.kd, same.kd)
+    start = model_gains(arm.model, arm.dof_adr, task.start_posture,
+                        np.minimum(-arm.torque_low, arm.torque_high), task.control_period)
+    np.testing.assert_array_equal(gains.kp, start.kp)    # no bound binds on this arm ...
+    np.testing.assert_array_equal(gains.kd, start.kd)
+    assert np.all(gains.free_inertia <= start.free_inertia)   # ... along its demonstration
+    assert np.any(gains.free_inertia < start.free_inertia)
+
+
+I_INNER, I_OUTER = 0.005, 0.2           # kg m^2 about the common axis (outer: 0.02 + 2 kg 0.3^2)
+
+
+def coaxial(inner: float = I_INNER) -> mujoco.MjModel:
+    """Two hinges on one axis: a light inner link and a heavy outer one. M = [[Ii + Io, Io],
+    [Io, Io]]: joint 1 moves Ii + Io with joint 2 held, only Ii with joint 2 yielding."""
+    return mujoco.MjModel.from_xml_string(f"""
+<mujoco>
+  <option timestep="{TIMESTEP}" gravity="0 0 0" integrator="Euler"/>
+  <worldbody>
+    <body name="inner">
+      <joint name="j1" type="hinge" axis="0 0 1"/>
+      <inertial pos="0 0 0" mass="0.1" diaginertia="{inner} {inner} {inner}"/>
+      <body name="outer">
+        <joint name="j2" type="hinge" axis="0 0 1"/>
+        <inertial pos="0.3 0 0" mass="2" diaginertia="0.015 0.015 0.02"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="j1" ctrllimited="false"/><motor joint="j2" ctrllimited="false"/>
+  </actuator>
+</mujoco>""")
+
+
+def sampled_loop(mass: np.ndarray, kp: np.ndarray, kd: np.ndarray) -> np.ndarray:
+    """Eigenvalues of the sampled PD loop (state x = q - q_ref, v) under semi-implicit Euler:
+    v' = v - T M^-1 (Kp x + Kd v), x' = x + T v'."""
+    n = len(kp)
+    p = TIMESTEP * np.linalg.solve(mass, np.diag(kp))
+    d = TIMESTEP * np.linalg.solve(mass, np.diag(kd))
+    eye = np.eye(n)
+    return np.linalg.eigvals(np.block([[eye - TIMESTEP * p, TIMESTEP * (eye - d)],
+                                       [-p, eye - d]]))
+
+
+def test_coupled_joints_keep_every_mode_of_the_sampled_loop_stable():
+    """Designed on M's diagonal alone the coaxial pair's relative mode (the light inner link
+    between the two) has a pole far outside the unit circle: the arm diverges within 10
+    periods. The rule's coupling bounds (the inertia each joint moves with the other yielding,
+    here Ii) keep every pole inside and off the negative real axis (no chatter), and the step
+    response settles; the heavy mode keeps the asked bandwidth on joint 2."""
+    model = coaxial()
+    dofs, posture, limits = np.array([0, 1]), np.zeros(2), np.array([1e3, 1e3])
+    gains = model_gains(model, dofs, posture, limits, TIMESTEP)
+    mass = np.array([[I_INNER + I_OUTER, I_OUTER], [I_OUTER, I_OUTER]])
+    np.testing.assert_allclose(gains.inertia, np.diag(mass), rtol=1e-9)
+    np.testing.assert_allclose(gains.free_inertia, [I_INNER, 1 / np.linalg.inv(mass)[1, 1]],
+                               rtol=1e-9)
+    omega = 2 * np.pi * 3.0
+    diagonal = (np.diag(mass) * omega ** 2, 2 * 0.7 * omega * np.diag(mass))
+    assert np.max(np.abs(sampled_loop(mass, *diagonal))) > 1.5
+    poles = sampled_loop(mass, gains.kp, gains.kd)
+    assert np.max(np.abs(poles)) < 1 and np.min(poles.real) > 0
+    np.testing.assert_allclose(gains.kp, diagonal[0], rtol=1e-12)          # 3 Hz kept
+    np.testing.assert_allclose(gains.kd * TIMESTEP / gains.free_inertia, MAX_DAMPING_PERIOD,
+                               rtol=1e-9)
+    assert np.all(gains.damping_ratio < 0.7)
+    assert all(r.startswith('damping: kd T / ') for r in gains.reason)
+    # a lighter inner link: the stiffness binds too (kp T^2 / Ii at its bound)
+    light = model_gains(coaxial(0.0005), dofs, posture, limits, TIMESTEP)
+    np.testing.assert_allclose(light.kp * TIMESTEP ** 2 / light.free_inertia,
+                               MAX_STIFFNESS_PERIOD, rtol=1e-9)
+    assert np.all(light.bandwidth_hz < 3.0)
+    assert all(r.startswith('coupled: with the other joints yielding') for r in light.reason)
+
+    def run(kp, kd, steps):
+        law = PDLaw.symmetric(kp, kd, 1e12)
+        data = mujoco.MjData(model)
+        for _ in range(steps):
+            data.ctrl[:] = law.torque(data.qpos, data.qvel, [STEP, -STEP], [0, 0], [0, 0])
+            mujoco.mj_step(model, data)
+        return data.qpos - [STEP, -STEP]
+
+    assert np.max(np.abs(run(*diagonal, 10))) > 100 * STEP      # diverges: a pole at -3.4
+    assert np.max(np.abs(run(gains.kp, gains.kd, 5000))) < 1e-3 * STEP   # settles (10 s)
+
+
+def test_the_coupled_modes_are_bounded_over_every_posture_given():
+    """Joints 1 and 3 about z, joint 2 about y between them: coaxial at q2 = 0 (a 7-joint arm's
+    upright upper arm), apart at q2 = 1. Gains designed at q2 = 1 alone leave the sampled loop
+    at q2 = 0 unstable; given both postures (the design posture first), the least free
+    inertia over them bounds kd and every pole at q2 = 0 lies inside, off the negative axis."""
+    model = mujoco.MjModel.from_xml_string(f"""
+<mujoco>
+  <option timestep="{TIMESTEP}" gravity="0 0 0" integrator="Euler"/>
+  <worldbody>
+    <body>
+      <joint type="hinge" axis="0 0 1"/>
+      <inertial pos="0 0 0.1" mass="0.3" diaginertia="0.003 0.003 0.002"/>
+      <body pos="0 0 0.3">
+        <joint type="hinge" axis="0 1 0"/>
+        <inertial pos="0 0 0.1" mass="0.3" diaginertia="0.003 0.003 0.002"/>
+        <body pos="0 0 0.2">
+          <joint type="hinge" axis="0 0 1"/>
+          <inertial pos="0.3 0 0.1" mass="2" diaginertia="0.02 0.02 0.02"/>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>""")
+    dofs, limits = np.arange(3), np.full(3, 1e3)
+    apart, coaxial_posture = np.array([0.0, 1.0, 0.0]), np.zeros(3)
+    alone = model_gains(model, dofs, apart, limits, TIMESTEP)
+    both = model_gains(model, dofs, np.vstack([apart, coaxial_posture]), limits, TIMESTEP)
+    np.testing.assert_array_equal(both.inertia, alone.inertia)       # designed at q2 = 1
+    assert both.free_inertia[0] < 0.5 * alone.free_inertia[0] and both.kd[0] < alone.kd[0]
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    mass = np.zeros((3, 3))
+    mujoco.mj_fullM(model, data, mass)                               # at q2 = 0
+    assert np.min(sampled_loop(mass, alone.kp, alone.kd).real) < -1   # unstable there
+    poles = sampled_loop(mass, both.kp, both.kd)
+    assert np.max(np.abs(poles)) < 1 and np.min(poles.real) > 0
+    with pytest.raises(ValueError, match='one posture or a'):
+        model_gains(model, dofs, np.zeros((1, 1, 3)), limits, TIMESTEP)
