@@ -64,7 +64,6 @@ LIMIT_WARNING = 0.02         # rad (m): a posture this close to a joint limit is
 GEOMETRY_WARNING = 5.0       # the reward's distances costing more physics steps than this
 TIMING_REPEATS = 20          # calls timed per pair (and physics steps per timing)
 REACH_WARNING = 0.5          # share of |success_threshold| a corner's goal_error may use up
-RULE_STRIDE = 10             # the gain rule bounds coupled modes at every 10th reference point
 # manipulability / L^r below this along the reference is warned: the examples' demonstrations
 # stay above 0.03; TALOS's left arm (talos_arm_point_reach) starts at 0.005 and passes 0.0009,
 # where the inverse kinematics asks its wrist for 2.5 rad/s; the UR5 with a straight elbow 0.004
@@ -289,7 +288,7 @@ def check_robot(task: TaskDefinition) -> RobotReport:
         reference = result.reference
     saturated = float(np.mean(np.any(at_limit, axis=1)))
     parts = saturation_parts(arm, result, at_limit)
-    rule = arm_gains(arm, reference.q[::RULE_STRIDE])   # the start, then what it moves through
+    rule = arm_gains(arm)          # at the start posture, bounded along the demonstration
     hand = {label: hand_at(arm, q) for label, q in (('start', task.start_posture),
                                                     ('goal', task.goal_posture))}
     manip = manipulability_along(arm, reference.q, task.control_period)
