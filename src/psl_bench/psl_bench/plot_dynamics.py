@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from psl_bench.plot_learning import load_run
+from psl_bench.plot_learning import load_run, run_task
 
 VARIANTS = (('pd_only', 'PD only', 'tab:red'), ('learned', 'learned', 'tab:blue'),
             ('oracle', 'oracle', 'tab:green'))
@@ -53,13 +53,12 @@ def plot_dynamics(directory: str | Path, out_path: str | Path, test_index: int =
         out_path as a Path.
 
     Raises:
-        ValueError: the folder is not a finished run of a feed-forward task, has no memory, or
-            test_index is out of range.
+        ValueError: the folder is not a finished run of a feed-forward task, has no memory,
+            test_index is out of range, or its task does not load (`run_task`).
         OSError: the PNG cannot be written.
     """
     from psl_memory.skill_memory import SkillMemory
     from psl_task.arm_model import joint_names_of
-    from psl_task.task import load_task
 
     run = load_run(directory)
     metrics = run['metrics']
@@ -70,7 +69,7 @@ def plot_dynamics(directory: str | Path, out_path: str | Path, test_index: int =
     taus = summary.test_taus
     if not 0 <= test_index < len(taus):
         raise ValueError(f'test_index {test_index} outside the {len(taus)} held-out tasks')
-    task = load_task(metrics.task)
+    task = run_task(metrics)           # a YAML task from its file, an embedded one by name
     tau = np.asarray(taus[test_index], dtype=float)
     theta = SkillMemory.read(run['memory_path']).get(task.name).query(tau)[0]
     rollouts = dynamics_rollouts(task, tau, theta)

@@ -192,20 +192,36 @@ def plot_runs(dirs: Sequence[str | Path], out_path: str | Path,
     return out_path
 
 
-def _task_info(metrics: Metrics) -> tuple[list[str] | None, float | None]:
-    """Axis names 'name [unit]' of tau and the success threshold of a run's task: from its
-    YAML where it was learned (`Metrics.task_path`), by name on the task search path, or from
-    the copy of the YAML text the metrics keep; (None, None) when none of them gives them."""
-    import yaml
+def run_task(metrics: Metrics):
+    """A run's task (`psl_task.task.TaskDefinition`): from its YAML where it was learned
+    (`Metrics.task_path`), else by name on the task search path (an embedded task, a run
+    older than task_path).
+
+    Raises:
+        ValueError: neither loads (the file has gone and no task of that name is found).
+    """
     from psl_task.task import TaskError, load_task
+    reasons = []
     for source in (metrics.task_path, metrics.task):
         try:
             if source:
-                task = load_task(source)
-                names = [f'{p.name} [{p.unit}]' if p.unit else p.name for p in task.parameters]
-                return names, task.reward.success_threshold
-        except (OSError, TaskError):
-            continue
+                return load_task(source)
+        except (OSError, TaskError) as exc:
+            reasons.append(str(exc))
+    raise ValueError(f"the run's task {metrics.task!r} does not load: " + '; '.join(reasons))
+
+
+def _task_info(metrics: Metrics) -> tuple[list[str] | None, float | None]:
+    """Axis names 'name [unit]' of tau and the success threshold of a run's task: from
+    `run_task`, or from the copy of the YAML text the metrics keep; (None, None) when none of
+    them gives them."""
+    import yaml
+    try:
+        task = run_task(metrics)
+        names = [f'{p.name} [{p.unit}]' if p.unit else p.name for p in task.parameters]
+        return names, task.reward.success_threshold
+    except ValueError:
+        pass
     try:
         data = yaml.safe_load(metrics.task_yaml) if metrics.task_yaml else None
         names = [f"{p['name']} [{p['unit']}]" if p.get('unit') else str(p['name'])

@@ -49,3 +49,32 @@ def test_a_task_without_feedforward_is_refused():
     task = load_task('reach_over_obstacle')
     with pytest.raises(ValueError, match='feed-forward'):
         dynamics_rollouts(task, task.tau_default, policy_for(task).default_theta)
+
+
+def test_psl_plot_on_a_yaml_task_writes_both_figures(tmp_path):
+    """A task from a YAML file of the user's (outside the search path, a name of its own):
+    metrics.json names the task 'my_payload', which no search finds; psl plot loads it from
+    the file it was learned from and writes the dynamics figure beside the learning one."""
+    import shutil
+    import subprocess
+    import sys
+
+    import yaml
+    from psl_task.task import EMBEDDED_TASKS
+    folder = tmp_path / 'mine'
+    folder.mkdir()
+    data = yaml.safe_load((EMBEDDED_TASKS / 'payload_transport.yaml').read_text())
+    data['name'] = 'my_payload'
+    shutil.copy(EMBEDDED_TASKS / data['model'], folder / data['model'])
+    (folder / 'my_payload.yaml').write_text(yaml.safe_dump(data))
+    task = load_task(str(folder / 'my_payload.yaml'))
+    run = tmp_path / 'run'
+    Learner(task, LearnSettings(strategy='bootstrap', num_tasks=1, seed=0, num_test=1,
+                                search=SearchSettings(max_rollouts=4)),
+            run, BatchRollouts(task)).run()
+    done = subprocess.run([sys.executable, '-m', 'psl_cli.main', 'plot', str(run)],
+                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == [str(run / 'learning.png'), str(run / 'learning_dynamics.png')]
+    for png in ('learning.png', 'learning_dynamics.png'):
+        assert (run / png).read_bytes()[:8] == PNG_MAGIC

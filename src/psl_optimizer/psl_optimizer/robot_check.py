@@ -13,7 +13,16 @@ fix for
   ``policy.feedforward``;
 - **torque saturation**: the share of control periods of the demonstration's rollout (batch
   mode, the default instance) in which some joint's torque sits at its limit
-  (`SATURATION_WARNING`);
+  (`SATURATION_WARNING`); the warning names the part of the law that saturates (its torque
+  in those periods split into ``kp e``, ``kd e'`` and the feed-forward, ``e'`` from the
+  measured angles' differences: exact for one physics step per period) and gives the gains
+  of the gain rule (`psl_task.gain_rule`) for the task, to paste;
+- **a singular posture**: the closest approach of the demonstration's reference to a
+  singular posture, by the manipulability ``w = prod(sigma_1..sigma_r)`` of the hand's
+  position Jacobian (``sqrt(det(J J^T))`` for r = 3; r the largest rank it has along the
+  reference: 2 for a planar arm; Yoshikawa 1985), relative to ``L^r`` with L the arm's
+  length (the chain of its joints' anchors to the hand); below `SINGULAR_WARNING` the hand
+  cannot move along some direction there without large joint speeds;
 - **targets out of reach**: a task whose policy learns a hand goal point for a target the task
   parameters move (``policy.space: end_effector``, ``learn_goal``): the default movement with
   its goal at each corner of the target range (the box of the target_position parameters,
@@ -25,6 +34,12 @@ fix for
   physics step (``mj_geomDistance``, timed here at the start posture) beside the physics step
   itself; a task whose pairs cost more than `GEOMETRY_WARNING` physics steps is told which
   pairs dominate (a visual mesh measured against an obstacle costs milliseconds).
+
+It also says where the hand is (the end-effector site) at the start and the goal posture.
+
+References:
+    Yoshikawa, T. (1985). Manipulability of robotic mechanisms. The International Journal
+    of Robotics Research, 4(2), 3-9. doi:10.1177/027836498500400201
 Imports no ROS.
 """
 from __future__ import annotations
@@ -38,6 +53,7 @@ import numpy as np
 
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_task.arm_model import ArmModel
+from psl_task.gain_rule import Gains, arm_gains
 from psl_task.model_spec import RestingContact, robot_contacts_at_rest
 from psl_task.reward_geometry import CUTOFF
 from psl_task.task import TaskDefinition
@@ -48,6 +64,10 @@ LIMIT_WARNING = 0.02         # rad (m): a posture this close to a joint limit is
 GEOMETRY_WARNING = 5.0       # the reward's distances costing more physics steps than this
 TIMING_REPEATS = 20          # calls timed per pair (and physics steps per timing)
 REACH_WARNING = 0.5          # share of |success_threshold| a corner's goal_error may use up
+# manipulability / L^r below this along the reference is warned: the examples' demonstrations
+# stay above 0.03; TALOS's left arm (talos_arm_point_reach) starts at 0.005 and passes 0.0009,
+# where the inverse kinematics asks its wrist for 2.5 rad/s; the UR5 with a straight elbow 0.004
+SINGULAR_WARNING = 1e-3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,6 +101,24 @@ class RobotReport:
     # the target range's corners and how far the default movement toward each ends [m]
     # (a task with a learned hand goal for a moving target; else empty)
     reach: list[tuple[np.ndarray, float]] = dataclasses.field(default_factory=list)
+    # where the hand (the end-effector site) is at each posture: name -> (3,) m
+    hand: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    manipulability: 'Manipulability | None' = None    # along the demonstration's reference
+    # of the law's torque in the saturated periods, the shares of kp e, kd e' and u_ffwd
+    saturation_parts: dict[str, float] = dataclasses.field(default_factory=dict)
+    rule_gains: Gains | None = None     # the gain rule's gains for the task
+
+
+@dataclasses.dataclass(frozen=True)
+class Manipulability:
+    """The hand's position manipulability along a reference, relative to L^rank."""
+
+    start: float                  # at the reference's first sample
+    minimum: float                # its least value ...
+    t: float                      # s, ... at this time of the reference ...
+    q: np.ndarray                 # (n,) ... at these joint angles
+    rank: int                     # r: the Jacobian's largest rank along the reference
+    length: float                 # m, L: the arm's length (joint anchors to the hand)
 
 
 def hand_sag(arm: ArmModel, q: np.ndarray, kp: np.ndarray) -> tuple[np.ndarray, float]:
@@ -115,6 +153,62 @@ def target_reach(task: TaskDefinition) -> list[tuple[np.ndarray, float]]:
         hand, _ = policy.ik.pose(policy.reference(theta, tau).q[-1])
         out.append((tau, float(np.linalg.norm(hand - target))))
     return out
+
+
+def hand_at(arm: ArmModel, q: np.ndarray) -> np.ndarray:
+    """The end-effector site's position [m] (3,) at joint angles q (forward kinematics)."""
+    data = mujoco.MjData(arm.model)
+    data.qpos[arm.qpos_adr] = q
+    mujoco.mj_kinematics(arm.model, data)
+    return data.site_xpos[arm.ee_site].copy()
+
+
+def arm_length(arm: ArmModel, q: np.ndarray) -> float:
+    """L [m]: the chain of the driven joints' anchors (dof order) to the hand at posture q;
+    for a serial arm the same at every posture."""
+    data = mujoco.MjData(arm.model)
+    data.qpos[arm.qpos_adr] = q
+    mujoco.mj_kinematics(arm.model, data)
+    points = np.vstack([data.xanchor[arm.joint_ids], data.site_xpos[arm.ee_site]])
+    return float(np.sum(np.linalg.norm(np.diff(points, axis=0), axis=1)))
+
+
+def manipulability_along(arm: ArmModel, q: np.ndarray, dt: float) -> Manipulability:
+    """The module docstring's manipulability at every sample of q (T, n): the singular values
+    of the hand's position Jacobian over the driven joints (3, n), the product of the r
+    largest (r: their largest numerical rank along q), over L^r."""
+    model, data = arm.model, mujoco.MjData(arm.model)
+    jac = np.zeros((3, model.nv))
+    sigma = np.empty((len(q), min(3, len(arm.dof_adr))))
+    for k, qk in enumerate(q):
+        data.qpos[arm.qpos_adr] = qk
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_comPos(model, data)
+        mujoco.mj_jacSite(model, data, jac, None, arm.ee_site)
+        sigma[k] = np.linalg.svd(jac[:, arm.dof_adr], compute_uv=False)[:sigma.shape[1]]
+    length = arm_length(arm, q[0])
+    rank = max(1, int(np.max(np.sum(sigma > 1e-9 * max(length, 1e-9), axis=1))))
+    w = np.prod(sigma[:, :rank], axis=1) / max(length, 1e-9) ** rank
+    k = int(np.argmin(w))
+    return Manipulability(start=float(w[0]), minimum=float(w[k]), t=k * dt, q=q[k].copy(),
+                          rank=rank, length=length)
+
+
+def saturation_parts(arm: ArmModel, result, at_limit: np.ndarray) -> dict[str, float]:
+    """Of the law's torque in the saturated (period, joint) entries of a rollout (`at_limit`
+    (N, n), the rows of torque[1:]), the shares of |kp e|, |kd e'| and |u_ffwd| ({} if none):
+    torque[k] is the law on state k - 1; the measured velocity from the angles' differences
+    (semi-implicit Euler: q_k = q_(k-1) + T qd_k exactly for one physics step per period)."""
+    if not np.any(at_limit):
+        return {}
+    task, ref = arm.task, result.reference
+    q = result.q
+    qd = np.vstack([np.zeros((1, q.shape[1])), np.diff(q, axis=0) / task.control_period])
+    parts = {'kp': task.controller.kp * (ref.q - q), 'kd': task.controller.kd * (ref.qd - qd),
+             'feed-forward': ref.u_ffwd}
+    sums = {name: float(np.sum(np.abs(v[:-1])[at_limit])) for name, v in parts.items()}
+    total = sum(sums.values())
+    return {name: value / total for name, value in sums.items()} if total > 0 else {}
 
 
 def geometry_cost(arm: ArmModel) -> tuple[float, dict[str, float]]:
@@ -182,9 +276,22 @@ def check_robot(task: TaskDefinition) -> RobotReport:
     batch = BatchRollouts(task, n_threads=1)
     result = batch.run(batch.policy.default_theta[None], task.tau_default)[0]
     limits = np.maximum(np.abs(arm.torque_low), np.abs(arm.torque_high))
-    at_limit = np.abs(result.torque[1:]) >= limits - 1e-9 * np.maximum(1.0, limits)
-    saturated = float(np.mean(np.any(at_limit, axis=1)))
     warnings = []
+    if result.refused:          # nothing ran: no torque to measure
+        warnings.append(f'the demonstration is refused by the safety check ({result.refused}): '
+                        'the search starts from a movement that never runs: slow it '
+                        '(duration) or move the postures')
+        at_limit = np.zeros((task.num_steps, task.n_joints), dtype=bool)
+        reference = batch.policy.reference(batch.policy.default_theta, task.tau_default)
+    else:
+        at_limit = np.abs(result.torque[1:]) >= limits - 1e-9 * np.maximum(1.0, limits)
+        reference = result.reference
+    saturated = float(np.mean(np.any(at_limit, axis=1)))
+    parts = saturation_parts(arm, result, at_limit)
+    rule = arm_gains(arm)          # at the start posture, bounded along the demonstration
+    hand = {label: hand_at(arm, q) for label, q in (('start', task.start_posture),
+                                                    ('goal', task.goal_posture))}
+    manip = manipulability_along(arm, reference.q, task.control_period)
     worst = max(sag_hand, key=sag_hand.get)
     if sag_hand[worst] > SAG_WARNING and not task.policy.feedforward:
         warnings.append(
@@ -223,10 +330,25 @@ def check_robot(task: TaskDefinition) -> RobotReport:
             'move or shrink the target_position ranges into the arm\'s reach')
     if saturated > SATURATION_WARNING:
         joints_at = [arm.joint_names[j] for j in np.flatnonzero(np.any(at_limit, axis=0))]
+        gain = max(('kp', 'kd'), key=lambda name: parts.get(name, 0.0))
+        words = {'kp': 'kp e', 'kd': "kd e'", 'feed-forward': 'the feed-forward'}
+        order = [gain] + [name for name in words if name != gain]
         warnings.append(
             f'torque saturation: {100 * saturated:.1f} % of the demonstration\'s control periods '
-            f'hit a torque limit ({", ".join(joints_at)}): lower controller.kp/kd, slow the '
-            'movement (duration), or raise the motors\' ctrlrange')
+            f'hit a torque limit ({", ".join(joints_at)}); of the torque there '
+            + ', '.join(f'{words[name]} makes {100 * parts.get(name, 0.0):.0f} %'
+                        for name in order)
+            + f': lower controller.{gain}, slow the movement (duration), or raise the motors\' '
+            f'ctrlrange; the gain rule ({_rule_words(rule)}, docs/your_robot.md) picks '
+            f'{rule.controller_yaml()}')
+    if manip.minimum < SINGULAR_WARNING:
+        warnings.append(
+            f'near a singular posture: the hand\'s manipulability falls to '
+            f'{manip.minimum:.2g} of L^{manip.rank} (L = {manip.length:.3g} m; '
+            f'{manip.start:.2g} at the start) at t = {manip.t:.3g} s, q '
+            f'{np.array2string(manip.q, precision=3)}: the hand cannot move along some '
+            'direction there without large joint speeds: keep the postures and the '
+            'demonstration away from it (a stretched arm, joint axes in line)')
     return RobotReport(task=task.name, model=str(task.model_path), joints=joints,
                        end_effector=task.end_effector_site,
                        passive_joints=list(arm.passive_joints),
@@ -238,7 +360,17 @@ def check_robot(task: TaskDefinition) -> RobotReport:
                        sag_hand=sag_hand, saturated_share=saturated,
                        contacts_at_rest=resting, contacts_excluded=excluded,
                        step_seconds=step_seconds, pair_seconds=pair_seconds, warnings=warnings,
-                       reach=reach)
+                       reach=reach, hand=hand, manipulability=manip,
+                       saturation_parts=parts, rule_gains=rule)
+
+
+def _rule_words(rule: Gains) -> str:
+    """The gain rule's settings as the warning states them."""
+    def span(values: np.ndarray, unit: str = '') -> str:
+        low, high = f'{values.min():.2g}', f'{values.max():.2g}'
+        return (high if low == high else f'{low} to {high}') + unit
+    return (f'bandwidth {span(rule.bandwidth_hz, " Hz")}, damping ratio '
+            f'{span(rule.damping_ratio)}')
 
 
 def _contacts(resting: list[RestingContact]) -> str:
@@ -302,8 +434,19 @@ def format_report(report: RobotReport) -> str:
         lines.append(f'gravity sag under PD alone at the {label} posture: hand '
                      f'{1000 * report.sag_hand[label]:.2f} mm, joints '
                      f'{np.array2string(np.round(report.sag_rad[label], 6), precision=4)} rad')
+    for label, point in report.hand.items():
+        lines.append(f'hand at the {label} posture: '
+                     f'({", ".join(f"{x:.3f}" for x in point)}) m')
     lines.append(f'demonstration rollout: {100 * report.saturated_share:.1f} % of control '
                  'periods at a torque limit')
+    if report.manipulability is not None:
+        w = report.manipulability
+        lines.append(f'closest to a singular posture along the demonstration: manipulability '
+                     f'{w.minimum:.3g} of L^{w.rank} (L = {w.length:.3g} m) at t = {w.t:.3g} s, '
+                     f'q {np.array2string(w.q, precision=3)}; {w.start:.3g} at the start')
+    if report.rule_gains is not None:
+        lines.append(f'the gain rule ({_rule_words(report.rule_gains)}) picks '
+                     f'{report.rule_gains.controller_yaml()}')
     if report.reach:
         worst = max(miss for _, miss in report.reach)
         lines.append(f'target range: {len(report.reach)} corners, the default movement toward '

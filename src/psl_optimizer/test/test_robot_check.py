@@ -141,3 +141,113 @@ def test_a_target_range_out_of_reach_is_a_warning(tmp_path):
     assert min(miss for _, miss in report.reach) > 0.1
     (warning,) = [w for w in report.warnings if 'out of reach' in w]
     assert 'at 8 of the 8 corners' in warning and 'target_position ranges' in warning
+
+
+def test_the_saturation_warning_names_the_gain_whose_torque_saturates(tmp_path):
+    """Weak motors (1 N m) under the task's gains: the error's kp e term makes most of the
+    torque where it saturates; gains with a tenfold kd: the kd e' term. The split is held
+    against the demonstration stepped here on the arm with the measured velocity itself
+    (ArmModel.step, the graph's stepping: psl's PD law on each state), and the advice gives
+    the gain rule's gains for the task."""
+    from psl_controller.pd_law import law_for
+    from psl_controller.policy import policy_for
+    from psl_task.gain_rule import arm_gains
+    weak = variant(tmp_path, 'reach_over_obstacle', lambda d: None,
+                   lambda xml: xml.replace('ctrlrange="-40 40"', 'ctrlrange="-1 1"'))
+    (tmp_path / 'kd').mkdir()
+    damped = variant(tmp_path / 'kd', 'reach_over_obstacle',
+                     lambda d: d['controller'].update(kd=[200.0, 120.0, 50.0]))
+    for task, gain in ((weak, 'kp'), (damped, 'kd')):
+        report = check_robot(task)
+        arm = ArmModel(task)
+        arm.reset(task.tau_default)
+        policy, law = policy_for(task), law_for(task)
+        ref = policy.reference(policy.default_theta, task.tau_default)
+        sums = np.zeros(3)
+        for k in range(len(ref.t) - 1):
+            q, qd = arm.q.copy(), arm.qd.copy()
+            u = law.torque(q, qd, ref.q[k], ref.qd[k], ref.u_ffwd[k])
+            at = np.abs(u) >= law.torque_high - 1e-9
+            sums += [np.sum(np.abs(part[at])) for part in (
+                law.kp * (ref.q[k] - q), law.kd * (ref.qd[k] - qd), ref.u_ffwd[k])]
+            arm.step(u)
+        np.testing.assert_allclose([report.saturation_parts[name] for name in
+                                    ('kp', 'kd', 'feed-forward')], sums / sums.sum(), atol=1e-9)
+        assert report.saturation_parts[gain] > 0.5
+        (warning,) = [w for w in report.warnings if w.startswith('torque saturation')]
+        words = 'kp e' if gain == 'kp' else "kd e'"
+        assert f'of the torque there {words} makes ' in warning, warning
+        assert f'lower controller.{gain},' in warning
+        rule = arm_gains(arm)
+        assert warning.endswith(f'picks {rule.controller_yaml()}')
+        assert report.rule_gains.controller_yaml() == rule.controller_yaml()
+        pasted = yaml.safe_load(rule.controller_yaml())['controller']
+        np.testing.assert_allclose(pasted['kp'], rule.kp, rtol=5e-3)   # 3 digits
+        np.testing.assert_allclose(pasted['kd'], rule.kd, rtol=5e-3)
+    assert check_robot(load_task('reach_over_obstacle')).saturation_parts == {}
+
+
+def payload_hand(q: np.ndarray) -> np.ndarray:
+    """payload_transport.xml's closed form: shoulder at (0, 0, 0.6), links 0.4 and 0.35 m in
+    the x-z plane, positive angles lift."""
+    a, b = q[0], q[0] + q[1]
+    return np.array([0.4 * np.cos(a) + 0.35 * np.cos(b), 0.0,
+                     0.6 + 0.4 * np.sin(a) + 0.35 * np.sin(b)])
+
+
+def test_the_hand_at_the_start_and_goal_postures():
+    task = load_task('payload_transport')
+    report = check_robot(task)
+    for label, q in (('start', task.start_posture), ('goal', task.goal_posture)):
+        np.testing.assert_allclose(report.hand[label], payload_hand(q), atol=1e-12)
+    text = format_report(report)
+    x, y, z = payload_hand(task.start_posture)
+    assert f'hand at the start posture: ({x:.3f}, {y:.3f}, {z:.3f}) m' in text
+
+
+def test_the_closest_approach_to_a_singular_posture(tmp_path):
+    """The 2-link arm's position manipulability is l1 l2 |sin q2| (Yoshikawa 1985), over
+    L^2 = (l1 + l2)^2: its least value along the demonstration's reference, where and at the
+    start; an elbow straightened at the start (sin q2 = 0) is a warning naming it."""
+    from psl_controller.policy import policy_for
+
+    def closed_form(task):
+        policy = policy_for(task)
+        q = policy.reference(policy.default_theta, task.tau_default).q
+        return 0.4 * 0.35 * np.abs(np.sin(q[:, 1])) / 0.75 ** 2, q
+
+    task = load_task('payload_transport')
+    report = check_robot(task)
+    w, q = closed_form(task)
+    k = int(np.argmin(w))
+    m = report.manipulability
+    assert (m.rank, m.length) == (2, pytest.approx(0.75, rel=1e-12))
+    assert (m.start, m.minimum) == (pytest.approx(w[0], rel=1e-9), pytest.approx(w[k], rel=1e-9))
+    assert m.t == pytest.approx(k * task.control_period) and np.array_equal(m.q, q[k])
+    assert not any('singular' in x for x in report.warnings)
+    planar = check_robot(load_task('reach_over_obstacle')).manipulability   # 3 joints, a plane
+    assert planar.rank == 2 and planar.minimum > 0.1
+    assert 'closest to a singular posture along the demonstration: manipulability ' \
+        f'{w[k]:.3g} of L^2 (L = 0.75 m) at t = {k * task.control_period:.3g} s' \
+        in format_report(report)
+
+    def straight(d):
+        d['start_posture'][1] = 0.0
+        d['demonstration']['positions'][0][1] = 0.0
+    stretched = variant(tmp_path, 'payload_transport', straight)
+    report = check_robot(stretched)
+    assert report.manipulability.minimum < 1e-6 and report.manipulability.t == 0.0
+    (warning,) = [x for x in report.warnings if 'singular' in x]
+    assert warning.startswith('near a singular posture: the hand\'s manipulability falls to ')
+    assert 'at t = 0 s' in warning
+
+
+def test_a_refused_demonstration_is_a_warning_not_a_crash(tmp_path):
+    """A demonstration the safety check refuses (its velocity past safety.max_velocity) runs
+    nothing: the check says so, with the reason, and reports the rest."""
+    task = variant(tmp_path, 'reach_over_obstacle',
+                   lambda d: d.setdefault('safety', {}).update(max_velocity=0.5))
+    report = check_robot(task)
+    assert report.saturated_share == 0.0 and report.manipulability is not None
+    (warning,) = [w for w in report.warnings if 'refused' in w]
+    assert warning.startswith('the demonstration is refused by the safety check (joint ')
