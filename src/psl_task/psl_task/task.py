@@ -263,6 +263,13 @@ def _parse(path: Path) -> TaskDefinition:
         raise TaskError(f'{path}: not valid YAML: {exc}') from exc
     except (OSError, UnicodeDecodeError) as exc:
         raise TaskError(f'{path}: cannot be read: {exc}') from None
+    return task_from_data(path, data)
+
+
+def task_from_data(path: Path, data: Any) -> TaskDefinition:
+    """The task of a YAML file's contents `data` as if read from `path` (relative model paths
+    relative to its folder; the file need not exist): what `load_task` builds, for a task
+    written by a program (``psl init``'s drafts). Raises TaskError."""
     try:
         return _build(path, data)
     except KeyError as exc:
