@@ -22,8 +22,8 @@ feed-forward torque, under gravity), every value taken from the model:
   until the default movement toward each corner ends within `REACH_MARGIN` of it by the
   policy's own inverse kinematics (`psl_optimizer.robot_check.target_reach`, what ``psl
   check`` runs);
-- **the gains**: `psl_task.gain_rule.model_gains` at the start posture for `BANDWIDTH_HZ`
-  and `DAMPING_RATIO`, the bandwidth lowered while the demonstration's rollout saturates a
+- **the gains**: `psl_task.gain_rule.model_gains` at the start posture for its default
+  bandwidth and damping ratio, the bandwidth lowered while the demonstration's rollout saturates a
   torque;
 - control rate, duration, policy, reward weights and threshold as point_reach_3d.yaml (the
   effort weight lowered where the arm's gravity torques would use up the threshold).
@@ -44,6 +44,7 @@ import numpy as np
 import yaml
 
 from psl_task.arm_model import ArmModel
+from psl_task.gain_rule import DEFAULT_BANDWIDTH_HZ, DEFAULT_DAMPING_RATIO, model_gains
 from psl_task.inverse_kinematics import SINGULAR_REGION
 from psl_task.model_spec import urdf_text, visual_only
 from psl_task.package_paths import PREFIX
@@ -59,8 +60,6 @@ BOX_SHRINK = 0.8          # the box shrinks by this while a corner is out of rea
 BOX_TRIES = 8
 SAMPLES = 3000            # postures drawn to choose the start and the goal from
 SEED = 0
-BANDWIDTH_HZ = 2.0        # the closed loop's bandwidth of the gain rule ...
-DAMPING_RATIO = 1.0       # ... and its damping ratio
 BANDWIDTH_STEP = 0.7      # the bandwidth shrinks by this while a torque saturates
 GAIN_TRIES = 5
 CONTROL_RATE = 500.0      # Hz, as point_reach_3d.yaml (an MJCF: the nearest whole divisor)
@@ -455,38 +454,38 @@ def _fit(model_ref, end_effector, chain, out, start, goal, reach, arm) -> Genera
     """The task with `start` and `goal`: the box shrunk until every corner is reached, the
     bandwidth lowered while a torque saturates; None when the box cannot be reached."""
     from psl_optimizer.robot_check import check_robot, target_reach
-    from psl_task.gain_rule import model_gains
 
     kin = _Kinematics(arm, chain)
     half = reach * np.array(BOX_HALF)
-    bandwidth = BANDWIDTH_HZ
     control_rate = _control_rate(arm)
-    for _ in range(BOX_TRIES):
-        gains = model_gains(arm.model, arm.dof_adr, kin.qpos(start.q),
-                            np.maximum(np.abs(arm.torque_low), np.abs(arm.torque_high)),
+
+    def draft(bandwidth: float) -> tuple[str, TaskDefinition]:
+        gains = model_gains(arm.model, arm.dof_adr, kin.qpos(start.q), _torque_limits(arm),
                             1.0 / control_rate, bandwidth_hz=bandwidth,
-                            damping_ratio=DAMPING_RATIO)
-        text = render(model_ref, end_effector, chain, start, goal, half, gains, bandwidth,
-                      arm, control_rate, reach, kin)
-        task = task_from_data(out, yaml.safe_load(text))
-        reach_misses = target_reach(task)
-        if max(miss for _, miss in reach_misses) > REACH_MARGIN:
+                            damping_ratio=DEFAULT_DAMPING_RATIO)
+        text = render(model_ref, end_effector, chain, start, goal, half, gains, arm,
+                      control_rate, reach, kin)
+        return text, task_from_data(out, yaml.safe_load(text))
+
+    for _ in range(BOX_TRIES):
+        text, task = draft(DEFAULT_BANDWIDTH_HZ)
+        if max(miss for _, miss in target_reach(task)) > REACH_MARGIN:
             half = half * BOX_SHRINK
             continue
+        bandwidth = DEFAULT_BANDWIDTH_HZ
         for _ in range(GAIN_TRIES):
             report = check_robot(task)
             if not any(w.startswith('torque saturation') for w in report.warnings):
                 break
             bandwidth *= BANDWIDTH_STEP
-            gains = model_gains(arm.model, arm.dof_adr, kin.qpos(start.q),
-                                np.maximum(np.abs(arm.torque_low), np.abs(arm.torque_high)),
-                                1.0 / control_rate, bandwidth_hz=bandwidth,
-                                damping_ratio=DAMPING_RATIO)
-            text = render(model_ref, end_effector, chain, start, goal, half, gains, bandwidth,
-                          arm, control_rate, reach, kin)
-            task = task_from_data(out, yaml.safe_load(text))
+            text, task = draft(bandwidth)
         return Generated(text=text, task=task, reach=report.reach, warnings=report.warnings)
     return None
+
+
+def _torque_limits(arm: ArmModel) -> np.ndarray:
+    """Each driven joint's torque limit (the smaller magnitude of an asymmetric range)."""
+    return np.minimum(np.abs(arm.torque_low), np.abs(arm.torque_high))
 
 
 def _control_rate(arm: ArmModel) -> float:
@@ -507,12 +506,12 @@ def _gain_vec(values) -> str:
 
 
 def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
-           half: np.ndarray, gains, bandwidth: float, arm: ArmModel, control_rate: float,
+           half: np.ndarray, gains, arm: ArmModel, control_rate: float,
            reach: float, kin: _Kinematics) -> str:
     """The commented task YAML."""
     centre = goal.hand
     low, high = centre - half, centre + half
-    limits = np.maximum(np.abs(arm.torque_low), np.abs(arm.torque_high))
+    limits = _torque_limits(arm)
     kin.at(goal.q)
     gravity = (kin.data.qfrc_bias - kin.data.qfrc_gravcomp)[arm.dof_adr]
     effort, held = WEIGHTS['effort'], float(np.mean(gravity**2))
@@ -585,8 +584,12 @@ def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
         f'  - {{name: {marker}, type: sphere, size: [0.02], position: {_vec(centre, 3)}, '
         'rgba: [0.2, 0.8, 0.2, 0.6]}',
         '',
-        '# psl_task.gain_rule.model_gains at the start posture: bandwidth '
-        f'{bandwidth:.3g} Hz, damping ratio {DAMPING_RATIO:g}',
+        '# psl_task.gain_rule.model_gains at the start posture, damping ratio '
+        f'{gains.damping_ratio:g}; each joint\'s',
+        '# bandwidth [Hz] ' + ' / '.join(f'{v:.2g}' for v in gains.bandwidth_hz)
+        + ', from the joint-space inertia [kg m^2]',
+        '# ' + ' / '.join(f'{v:.3g}' for v in gains.inertia)
+        + ' (the rule\'s bounds: the torque limits, the control period)',
         'controller:',
         f'  kp: {_gain_vec(gains.kp)}   # N m / rad',
         f'  kd: {_gain_vec(gains.kd)}   # N m s / rad',
