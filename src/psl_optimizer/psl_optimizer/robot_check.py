@@ -182,9 +182,15 @@ def check_robot(task: TaskDefinition) -> RobotReport:
     batch = BatchRollouts(task, n_threads=1)
     result = batch.run(batch.policy.default_theta[None], task.tau_default)[0]
     limits = np.maximum(np.abs(arm.torque_low), np.abs(arm.torque_high))
-    at_limit = np.abs(result.torque[1:]) >= limits - 1e-9 * np.maximum(1.0, limits)
-    saturated = float(np.mean(np.any(at_limit, axis=1)))
     warnings = []
+    if result.refused:          # nothing ran: no torque to measure
+        at_limit, saturated = np.zeros((1, len(limits)), dtype=bool), 0.0
+        warnings.append(f'the demonstration is refused by the safety check ({result.refused}): '
+                        'every candidate near it will be too; slow the movement (duration) or '
+                        'move the postures')
+    else:
+        at_limit = np.abs(result.torque[1:]) >= limits - 1e-9 * np.maximum(1.0, limits)
+        saturated = float(np.mean(np.any(at_limit, axis=1)))
     worst = max(sag_hand, key=sag_hand.get)
     if sag_hand[worst] > SAG_WARNING and not task.policy.feedforward:
         warnings.append(

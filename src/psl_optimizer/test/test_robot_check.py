@@ -141,3 +141,14 @@ def test_a_target_range_out_of_reach_is_a_warning(tmp_path):
     assert min(miss for _, miss in report.reach) > 0.1
     (warning,) = [w for w in report.warnings if 'out of reach' in w]
     assert 'at 8 of the 8 corners' in warning and 'target_position ranges' in warning
+
+
+def test_a_demonstration_the_safety_check_refuses_is_a_warning(tmp_path):
+    """A demonstration faster than the task's velocity bound runs nothing: psl check says so
+    (it raised a TypeError on the missing torque; psl init met it on the SO-ARM100's 1 rad/s
+    joints)."""
+    task = variant(tmp_path, 'reach_4dof', lambda d: d.update(safety={'max_velocity': 0.05}))
+    report = check_robot(task)
+    assert report.saturated_share == 0.0
+    assert any(w.startswith('the demonstration is refused by the safety check') and
+               'velocity' in w for w in report.warnings), report.warnings
