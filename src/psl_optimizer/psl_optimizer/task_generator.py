@@ -53,6 +53,7 @@ from psl_task.task import TaskDefinition, TaskError, task_from_data
 
 RANGE_MARGIN = 0.15       # rad (m): postures keep this far inside each range ...
 RANGE_MARGIN_SHARE = 0.1  # ... at most this share of the range
+VELOCITY_SHARE = 0.5      # the demonstration's peak joint speed: at most this share of the limit
 GRAVITY_SHARE = 0.4       # the gravity torque at a posture: at most this share of the limit
 REACH_MARGIN = 0.002      # m: each corner of the box is reached this closely (psl check: 10 mm)
 BOX_HALF = (0.06, 0.09, 0.11)   # the box's half-sizes as shares of the reach (x, y, z)
@@ -391,9 +392,11 @@ def choose_postures(arm: ArmModel, chain: Chain, start_q: np.ndarray | None = No
         return near * reach <= np.linalg.norm(p.hand - base) <= far * reach
 
     def tiers(postures: list[Posture]) -> list[Posture]:
-        """Those in front and above the floor, else those above it, else all."""
+        """Those in front, above the floor and at a height between 0.6 reach below the first
+        joint and 0.3 above it; else those above the floor; else all."""
         above = [p for p in postures if p.hand[2] >= floor]
-        front = [p for p in above if p.hand[0] - base[0] >= 0.2 * reach]
+        front = [p for p in above if p.hand[0] - base[0] >= 0.2 * reach
+                 and -0.6 * reach <= p.hand[2] - base[2] <= 0.3 * reach]
         return front or above or postures
 
     if start_q is not None:
@@ -408,7 +411,10 @@ def choose_postures(arm: ArmModel, chain: Chain, start_q: np.ndarray | None = No
         middle, spread = 0.5 * (low + high), np.maximum(high - low, 1e-9)
         start = min((p for p in fit if p.sigma_min >= 0.7 * best),
                     key=lambda p: float(np.linalg.norm((p.q - middle) / spread)))
-    near = np.clip(rng.uniform(-0.8, 0.8, (SAMPLES, len(low))) + start.q, low, high)
+    # the demonstration's peak joint speed is about 1.9 |q_goal - q_start| / duration (a
+    # minimum-jerk-like path): keep it within VELOCITY_SHARE of each joint's velocity limit
+    step = np.minimum(0.8, VELOCITY_SHARE * arm.limits.velocity * DURATION / 1.9)
+    near = np.clip(rng.uniform(-step, step, (SAMPLES, len(low))) + start.q, low, high)
     ranked = []
     for q in near:
         p = kin.at(q)
