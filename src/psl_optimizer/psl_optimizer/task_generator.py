@@ -23,8 +23,9 @@ feed-forward torque, under gravity), every value taken from the model:
   policy's own inverse kinematics (`psl_optimizer.robot_check.target_reach`, what ``psl
   check`` runs);
 - **the gains**: `psl_task.gain_rule.model_gains` at the start posture for its default
-  bandwidth and damping ratio, the bandwidth lowered while the demonstration's rollout saturates a
-  torque;
+  damping ratio and bandwidth, a joint's bandwidth raised where PD alone would let gravity sag
+  it more than `SAG_BOUND` (`sag_bandwidth`), all lowered while the demonstration's rollout
+  saturates a torque;
 - control rate, duration, policy, reward weights and threshold as point_reach_3d.yaml (the
   effort weight lowered where the arm's gravity torques would use up the threshold).
 
@@ -44,7 +45,8 @@ import numpy as np
 import yaml
 
 from psl_task.arm_model import ArmModel
-from psl_task.gain_rule import DEFAULT_BANDWIDTH_HZ, DEFAULT_DAMPING_RATIO, model_gains
+from psl_task.gain_rule import (DEFAULT_BANDWIDTH_HZ, DEFAULT_DAMPING_RATIO, Gains,
+                                joint_inertia, model_gains)
 from psl_task.inverse_kinematics import SINGULAR_REGION
 from psl_task.model_spec import urdf_text, visual_only
 from psl_task.package_paths import PREFIX
@@ -61,6 +63,7 @@ BOX_SHRINK = 0.8          # the box shrinks by this while a corner is out of rea
 BOX_TRIES = 8
 SAMPLES = 3000            # postures drawn to choose the start and the goal from
 SEED = 0
+SAG_BOUND = 0.05          # rad: a joint's gravity sag under PD alone the gains keep within
 BANDWIDTH_STEP = 0.7      # the bandwidth shrinks by this while a torque saturates
 GAIN_TRIES = 5
 CONTROL_RATE = 500.0      # Hz, as point_reach_3d.yaml (an MJCF: the nearest whole divisor)
@@ -465,28 +468,56 @@ def _fit(model_ref, end_effector, chain, out, start, goal, reach, arm) -> Genera
     half = reach * np.array(BOX_HALF)
     control_rate = _control_rate(arm)
 
-    def draft(bandwidth: float) -> tuple[str, TaskDefinition]:
-        gains = model_gains(arm.model, arm.dof_adr, kin.qpos(start.q), _torque_limits(arm),
-                            1.0 / control_rate, bandwidth_hz=bandwidth,
-                            damping_ratio=DEFAULT_DAMPING_RATIO)
+    asked = sag_bandwidth(arm, kin, (start, goal))
+
+    def draft(scale: float) -> tuple[str, TaskDefinition]:
+        gains = joint_gains(arm, kin.qpos(start.q), asked * scale, control_rate)
         text = render(model_ref, end_effector, chain, start, goal, half, gains, arm,
                       control_rate, reach, kin)
         return text, task_from_data(out, yaml.safe_load(text))
 
     for _ in range(BOX_TRIES):
-        text, task = draft(DEFAULT_BANDWIDTH_HZ)
+        text, task = draft(1.0)
         if max(miss for _, miss in target_reach(task)) > REACH_MARGIN:
             half = half * BOX_SHRINK
             continue
-        bandwidth = DEFAULT_BANDWIDTH_HZ
+        scale = 1.0
         for _ in range(GAIN_TRIES):
             report = check_robot(task)
             if not any(w.startswith('torque saturation') for w in report.warnings):
                 break
-            bandwidth *= BANDWIDTH_STEP
-            text, task = draft(bandwidth)
+            scale *= BANDWIDTH_STEP
+            text, task = draft(scale)
         return Generated(text=text, task=task, reach=report.reach, warnings=report.warnings)
     return None
+
+
+def sag_bandwidth(arm: ArmModel, kin: '_Kinematics', postures) -> np.ndarray:
+    """Each joint's bandwidth [Hz] to ask of the gain rule: its default, raised where PD alone
+    would let the joint sag more than `SAG_BOUND` under gravity at one of the postures
+    (kp >= |g| / SAG_BOUND, kp = m omega^2): a light arm's short links (the SO-ARM100's
+    wrist) weigh much for their inertia."""
+    need = np.zeros(len(arm.joint_ids))
+    for posture in postures:
+        kin.at(posture.q)
+        gravity = np.abs((kin.data.qfrc_bias - kin.data.qfrc_gravcomp)[arm.dof_adr])
+        inertia = joint_inertia(arm.model, arm.dof_adr, kin.qpos(posture.q))
+        need = np.maximum(need, np.sqrt(gravity / (SAG_BOUND * inertia)) / (2 * np.pi))
+    return np.maximum(DEFAULT_BANDWIDTH_HZ, need)
+
+
+def joint_gains(arm: ArmModel, qpos: np.ndarray, bandwidth: np.ndarray,
+                control_rate: float) -> Gains:
+    """`model_gains` of each joint at its own bandwidth (the rule's bounds apply to each)."""
+    each = [model_gains(arm.model, arm.dof_adr[i:i + 1], qpos, _torque_limits(arm)[i:i + 1],
+                        1.0 / control_rate, bandwidth_hz=float(bandwidth[i]),
+                        damping_ratio=DEFAULT_DAMPING_RATIO) for i in range(len(bandwidth))]
+    return Gains(kp=np.concatenate([g.kp for g in each]),
+                 kd=np.concatenate([g.kd for g in each]),
+                 inertia=np.concatenate([g.inertia for g in each]),
+                 bandwidth_hz=np.concatenate([g.bandwidth_hz for g in each]),
+                 damping_ratio=DEFAULT_DAMPING_RATIO,
+                 reason=tuple(r for g in each for r in g.reason))
 
 
 def _torque_limits(arm: ArmModel) -> np.ndarray:
@@ -592,7 +623,9 @@ def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
         '',
         '# psl_task.gain_rule.model_gains at the start posture, damping ratio '
         f'{gains.damping_ratio:g}; each joint\'s',
-        '# bandwidth [Hz] ' + ' / '.join(f'{v:.2g}' for v in gains.bandwidth_hz)
+        f'# bandwidth [Hz] (the rule\'s {DEFAULT_BANDWIDTH_HZ:g}, raised where gravity would '
+        f'sag the joint more than {SAG_BOUND:g} rad',
+        '# under PD alone) ' + ' / '.join(f'{v:.2g}' for v in gains.bandwidth_hz)
         + ', from the joint-space inertia [kg m^2]',
         '# ' + ' / '.join(f'{v:.3g}' for v in gains.inertia)
         + ' (the rule\'s bounds: the torque limits, the control period)',
