@@ -164,6 +164,10 @@ def lock_joints(task: TaskDefinition, spec: mujoco.MjSpec) -> None:
     for sensor in list(spec.sensors):
         if sensor.objtype == mujoco.mjtObj.mjOBJ_JOINT and sensor.objname in locked:
             spec.delete(sensor)
+    for equality in list(spec.equalities):      # a URDF's <mimic>: a joint equality
+        if equality.type == mujoco.mjtEq.mjEQ_JOINT and (equality.name1 in locked
+                                                         or equality.name2 in locked):
+            spec.delete(equality)
     _drop_from_keys(spec, reference, locked_adr)
     for name in task.locked_joints:
         spec.delete(by_name[name])
