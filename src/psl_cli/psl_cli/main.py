@@ -898,6 +898,18 @@ def _teach_options(p: argparse.ArgumentParser) -> None:
     teach.add_arguments(p)
 
 
+def cmd_init(args) -> int:
+    from psl_cli import init
+
+    return init.run(args)
+
+
+def _init_options(p: argparse.ArgumentParser) -> None:
+    from psl_cli import init
+
+    init.add_arguments(p)
+
+
 def cmd_view(args) -> int:
     from psl_cli import view
 
@@ -983,6 +995,9 @@ COMMANDS = {
     'demo': Command('start the graph, roll the demonstration out over a few obstacle '
                     'positions, learn the skill, roll it out zero-shot on the same positions, '
                     'record a bag, end everything', _demo_options, cmd_demo),
+    'init': Command('a task file from a robot description (URDF or MJCF as published): the '
+                    'chain to a link, gains, postures and a target box from the model',
+                    _init_options, cmd_init),
     'check': Command('what psl makes of a task\'s robot (joints, limits, masses, end '
                      'effector, scene) and what will hurt learning (gravity sag, torque '
                      'saturation), with the fix', _check_options, cmd_check),

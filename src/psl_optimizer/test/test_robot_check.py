@@ -251,3 +251,14 @@ def test_a_refused_demonstration_is_a_warning_not_a_crash(tmp_path):
     assert report.saturated_share == 0.0 and report.manipulability is not None
     (warning,) = [w for w in report.warnings if 'refused' in w]
     assert warning.startswith('the demonstration is refused by the safety check (joint ')
+
+
+def test_a_demonstration_the_safety_check_refuses_is_a_warning(tmp_path):
+    """A demonstration faster than the task's velocity bound runs nothing: psl check says so
+    (it raised a TypeError on the missing torque; psl init met it on the SO-ARM100's 1 rad/s
+    joints)."""
+    task = variant(tmp_path, 'reach_4dof', lambda d: d.update(safety={'max_velocity': 0.05}))
+    report = check_robot(task)
+    assert report.saturated_share == 0.0
+    assert any(w.startswith('the demonstration is refused by the safety check') and
+               'velocity' in w for w in report.warnings), report.warnings

@@ -129,7 +129,7 @@ def joint_inertia(model: mujoco.MjModel, dof_ids: np.ndarray,
 
 def model_gains(model: mujoco.MjModel, dof_ids: np.ndarray, posture_qpos: np.ndarray,
                 torque_limits: np.ndarray, control_period: float,
-                bandwidth_hz: float = DEFAULT_BANDWIDTH_HZ,
+                bandwidth_hz: float | np.ndarray = DEFAULT_BANDWIDTH_HZ,
                 damping_ratio: float = DEFAULT_DAMPING_RATIO,
                 max_position_error: float = MAX_POSITION_ERROR,
                 max_velocity_error: float = MAX_VELOCITY_ERROR) -> Gains:
@@ -145,7 +145,8 @@ def model_gains(model: mujoco.MjModel, dof_ids: np.ndarray, posture_qpos: np.nda
         torque_limits: (n,) N m > 0, each joint's torque limit (the smaller magnitude of an
             asymmetric range).
         control_period: s > 0, the law's period T.
-        bandwidth_hz, damping_ratio: the closed loop asked, > 0.
+        bandwidth_hz, damping_ratio: the closed loop asked, > 0 (the bandwidth one for all
+            joints or (n,), one per joint).
         max_position_error, max_velocity_error: e_max, v_max of the torque bound, > 0.
 
     Returns:
@@ -160,7 +161,10 @@ def model_gains(model: mujoco.MjModel, dof_ids: np.ndarray, posture_qpos: np.nda
         raise ValueError(f'torque_limits has {limits.size} entries for {dof_ids.size} dofs')
     if not np.all(np.isfinite(limits)) or np.any(limits <= 0.0):
         raise ValueError(f'torque_limits must be finite and > 0, got {limits}')
-    for name, value in (('control_period', control_period), ('bandwidth_hz', bandwidth_hz),
+    asked_hz = np.broadcast_to(np.asarray(bandwidth_hz, dtype=float), dof_ids.shape)
+    if not np.all(np.isfinite(asked_hz)) or np.any(asked_hz <= 0.0):
+        raise ValueError(f'bandwidth_hz must be finite and > 0, got {bandwidth_hz}')
+    for name, value in (('control_period', control_period),
                         ('damping_ratio', damping_ratio),
                         ('max_position_error', max_position_error),
                         ('max_velocity_error', max_velocity_error)):
@@ -181,13 +185,13 @@ def model_gains(model: mujoco.MjModel, dof_ids: np.ndarray, posture_qpos: np.nda
     free = np.min([1.0 / np.diag(np.linalg.inv(d))[dof_ids] for d in dense], axis=0)
     zeta, period = float(damping_ratio), float(control_period)
     e_max, v_max = float(max_position_error), float(max_velocity_error)
-    asked = 2.0 * np.pi * float(bandwidth_hz)
+    asked = 2.0 * np.pi * asked_hz
     # 1: m (omega^2 e_max + 2 zeta omega v_max) <= tau (the positive root)
     torque_omega = (-zeta * v_max + np.sqrt((zeta * v_max) ** 2 + e_max * limits / m)) / e_max
     # 2 and 3: omega T on the joint's own inertia; kp T^2 / mf
     period_omega = np.full(m.shape, MAX_OMEGA_PERIOD / period)
     coupled_omega = np.sqrt(MAX_STIFFNESS_PERIOD * free / m) / period
-    omega = np.minimum.reduce([np.full(m.shape, asked), torque_omega, period_omega,
+    omega = np.minimum.reduce([asked, torque_omega, period_omega,
                                coupled_omega])
     kp = m * omega ** 2
     kd = np.minimum(2.0 * zeta * omega * m, MAX_DAMPING_PERIOD * free / period)     # 3
@@ -196,12 +200,12 @@ def model_gains(model: mujoco.MjModel, dof_ids: np.ndarray, posture_qpos: np.nda
     reason = []
     for i in range(dof_ids.size):
         why = []
-        if omega[i] < asked:
+        if omega[i] < asked[i]:
             if omega[i] == torque_omega[i]:
                 why.append(
                     f'torque limit {limits[i]:.3g} N m: at {e_max:g} rad and {v_max:g} rad/s of '
-                    f'error {bandwidth_hz:g} Hz would ask kp e {m[i] * asked ** 2 * e_max:.3g} '
-                    f'+ kd e\' {2 * zeta * asked * m[i] * v_max:.3g} N m; {hz[i]:.3g} Hz fits')
+                    f'error {asked_hz[i]:g} Hz would ask kp e {m[i] * asked[i] ** 2 * e_max:.3g} '
+                    f'+ kd e\' {2 * zeta * asked[i] * m[i] * v_max:.3g} N m; {hz[i]:.3g} Hz fits')
             elif omega[i] == period_omega[i]:
                 why.append(
                     f'control period {1e3 * period:g} ms: omega T <= {MAX_OMEGA_PERIOD:g} keeps '

@@ -24,13 +24,14 @@ GEOM_TYPES = {'box': mujoco.mjtGeom.mjGEOM_BOX, 'sphere': mujoco.mjtGeom.mjGEOM_
 
 def task_spec(task: TaskDefinition) -> mujoco.MjSpec:
     """A new MjSpec of the task's model (the caller may edit and compile it), with what the
-    task YAML adds: the end-effector site on a body (``robot.end_effector: {body, offset}``)
+    task YAML adds and takes away: the locked joints fixed (``robot.locked_joints``:
+    `lock_joints`), the end-effector site on a body (``robot.end_effector: {body, offset}``)
     and the ``scene`` objects (each a mocap body with one geom of its name, no contacts unless
     ``contacts: true``).
 
     Raises:
-        TaskError: the model file cannot be parsed, the end effector's body does not exist, or
-            a scene object's name is taken.
+        TaskError: the model file cannot be parsed, a locked joint cannot be locked, the end
+            effector's body does not exist, or a scene object's name is taken.
     """
     try:
         if task.model_path.suffix.lower() == '.urdf':
@@ -44,6 +45,7 @@ def task_spec(task: TaskDefinition) -> mujoco.MjSpec:
         raise
     except ValueError as exc:
         raise TaskError(f'cannot load model {task.model_path}: {exc}') from exc
+    lock_joints(task, spec)
     driven = driven_joints(task, spec)
     _set_motors(task, spec, driven)
     if task.end_effector_body:
@@ -85,6 +87,154 @@ def task_spec(task: TaskDefinition) -> mujoco.MjSpec:
                                 f'{task.model_path.name} has none of that name')
         spec.add_exclude(bodyname1=body1, bodyname2=body2)
     return spec
+
+
+def lock_joints(task: TaskDefinition, spec: mujoco.MjSpec) -> None:
+    """Compile ``robot.locked_joints: {joint: value}`` as fixed joints: each joint is removed
+    from the spec and its body placed where the joint at that value puts it, so the body and
+    all below it move with the body's parent (a humanoid's arm taken from its full-body
+    description is then an arm: the rest of the body cannot fall).
+
+    A hinge's body is turned by ``value - ref`` [rad] about the joint's axis through the
+    joint's position (both in the body's frame; a URDF's ref is 0), a slide's moved by
+    ``value - ref`` [m] along its axis: the body's new frame in its parent is F * L, F its
+    frame, L the joint's transform, as MuJoCo's kinematics composes them (Todorov, MuJoCo
+    documentation, "Computation": a body's joints act in their order, each in the frame the
+    ones before it left). A free joint (a floating base) or a ball joint locks at 0 only: the
+    body at the model's reference pose (where the model file puts it). The joints of a body
+    are locked from its first on (a locked joint after a joint that stays free cannot be
+    folded into the body's frame). The actuators and joint sensors of a locked joint go with
+    it, and the keyframes lose its entries.
+
+    Raises:
+        TaskError: one line naming robot.locked_joints: a joint the model lacks (its joints
+            listed), a value outside the joint's range, a free or ball joint at a value other
+            than 0, a locked joint after a free one of the same body.
+    """
+    if not task.locked_joints:
+        return
+    key = 'robot.locked_joints'
+    by_name = {j.name: j for j in spec.joints if j.name}
+    for name in task.locked_joints:
+        if name not in by_name:
+            raise TaskError(f'{task.path}: {key} names {name!r}; {task.model_path.name} has '
+                            f'the joints {", ".join(by_name)}')
+    reference = _reference_model(spec, list(task.locked_joints))
+    bodies: dict[int, list[str]] = {}
+    for name, value in task.locked_joints.items():
+        jid = reference.joint(name).id
+        kind = int(reference.jnt_type[jid])
+        if kind in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL):
+            if value != 0.0:
+                raise TaskError(f'{task.path}: {key}: {name!r} is a '
+                                f'{mujoco.mjtJoint(kind).name[6:].lower()} joint, which locks '
+                                f'at 0 only (the body at the model\'s reference pose), got '
+                                f'{value:g}')
+        elif reference.jnt_limited[jid]:
+            low, high = reference.jnt_range[jid]
+            if not low <= value <= high:
+                raise TaskError(f'{task.path}: {key}: {name!r} at {value:g} is outside its '
+                                f'range [{low:g}, {high:g}]')
+        bodies.setdefault(int(reference.jnt_bodyid[jid]), []).append(name)
+    locked_adr = []
+    for body_id, names in bodies.items():
+        order = [reference.joint(int(j)).name for j in range(reference.njnt)
+                 if reference.jnt_bodyid[j] == body_id]
+        if set(order[:len(names)]) != set(names):
+            free = next(n for n in order if n not in names)
+            raise TaskError(f'{task.path}: {key}: the body {reference.body(body_id).name!r} '
+                            f'moves with {", ".join(order)} in this order; {free!r} stays '
+                            'free before a locked one: lock a body\'s joints from its first')
+        pos = reference.body_pos[body_id].copy()
+        quat = reference.body_quat[body_id].copy()
+        for name in order[:len(names)]:
+            jid = reference.joint(name).id
+            pos, quat = locked_frame(reference, jid, task.locked_joints[name], pos, quat)
+            adr, size = reference.jnt_qposadr[jid], _QPOS_SIZE[int(reference.jnt_type[jid])]
+            locked_adr.append((adr, size, reference.jnt_dofadr[jid],
+                               _DOF_SIZE[int(reference.jnt_type[jid])]))
+        body = by_name[names[0]].parent
+        body.pos, body.quat = pos, quat
+        body.alt.type = mujoco.mjtOrientation.mjORIENTATION_QUAT
+    locked = set(task.locked_joints)
+    joint_targets = (mujoco.mjtTrn.mjTRN_JOINT, mujoco.mjtTrn.mjTRN_JOINTINPARENT)
+    for actuator in list(spec.actuators):
+        if actuator.trntype in joint_targets and actuator.target in locked:
+            spec.delete(actuator)
+    for sensor in list(spec.sensors):
+        if sensor.objtype == mujoco.mjtObj.mjOBJ_JOINT and sensor.objname in locked:
+            spec.delete(sensor)
+    for equality in list(spec.equalities):      # a URDF's <mimic>: a joint equality
+        if equality.type == mujoco.mjtEq.mjEQ_JOINT and (equality.name1 in locked
+                                                         or equality.name2 in locked):
+            spec.delete(equality)
+    _drop_from_keys(spec, reference, locked_adr)
+    for name in task.locked_joints:
+        spec.delete(by_name[name])
+
+
+_QPOS_SIZE = {int(mujoco.mjtJoint.mjJNT_FREE): 7, int(mujoco.mjtJoint.mjJNT_BALL): 4,
+              int(mujoco.mjtJoint.mjJNT_SLIDE): 1, int(mujoco.mjtJoint.mjJNT_HINGE): 1}
+_DOF_SIZE = {int(mujoco.mjtJoint.mjJNT_FREE): 6, int(mujoco.mjtJoint.mjJNT_BALL): 3,
+             int(mujoco.mjtJoint.mjJNT_SLIDE): 1, int(mujoco.mjtJoint.mjJNT_HINGE): 1}
+
+
+def locked_frame(model: mujoco.MjModel, jid: int, value: float, pos: np.ndarray,
+                 quat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The frame (position (3,), quaternion (4,) in the parent's frame) of a body at `pos`,
+    `quat` with its joint `jid` of `model` (compiled: radians, unit axis) held at `value`:
+    F * L (`lock_joints`). A free or ball joint at 0 leaves the frame as it is."""
+    kind = int(model.jnt_type[jid])
+    if kind not in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+        return pos, quat
+    axis, anchor = model.jnt_axis[jid], model.jnt_pos[jid]
+    turn = value - float(model.qpos0[model.jnt_qposadr[jid]])      # from the joint's ref
+    if kind == mujoco.mjtJoint.mjJNT_SLIDE:
+        shift = np.zeros(3)
+        mujoco.mju_rotVecQuat(shift, axis * turn, quat)
+        return pos + shift, quat
+    local = np.zeros(4)
+    mujoco.mju_axisAngle2Quat(local, axis, turn)
+    turned = np.zeros(3)
+    mujoco.mju_rotVecQuat(turned, anchor, local)      # the body's origin about the anchor
+    shift = np.zeros(3)
+    mujoco.mju_rotVecQuat(shift, anchor - turned, quat)
+    new_quat = np.zeros(4)
+    mujoco.mju_mulQuat(new_quat, quat, local)
+    return pos + shift, new_quat
+
+
+def _reference_model(spec: mujoco.MjSpec, joints: list[str]) -> mujoco.MjModel:
+    """The spec compiled as it comes, on a copy, no static body fused (each body's frame
+    relative to its own parent) and the <frame> elements holding the bodies of the given
+    joints made neutral, so each such body's compiled frame is the one its own pos and
+    orientation give: what `lock_joints` composes the locked joints onto."""
+    copy = spec.copy()
+    copy.compiler.fusestatic = False
+    for name in joints:
+        frame = copy.joint(name).parent.frame
+        while frame is not None:
+            frame.pos, frame.quat = [0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
+            frame.alt.type = mujoco.mjtOrientation.mjORIENTATION_QUAT
+            frame = frame.frame
+    try:
+        return copy.compile()
+    except ValueError as exc:
+        raise TaskError(f'cannot compile the model to lock its joints: {exc}') from exc
+
+
+def _drop_from_keys(spec: mujoco.MjSpec, reference: mujoco.MjModel, locked_adr: list) -> None:
+    """The keyframes without the locked joints' qpos and qvel entries."""
+    qpos_keep = np.ones(reference.nq, dtype=bool)
+    dof_keep = np.ones(reference.nv, dtype=bool)
+    for adr, size, dof, dofs in locked_adr:
+        qpos_keep[adr:adr + size] = False
+        dof_keep[dof:dof + dofs] = False
+    for key in spec.keys:
+        if len(key.qpos) == reference.nq:
+            key.qpos = np.asarray(key.qpos)[qpos_keep]
+        if len(key.qvel) == reference.nv:
+            key.qvel = np.asarray(key.qvel)[dof_keep]
 
 
 @functools.lru_cache(maxsize=32)     # a task is hashed by identity; load_task caches tasks

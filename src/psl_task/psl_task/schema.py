@@ -298,6 +298,11 @@ class RobotSection(_Section):
     """Set MuJoCo's gravcomp on every body the driven joints move."""
     joints: list[str] = []
     """The driven joints in command order (default: the joints of the model's actuators)."""
+    locked_joints: dict[str, Finite] = {}
+    """Joints held fixed, {joint: value [rad (m)]}: removed from the model, the body placed
+    where the joint at that value puts it (a humanoid's arm from its full-body description:
+    lock every joint but the arm's). A free or ball joint locks at 0: the model's reference
+    pose. Never driven (robot.joints); their actuators are removed."""
     exclude_contacts: list[tuple[str, str]] = []
     """Body pairs MuJoCo never collides."""
     contacts_at_rest: Literal['exclude', 'keep'] = 'exclude'

@@ -82,6 +82,9 @@ class TaskDefinition:
     # robot.joints: the driven joints in command order (empty: every joint with an actuator,
     # or every hinge/slide joint of a model without actuators); the rest stay passive
     joints: tuple[str, ...] = ()
+    # robot.locked_joints: joint -> value [rad (m)], compiled as fixed
+    # (psl_task.model_spec.lock_joints)
+    locked_joints: dict[str, float] = dataclasses.field(default_factory=dict)
     # robot.exclude_contacts: body pairs MuJoCo never collides; robot.contacts_at_rest:
     # exclude (default) or keep the robot's parts in contact at the start or goal posture
     # (psl_task.model_spec.contacts_at_rest)
@@ -263,6 +266,13 @@ def _parse(path: Path) -> TaskDefinition:
         raise TaskError(f'{path}: not valid YAML: {exc}') from exc
     except (OSError, UnicodeDecodeError) as exc:
         raise TaskError(f'{path}: cannot be read: {exc}') from None
+    return task_from_data(path, data)
+
+
+def task_from_data(path: Path, data: Any) -> TaskDefinition:
+    """The task of a YAML file's contents `data` as if read from `path` (relative model paths
+    relative to its folder; the file need not exist): what `load_task` builds, for a task
+    written by a program (``psl init``'s drafts). Raises TaskError."""
     try:
         return _build(path, data)
     except KeyError as exc:
@@ -333,6 +343,10 @@ def _build(path: Path, data: Any) -> TaskDefinition:
                         'joint, in the order of robot.joints')
     if len(set(robot.joints)) != len(robot.joints):
         raise TaskError(f'{path}: robot.joints names a joint twice: {robot.joints}')
+    both = [name for name in robot.joints if name in robot.locked_joints]
+    if both:
+        raise TaskError(f'{path}: robot.locked_joints locks {both[0]!r}, which robot.joints '
+                        'drives: a joint is driven or locked, not both')
     duration = spec.duration
     if np.any(np.diff(demo_times) <= 0.0) or demo_times[0] != 0.0 or \
             abs(demo_times[-1] - duration) > 1e-9 * max(1.0, duration):
@@ -368,6 +382,7 @@ def _build(path: Path, data: Any) -> TaskDefinition:
         torque_limits=robot.torque_limits,
         gravity_compensation=robot.gravity_compensation,
         joints=tuple(robot.joints),
+        locked_joints={str(k): float(v) for k, v in robot.locked_joints.items()},
         exclude_contacts=tuple(robot.exclude_contacts),
         contacts_at_rest=robot.contacts_at_rest,
     )
