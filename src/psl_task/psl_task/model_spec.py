@@ -13,6 +13,7 @@ from xml.etree import ElementTree
 import mujoco
 import numpy as np
 
+from psl_task.meshes import MeshError, stl_of_collada
 from psl_task.package_paths import PREFIX
 from psl_task.task import TaskDefinition, TaskError, package_file, rotation_xyz
 
@@ -297,9 +298,18 @@ def contacts_at_rest(task: TaskDefinition, spec: mujoco.MjSpec,
 
 
 def urdf_text(task: TaskDefinition) -> str:
-    """The task's URDF with ``package://`` and relative mesh paths made absolute, meshes MuJoCo
-    cannot read (.dae) dropped from visual elements and refused in collision elements, and
-    Gazebo and transmission tags removed (MuJoCo ignores them anyway)."""
+    """The task's URDF with ``package://`` and relative mesh paths made absolute, COLLADA
+    (.dae) collision meshes replaced by their STL (`psl_task.meshes`: converted once, cached;
+    MuJoCo reads STL, OBJ and MSH), and Gazebo and transmission tags removed (MuJoCo ignores
+    them anyway). COLLADA visual meshes are dropped unread: MuJoCo's URDF import discards a
+    URDF's visual elements (its ``discardvisual``, on for URDFs: UR5's model compiles to the
+    same 8 geoms with its 7 converted visual meshes in the URDF as without them), so
+    converting them would cost time (1.4 s for UR5's, once) for nothing.
+
+    Raises:
+        TaskError: the URDF cannot be parsed, a mesh is not a file, or a .dae cannot be
+            converted (damaged, no triangles), naming the file and the link.
+    """
     try:
         root = ElementTree.parse(task.model_path).getroot()
     except ElementTree.ParseError as exc:
@@ -319,16 +329,18 @@ def urdf_text(task: TaskDefinition) -> str:
                                                             f'{link.get("name")!r}')
                 else:
                     resolved = (task.model_path.parent / filename).resolve()
-                if resolved.suffix.lower() == '.dae':
-                    if kind == 'visual':
-                        link.remove(element)      # MuJoCo reads STL, OBJ and MSH, not COLLADA
-                        continue
-                    raise TaskError(f'{task.path}: the collision mesh {filename} of link '
-                                    f'{link.get("name")!r} is COLLADA (.dae), which MuJoCo '
-                                    'cannot read: convert it to STL or OBJ')
+                if resolved.suffix.lower() == '.dae' and kind == 'visual':
+                    link.remove(element)        # discarded by MuJoCo anyway (docstring)
+                    continue
                 if not resolved.is_file():
                     raise TaskError(f'{task.path}: the mesh {filename} of link '
                                     f'{link.get("name")!r} is not a file ({resolved})')
+                if resolved.suffix.lower() == '.dae':
+                    try:
+                        resolved = stl_of_collada(resolved)
+                    except MeshError as exc:
+                        raise TaskError(f'{task.path}: the collision mesh of link '
+                                        f'{link.get("name")!r}: {exc}') from None
                 mesh.set('filename', str(resolved))
     return ElementTree.tostring(root, encoding='unicode')
 
