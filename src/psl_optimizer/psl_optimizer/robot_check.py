@@ -25,8 +25,8 @@ fix for
   posture by the task's PD law for `PASSIVE_HOLD` s; when the passive joints of the robot
   move the hand by more than `PASSIVE_HAND_WARNING` (a humanoid's waist under an arm taken
   from its full-body description) or one swings farther than `PASSIVE_SWING_WARNING` (a
-  hanging leg), those that moved more than `PASSIVE_MOVED` are named with how far, and the
-  fix, a ``robot.locked_joints: {...}`` to paste, with their angles at the start;
+  hanging leg), those that moved (`passive_warning`) are named with how far, and the fix,
+  a ``robot.locked_joints: {...}`` to paste, with their angles at the start;
 - **the reward's geometry**: what each measured (arm geom, obstacle geom) pair costs per
   physics step (``mj_geomDistance``, timed here at the start posture) beside the physics step
   itself; a task whose pairs cost more than `GEOMETRY_WARNING` physics steps is told which
@@ -44,7 +44,7 @@ import numpy as np
 
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_task.arm_model import ArmModel
-from psl_task.model_spec import RestingContact, robot_contacts_at_rest
+from psl_task.model_spec import ONE_DOF_TYPES, RestingContact, robot_contacts_at_rest
 from psl_task.reward_geometry import CUTOFF
 from psl_task.task import TaskDefinition
 
@@ -184,13 +184,13 @@ def passive_motion(arm: ArmModel, seconds: float = PASSIVE_HOLD) -> PassiveMotio
     start = {}
     for j, name in zip(joints, moved):
         value = 0.0
-        if model.jnt_type[j] in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+        if int(model.jnt_type[j]) in ONE_DOF_TYPES:
             value = float(start_qpos[model.jnt_qposadr[j]])
             if model.jnt_limited[j]:
                 value = float(np.clip(value, *model.jnt_range[j]))
         start[name] = value
-    units = {name: 'm' if model.jnt_type[j] in (mujoco.mjtJoint.mjJNT_SLIDE,
-                                                 mujoco.mjtJoint.mjJNT_FREE) else 'rad'
+    units = {name: 'm' if int(model.jnt_type[j]) in (int(mujoco.mjtJoint.mjJNT_SLIDE),
+                                                      int(mujoco.mjtJoint.mjJNT_FREE)) else 'rad'
              for j, name in zip(joints, moved)}
     hand_body = int(model.site_bodyid[arm.ee_site])
     carry = tuple(name for j, name in zip(joints, moved)
@@ -202,11 +202,14 @@ def passive_motion(arm: ArmModel, seconds: float = PASSIVE_HOLD) -> PassiveMotio
 def passive_warning(motion: PassiveMotion) -> str:
     """A warning when the passive joints moved the hand by more than `PASSIVE_HAND_WARNING`
     or one swung farther than `PASSIVE_SWING_WARNING` ('' otherwise), naming those that
-    moved more than `PASSIVE_MOVED`, how far, the hand's motion and the lock to paste."""
+    moved more than `PASSIVE_MOVED` (and, when the hand moved, every one between it and the
+    world that moved at all), how far, the hand's motion and the lock to paste."""
     swing = max(motion.moved.values(), default=0.0)
     if motion.hand_by_passive <= PASSIVE_HAND_WARNING and swing <= PASSIVE_SWING_WARNING:
         return ''
-    far = {name: value for name, value in motion.moved.items() if value > PASSIVE_MOVED}
+    moves_hand = motion.hand_by_passive > PASSIVE_HAND_WARNING
+    far = {name: value for name, value in motion.moved.items()
+           if value > PASSIVE_MOVED or (moves_hand and name in motion.carry_hand and value > 0)}
     # those that carry the hand first, each group the farthest first
     worst = sorted(far, key=lambda n: (n not in motion.carry_hand, -far[n]))
     lock = ', '.join(f'{name}: {motion.start[name]:.4g}' for name in far)
@@ -228,7 +231,7 @@ def _robot_passive_joints(arm: ArmModel) -> list[int]:
     roots = [_root(model, int(model.jnt_bodyid[j])) for j in range(model.njnt)]
     with_driven = {roots[j] for j in driven}
     loose = {roots[j] for j in range(model.njnt)
-             if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE
+             if int(model.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_FREE)
              and model.jnt_bodyid[j] == roots[j] and roots[j] not in with_driven}
     return [j for j in range(model.njnt) if j not in driven and roots[j] not in loose]
 
@@ -244,10 +247,10 @@ def _excursion(model: mujoco.MjModel, joint: int, qpos: np.ndarray,
                start: np.ndarray) -> float:
     """How far joint `joint` is from its start: |q - q0| of a hinge [rad] or slide [m], the
     rotation angle of a ball [rad], the distance of a free joint's body origin [m]."""
-    adr, kind = model.jnt_qposadr[joint], model.jnt_type[joint]
-    if kind == mujoco.mjtJoint.mjJNT_FREE:
+    adr, kind = model.jnt_qposadr[joint], int(model.jnt_type[joint])
+    if kind == int(mujoco.mjtJoint.mjJNT_FREE):
         return float(np.linalg.norm(qpos[adr:adr + 3] - start[adr:adr + 3]))
-    if kind == mujoco.mjtJoint.mjJNT_BALL:
+    if kind == int(mujoco.mjtJoint.mjJNT_BALL):
         dot = abs(float(np.dot(qpos[adr:adr + 4], start[adr:adr + 4])))
         return 2.0 * float(np.arccos(min(1.0, dot)))
     return abs(float(qpos[adr] - start[adr]))

@@ -87,3 +87,68 @@ def test_a_loose_object_is_not_the_robot():
     assert arm.passive_joints == ['ball']
     motion = passive_motion(arm)
     assert motion.moved == {} and passive_warning(motion) == ''
+
+
+STIFF_BASE = """
+<mujoco>
+  <compiler angle="radian"/>
+  <option timestep="0.002"/>
+  <worldbody>
+    <body name="mount">
+      <joint name="mount" axis="0 1 0" stiffness="1000" damping="30" range="-0.5 0.5"/>
+      <geom type="box" size="0.05 0.05 0.05" mass="1" contype="0" conaffinity="0"/>
+      <body name="link" pos="0.05 0 0">
+        <joint name="shoulder" axis="0 1 0" range="-3 3"/>
+        <geom type="capsule" fromto="0 0 0 0.5 0 0" size="0.03" mass="2"
+              contype="0" conaffinity="0"/>
+        <site name="tip" pos="0.5 0 0"/>
+        <body name="finger" pos="0.5 0 0">
+          <joint name="finger" axis="1 0 0" range="0.2 0.6"/>
+          <geom type="box" size="0.01 0.01 0.03" pos="0 0 -0.03" mass="0.05"
+                contype="0" conaffinity="0"/>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="shoulder" ctrlrange="-50 50"/></actuator>
+</mujoco>
+"""
+
+
+def stiff_base_task(folder, locked: dict):
+    """A one-joint arm on a stiff passive mount (1000 N m/rad under 6 N m: it gives 0.006 rad,
+    the hand 3 mm), a finger at its tip whose range leaves out its reference angle 0."""
+    (folder / 'stiff.xml').write_text(STIFF_BASE)
+    data = {'model': 'stiff.xml', 'end_effector_site': 'tip',
+            'robot': {'joints': ['shoulder'], 'locked_joints': locked},
+            'control_rate': 500.0, 'duration': 1.0, 'start_posture': [0.0],
+            'goal_posture': [0.1],
+            'task_parameters': [{'name': 'x', 'low': 0.0, 'high': 1.0,
+                                 'binds': {'kind': 'target_position', 'axis': 0}}],
+            'target': {'position': [0.5, 0.0, 0.0]},
+            'controller': {'kp': [2000.0], 'kd': [50.0]}, 'policy': {'n_basis': 3},
+            'demonstration': {'times': [0.0, 1.0], 'positions': [[0.0], [0.1]]},
+            'reward': {'weights': {'goal_error': 1.0}, 'success_threshold': -1.0}}
+    (folder / 'stiff.yaml').write_text(yaml.safe_dump(data))
+    task = load_task(str(folder / 'stiff.yaml'))
+    arm = ArmModel(task)
+    arm.reset(task.tau_default)
+    return passive_motion(arm)
+
+
+def test_a_passive_joint_that_gives_a_little_under_the_arm_is_warned_about(tmp_path):
+    """The mount gives less than a swing worth a warning, but it moves the hand by more than
+    a millimetre."""
+    motion = stiff_base_task(tmp_path, {'finger': 0.4})
+    assert motion.moved['mount'] < PASSIVE_SWING_WARNING
+    assert motion.hand_by_passive > 0.002 and motion.carry_hand == ('mount',)
+    assert passive_warning(motion).endswith('robot.locked_joints: {mount: 0}')
+
+
+def test_the_lock_offered_lies_inside_the_joint_range(tmp_path):
+    """The finger starts at its reference angle 0, outside its range [0.2, 0.6] (MuJoCo's
+    limit pushes it in): the lock offered is 0.2, which robot.locked_joints accepts."""
+    motion = stiff_base_task(tmp_path, {'mount': 0.0})
+    assert motion.moved['finger'] > PASSIVE_SWING_WARNING
+    assert motion.start == {'finger': 0.2}
+    assert passive_warning(motion).endswith('robot.locked_joints: {finger: 0.2}')

@@ -370,6 +370,7 @@ def urdf_velocity_limits(task: TaskDefinition, joint_names: list[str]) -> np.nda
 
 
 ONE_DOF = (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)
+ONE_DOF_TYPES = tuple(int(t) for t in ONE_DOF)    # as a compiled model's jnt_type holds them
 
 
 def driven_joints(task: TaskDefinition, spec: mujoco.MjSpec) -> list[str]:
