@@ -75,13 +75,16 @@ def stl_of_collada(path: Path) -> Path:
     if target.is_file():
         return target
     stl = _convert(content, path)
+    tmp = None
     try:
         folder.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=folder, prefix=f'.{digest}.', suffix='.tmp',
                                          delete=False) as tmp:
             tmp.write(stl)
-        os.replace(tmp.name, target)
+        os.replace(tmp.name, target)        # whole or not at all: never a part at `target`
     except OSError as exc:
+        if tmp is not None:
+            Path(tmp.name).unlink(missing_ok=True)
         raise MeshError(f'cannot write the STL of the COLLADA mesh {path} to {folder}: '
                         f'{exc.strerror or exc} (set PSL_CACHE_DIR to a writable folder)') \
             from None

@@ -6,6 +6,7 @@ a damaged .dae is refused in one line naming it; the Kinova JACO2 of example-rob
 whose collision meshes are all COLLADA, compiles (refused before)."""
 import concurrent.futures
 import multiprocessing
+import re
 import textwrap
 
 import mujoco
@@ -128,6 +129,20 @@ def test_each_mesh_is_converted_once(tmp_path, cache, monkeypatch):
         meshes.stl_of_collada(tmp_path / 'box.dae')       # another converter: another file
 
 
+def test_a_write_that_fails_leaves_nothing_behind(tmp_path, cache, monkeypatch):
+    """The STL reaches its name whole (os.replace) or not at all, and the temporary file
+    goes: a later run converts anew instead of reading a part."""
+    (tmp_path / 'box.dae').write_bytes(collada(box()))
+
+    def disk_full(*args):
+        raise OSError(28, 'No space left on device')
+
+    monkeypatch.setattr(meshes.os, 'replace', disk_full)
+    with pytest.raises(meshes.MeshError, match='No space left on device'):
+        meshes.stl_of_collada(tmp_path / 'box.dae')
+    assert list(cache.iterdir()) == []
+
+
 def _convert_in_a_process(path):
     return str(meshes.stl_of_collada(path)), meshes.stl_of_collada(path).read_bytes()
 
@@ -146,11 +161,19 @@ def test_processes_converting_at_once_each_get_a_whole_file(tmp_path, cache):
     assert [p.name for p in cache.iterdir()] == [results[0][0].rsplit('/', 1)[1]]
 
 
-@pytest.mark.parametrize('content', [b'<COLLADA/>', b'not xml at all', b''])
-def test_a_damaged_collada_mesh_is_refused_naming_it(tmp_path, content):
+def _without_geometry() -> bytes:
+    """A well-formed COLLADA file whose scene instances no geometry."""
+    text = collada(box()).decode()
+    return re.sub(r'<instance_geometry.*?</instance_geometry>', '', text, flags=re.S).encode()
+
+
+@pytest.mark.parametrize('content, words', [
+    (b'<COLLADA/>', 'cannot be read'), (b'not xml at all', 'cannot be read'),
+    (b'', 'cannot be read'), (_without_geometry(), 'holds no triangles')])
+def test_a_damaged_collada_mesh_is_refused_naming_it(tmp_path, content, words):
     (tmp_path / 'broken.dae').write_bytes(content)
     with pytest.raises(TaskError, match=r"the collision mesh of link 'box': the COLLADA "
-                                        r'mesh .*broken\.dae') as error:
+                                        rf'mesh .*broken\.dae {words}') as error:
         task_model(write_task(tmp_path, 'broken.dae'))
     assert '\n' not in str(error.value)
 
