@@ -376,7 +376,8 @@ ONE_DOF_TYPES = tuple(int(t) for t in ONE_DOF)    # as a compiled model's jnt_ty
 def driven_joints(task: TaskDefinition, spec: mujoco.MjSpec) -> list[str]:
     """The joints psl drives, in command order: ``robot.joints``, else the joints of the
     model's actuators (actuator order), else every hinge and slide joint of a model without
-    actuators (a URDF). Every other joint stays passive.
+    actuators (a URDF). Every other joint stays passive; locked joints (`lock_joints`, run
+    first) are gone from the spec with their actuators, so they are never among them.
 
     Raises:
         TaskError: robot.joints names a joint the model lacks, or one that is not a hinge or
