@@ -1,9 +1,10 @@
 """``psl render``: one rollout of a task drawn offscreen into an animated GIF.
 
 The rollout runs in batch mode in this process (`psl_optimizer.batch_rollout.BatchRollouts`:
-the same law and physics as the graph), then its measured joint angles are replayed
-kinematically in the task's model (`psl_task.arm_model.ArmModel`: joint angles, the task
-instance's mocap bodies, ``mj_forward``) at ``--fps`` frames per second of simulated time
+the same law and physics as the graph), then its simulated joint angles, every joint's (the
+passive ones too: `RolloutResult.qpos`), are replayed kinematically in the task's model
+(`psl_task.arm_model.ArmModel`: joint angles, the task instance's mocap bodies,
+``mj_forward``) at ``--fps`` frames per second of simulated time
 (the control steps subsampled; first and last state included) and drawn with
 ``mujoco.Renderer``. The commanded end-effector path (the policy's reference through the
 reward's end-effector sensor, `psl_task.reward_geometry.RewardGeometry.replay`) is drawn as a
@@ -88,17 +89,23 @@ class Replay:
     tau: np.ndarray
     evaluation: RewardResult
     world: dict = dataclasses.field(default_factory=dict)  # {body: (N+1, 7)} observed poses
+    qpos: np.ndarray | None = None  # (N+1, nq) every joint as simulated, passive ones too
 
     def frames(self) -> Iterator[int]:
-        """Puts the arm's data at each frame's state (mj_forward), the bodies the task
-        observes where they were measured (a thrown ball in flight), and yields the step."""
+        """Puts the arm's data at each frame's state (mj_forward): every joint as the rollout
+        simulated it (passive ones too: a humanoid's body that falls under a driven arm, a
+        thrown ball in flight), else the driven joints and the bodies the task observes where
+        they were measured; yields the step."""
         import mujoco
 
         data = self.arm.data
         for step in self.steps:
-            data.qpos[self.arm.qpos_adr] = self.q[step]
-            for body, poses in self.world.items():
-                self.arm.set_body_pose(body, poses[step])
+            if self.qpos is not None:
+                data.qpos[:] = self.qpos[step]
+            else:
+                data.qpos[self.arm.qpos_adr] = self.q[step]
+                for body, poses in self.world.items():
+                    self.arm.set_body_pose(body, poses[step])
             mujoco.mj_forward(self.arm.model, data)
             yield step
 
@@ -130,7 +137,7 @@ def replay_rollout(task: TaskDefinition, tau: np.ndarray, theta: np.ndarray, fps
     arm.reset(tau)                          # the task instance's bodies placed
     return Replay(arm=arm, steps=frame_steps(task.num_steps_of(tau), task.control_rate, fps),
                   q=result.q, commanded_path=commanded, tau=tau,
-                  evaluation=result.evaluation, world=result.world or {})
+                  evaluation=result.evaluation, world=result.world or {}, qpos=result.qpos)
 
 
 def scene_bounds(replay: Replay) -> tuple[np.ndarray, float]:

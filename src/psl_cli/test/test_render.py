@@ -138,3 +138,51 @@ def test_a_thrown_ball_is_drawn_where_it_was_measured():
                                       replay.world['ball'][step, :3])
         heights.append(replay.arm.data.xpos[body][2])
     assert max(heights) > 1.2 and heights[-1] < 0.03         # up in the air, then down
+
+
+def test_passive_joints_are_drawn_as_simulated(tmp_path):
+    """The Unitree G1's left arm from its full-body URDF, nothing locked: every frame draws
+    the body where the rollout simulated it (its torso and right leg measured by MuJoCo's
+    sensors during the rollout, reward.observe), falling, not where it started."""
+    import yaml
+
+    from psl_controller.policy import policy_for
+
+    observed = ['torso_link', 'right_knee_link', 'right_wrist_yaw_link']
+    arm = ['left_shoulder_pitch_joint', 'left_shoulder_roll_joint', 'left_shoulder_yaw_joint',
+           'left_elbow_joint', 'left_wrist_roll_joint', 'left_wrist_pitch_joint',
+           'left_wrist_yaw_joint']
+    start, goal = [0.3, 0.3, 0.0, 0.8, 0.0, 0.0, 0.0], [0.0, 0.3, 0.0, 0.3, 0.0, 0.0, 0.0]
+    task_file = tmp_path / 'g1.yaml'
+    task_file.write_text(yaml.safe_dump({
+        'robot': {'model': 'package://example-robot-data/robots/g1_description/urdf/'
+                           'g1_29dof_rev_1_0.urdf',
+                  'end_effector': {'body': 'left_wrist_yaw_link'}, 'joints': arm,
+                  'gravity_compensation': True},
+        'control_rate': 500.0, 'duration': 0.6, 'start_posture': start, 'goal_posture': goal,
+        'task_parameters': [{'name': 'x', 'low': 0.0, 'high': 1.0,
+                             'binds': {'kind': 'target_position', 'axis': 0}}],
+        'target': {'position': [0.2, 0.2, 0.1]},
+        'controller': {'kp': [70.0, 60.0, 8.0, 14.0, 0.15, 2.0, 0.7],
+                       'kd': [7.0, 6.0, 0.8, 1.4, 0.015, 0.2, 0.07]},
+        'policy': {'n_basis': 3},
+        'demonstration': {'times': [0.0, 0.6], 'positions': [start, goal]},
+        'reward': {'weights': {'goal_error': 1.0}, 'success_threshold': -1.0,
+                   'observe': observed}}))
+    task = load_task(str(task_file))
+    replay = render.replay_rollout(task, task.tau_default, policy_for(task).default_theta,
+                                   fps=10.0)
+    ids = [replay.arm.body(name) for name in observed]
+    first = None
+    for step in replay.frames():
+        data = replay.arm.data
+        for name, body in zip(observed, ids):
+            np.testing.assert_allclose(data.xpos[body], replay.world[name][step, :3],
+                                       rtol=0, atol=1e-12)
+            np.testing.assert_allclose(data.xquat[body], replay.world[name][step, 3:],
+                                       rtol=0, atol=1e-12)
+        if first is None:
+            first = data.xpos[ids].copy(), data.xquat[ids[0]].copy()
+    turned = 2 * np.arccos(min(1.0, abs(float(data.xquat[ids[0]] @ first[1]))))
+    assert turned > 0.1                                          # the torso fell forward
+    assert np.linalg.norm(data.xpos[ids[2]] - first[0][2]) > 0.05    # the right hand with it

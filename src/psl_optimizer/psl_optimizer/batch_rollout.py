@@ -304,6 +304,9 @@ class BatchRollouts(Rollouts):
         """The measured rollouts and their rewards from `_simulate`'s states and sensors
         (with measurement noise: on the measured states, the geometry replayed)."""
         n, count = len(self.arm.joint_names), len(references)
+        nq = self.model.nq
+        whole = np.concatenate([np.broadcast_to(self.initial_state[1:1 + nq], (count, 1, nq)),
+                                state[:, :-1, 1:1 + nq]], axis=1)    # S_0..S_N, every joint
         qpos = state[:, :, 1 + self.arm.qpos_adr]                    # states 1..N+1
         qvel = state[:, :, 1 + self.model.nq + self.arm.dof_adr]
         q = np.concatenate([np.broadcast_to(self.task.start_posture, (count, 1, n)),
@@ -317,7 +320,7 @@ class BatchRollouts(Rollouts):
         evaluations, world = self._evaluate(q, torque, q_ref, taus, sensors, noise is not None)
         return [RolloutResult(evaluation=evaluations[b], q=q[b], torque=torque[b],
                               reference=references[b],
-                              world={k: v[b] for k, v in world.items()})
+                              world={k: v[b] for k, v in world.items()}, qpos=whole[b])
                 for b in range(len(references))]
 
     def _evaluate(self, q: np.ndarray, torque: np.ndarray, q_ref: np.ndarray,
@@ -345,6 +348,7 @@ class BatchRollouts(Rollouts):
         qd = np.empty_like(q)
         torque = np.zeros_like(q)
         sensors = np.empty((len(taus), n_steps, self.held_model.nsensordata))
+        whole = np.empty((len(taus), n_steps, self.held_model.nq))
         noise = self._noise(references, taus)
         start = time.perf_counter()          # the stepping with its law counts as simulation
         for b, (reference, tau) in enumerate(zip(references, taus)):
@@ -358,6 +362,7 @@ class BatchRollouts(Rollouts):
             mujoco.mj_forward(model, data)
             for k in range(n_steps):
                 q[b, k], qd[b, k] = data.qpos[arm.qpos_adr], data.qvel[arm.dof_adr]
+                whole[b, k] = data.qpos
                 if noise is not None:                 # the law on the measurement
                     q[b, k] += noise[0][b, k]
                     qd[b, k] += noise[1][b, k]
@@ -373,5 +378,5 @@ class BatchRollouts(Rollouts):
         evaluations, world = self._evaluate(q, torque, q_ref, taus, sensors, noise is not None)
         return [RolloutResult(evaluation=evaluations[b], q=q[b], torque=torque[b],
                               reference=references[b],
-                              world={k: v[b] for k, v in world.items()})
+                              world={k: v[b] for k, v in world.items()}, qpos=whole[b])
                 for b in range(len(taus))]

@@ -30,6 +30,12 @@ fix for
   the reference ends farther from the corner than `REACH_WARNING` of the success threshold
   allows (goal_error's weight times the miss), those instances cannot be fulfilled: move or
   shrink the range;
+- **passive joints that move under gravity** (`passive_motion`): the arm held at its start
+  posture by the task's PD law for `PASSIVE_HOLD` s; when the passive joints of the robot
+  move the hand by more than `PASSIVE_HAND_WARNING` (a humanoid's waist under an arm taken
+  from its full-body description) or one swings farther than `PASSIVE_SWING_WARNING` (a
+  hanging leg), those that moved (`passive_warning`) are named with how far, and the fix,
+  a ``robot.locked_joints: {...}`` to paste, with their angles at the start;
 - **the reward's geometry**: what each measured (arm geom, obstacle geom) pair costs per
   physics step (``mj_geomDistance``, timed here at the start posture) beside the physics step
   itself; a task whose pairs cost more than `GEOMETRY_WARNING` physics steps is told which
@@ -54,7 +60,7 @@ import numpy as np
 from psl_optimizer.batch_rollout import BatchRollouts
 from psl_task.arm_model import ArmModel
 from psl_task.gain_rule import Gains, arm_gains
-from psl_task.model_spec import RestingContact, robot_contacts_at_rest
+from psl_task.model_spec import ONE_DOF_TYPES, RestingContact, robot_contacts_at_rest
 from psl_task.reward_geometry import CUTOFF
 from psl_task.task import TaskDefinition
 
@@ -68,6 +74,12 @@ REACH_WARNING = 0.5          # share of |success_threshold| a corner's goal_erro
 # stay above 0.03; TALOS's left arm (talos_arm_point_reach) starts at 0.005 and passes 0.0009,
 # where the inverse kinematics asks its wrist for 2.5 rad/s; the UR5 with a straight elbow 0.004
 SINGULAR_WARNING = 1e-3
+
+
+PASSIVE_HOLD = 1.0           # s the arm is held at its start posture to see passive joints move
+PASSIVE_HAND_WARNING = 0.001  # m the passive joints may move the hand by in that time
+PASSIVE_SWING_WARNING = 0.05  # rad (m) a passive joint of the robot may swing
+PASSIVE_MOVED = 0.01         # rad (m): a passive joint moving more is named in the warning
 
 
 @dataclasses.dataclass(frozen=True)
@@ -211,6 +223,135 @@ def saturation_parts(arm: ArmModel, result, at_limit: np.ndarray) -> dict[str, f
     return {name: value / total for name, value in sums.items()} if total > 0 else {}
 
 
+@dataclasses.dataclass(frozen=True)
+class PassiveMotion:
+    """What the robot's passive joints do while the arm is held at rest (`passive_motion`)."""
+
+    moved: dict[str, float]     # passive joint -> its largest excursion from the start [rad
+                                # (hinge, ball: the angle), m (slide, free: the body's origin)]
+    start: dict[str, float]     # passive joint -> where it starts: the value to lock it at
+                                # (a free or ball joint: 0, the model's reference pose)
+    hand: float                 # m, the hand's largest distance from where it started
+    hand_by_passive: float      # m, ... with the driven joints put back at the start: what
+                                # the passive joints alone did to it
+    seconds: float              # how long the arm was held
+    units: dict[str, str] = dataclasses.field(default_factory=dict)   # joint -> 'rad' | 'm'
+    carry_hand: tuple[str, ...] = ()    # the passive joints between the world and the hand
+
+
+def passive_motion(arm: ArmModel, seconds: float = PASSIVE_HOLD) -> PassiveMotion:
+    """The arm (its task instance applied) held at the task's start posture by the task's PD
+    law (`psl_controller.pd_law.law_for`: the torque limits included), each torque held over
+    the control period's physics steps as the simulator holds it, for `seconds`, the passive
+    joints starting at the model's reference pose at rest (as a rollout starts them): how far
+    each passive joint of the robot and the hand move. Loose objects (a body hanging from the
+    world by a free joint, with no driven joint below it: a ball, a puck) are not the robot's
+    and are left out. The start value of a hinge or slide is kept inside its range."""
+    from psl_controller.pd_law import law_for
+
+    task, model = arm.task, arm.model
+    data = mujoco.MjData(model)
+    data.qpos[:] = arm.data.qpos            # the instance's placement (mocap bodies, ...)
+    data.qvel[:] = 0.0
+    data.mocap_pos[:], data.mocap_quat[:] = arm.data.mocap_pos, arm.data.mocap_quat
+    data.qpos[arm.qpos_adr] = task.start_posture
+    mujoco.mj_forward(model, data)
+    joints = _robot_passive_joints(arm)
+    start_qpos = data.qpos.copy()
+    hand_start = data.site_xpos[arm.ee_site].copy()
+    moved = dict.fromkeys((model.joint(j).name or f'#{j}' for j in joints), 0.0)
+    hand = by_passive = 0.0
+    probe = mujoco.MjData(model)
+    law, zero = law_for(task), np.zeros(len(arm.joint_ids))
+    for _ in range(int(round(seconds * task.control_rate))):
+        data.ctrl[arm.actuator_ids] = law.torque(data.qpos[arm.qpos_adr],
+                                                 data.qvel[arm.dof_adr], task.start_posture,
+                                                 zero, zero)
+        mujoco.mj_step(model, data, nstep=arm.n_substeps)
+        mujoco.mj_kinematics(model, data)
+        hand = max(hand, float(np.linalg.norm(data.site_xpos[arm.ee_site] - hand_start)))
+        probe.qpos[:] = data.qpos
+        probe.qpos[arm.qpos_adr] = task.start_posture
+        mujoco.mj_kinematics(model, probe)
+        by_passive = max(by_passive, float(np.linalg.norm(probe.site_xpos[arm.ee_site]
+                                                          - hand_start)))
+        for j, name in zip(joints, moved):
+            moved[name] = max(moved[name], _excursion(model, j, data.qpos, start_qpos))
+    start = {}
+    for j, name in zip(joints, moved):
+        value = 0.0
+        if int(model.jnt_type[j]) in ONE_DOF_TYPES:
+            value = float(start_qpos[model.jnt_qposadr[j]])
+            if model.jnt_limited[j]:
+                value = float(np.clip(value, *model.jnt_range[j]))
+        start[name] = value
+    units = {name: 'm' if int(model.jnt_type[j]) in (int(mujoco.mjtJoint.mjJNT_SLIDE),
+                                                      int(mujoco.mjtJoint.mjJNT_FREE)) else 'rad'
+             for j, name in zip(joints, moved)}
+    hand_body = int(model.site_bodyid[arm.ee_site])
+    carry = tuple(name for j, name in zip(joints, moved)
+                  if _descends(model, hand_body, int(model.jnt_bodyid[j])))
+    return PassiveMotion(moved=moved, start=start, hand=hand, hand_by_passive=by_passive,
+                         seconds=seconds, units=units, carry_hand=carry)
+
+
+def passive_warning(motion: PassiveMotion) -> str:
+    """A warning when the passive joints moved the hand by more than `PASSIVE_HAND_WARNING`
+    or one swung farther than `PASSIVE_SWING_WARNING` ('' otherwise), naming those that
+    moved more than `PASSIVE_MOVED` (and, when the hand moved, every one between it and the
+    world that moved at all), how far, the hand's motion and the lock to paste."""
+    swing = max(motion.moved.values(), default=0.0)
+    if motion.hand_by_passive <= PASSIVE_HAND_WARNING and swing <= PASSIVE_SWING_WARNING:
+        return ''
+    moves_hand = motion.hand_by_passive > PASSIVE_HAND_WARNING
+    far = {name: value for name, value in motion.moved.items()
+           if value > PASSIVE_MOVED or (moves_hand and name in motion.carry_hand and value > 0)}
+    # those that carry the hand first, each group the farthest first
+    worst = sorted(far, key=lambda n: (n not in motion.carry_hand, -far[n]))
+    lock = ', '.join(f'{name}: {motion.start[name]:.4g}' for name in far)
+    return (f'passive joints move under gravity at rest: held at the start posture for '
+            f'{motion.seconds:g} s, {len(far)} passive joint{"s" if len(far) > 1 else ""} of '
+            'the robot moved (' + ', '.join(f'{n} {far[n]:.3f} {motion.units.get(n, "rad")}'
+                                            for n in worst[:5])
+            + (f', ... {len(far) - 5} more' if len(far) > 5 else '')
+            + f'), which moved the hand {1000 * motion.hand_by_passive:.1f} mm: lock them at '
+            'their start: '
+            f'robot.locked_joints: {{{lock}}}')
+
+
+def _robot_passive_joints(arm: ArmModel) -> list[int]:
+    """The passive joints of the robot: every joint not driven, but those of loose objects
+    (a body hanging from the world by a free joint with no driven joint in its subtree)."""
+    model = arm.model
+    driven = set(arm.joint_ids.tolist())
+    roots = [_root(model, int(model.jnt_bodyid[j])) for j in range(model.njnt)]
+    with_driven = {roots[j] for j in driven}
+    loose = {roots[j] for j in range(model.njnt)
+             if int(model.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_FREE)
+             and model.jnt_bodyid[j] == roots[j] and roots[j] not in with_driven}
+    return [j for j in range(model.njnt) if j not in driven and roots[j] not in loose]
+
+
+def _root(model: mujoco.MjModel, body: int) -> int:
+    """The ancestor of `body` that hangs from the world (the body itself if it does)."""
+    while model.body_parentid[body] > 0:
+        body = int(model.body_parentid[body])
+    return body
+
+
+def _excursion(model: mujoco.MjModel, joint: int, qpos: np.ndarray,
+               start: np.ndarray) -> float:
+    """How far joint `joint` is from its start: |q - q0| of a hinge [rad] or slide [m], the
+    rotation angle of a ball [rad], the distance of a free joint's body origin [m]."""
+    adr, kind = model.jnt_qposadr[joint], int(model.jnt_type[joint])
+    if kind == int(mujoco.mjtJoint.mjJNT_FREE):
+        return float(np.linalg.norm(qpos[adr:adr + 3] - start[adr:adr + 3]))
+    if kind == int(mujoco.mjtJoint.mjJNT_BALL):
+        dot = abs(float(np.dot(qpos[adr:adr + 4], start[adr:adr + 4])))
+        return 2.0 * float(np.arccos(min(1.0, dot)))
+    return abs(float(qpos[adr] - start[adr]))
+
+
 def geometry_cost(arm: ArmModel) -> tuple[float, dict[str, float]]:
     """Seconds of one physics step of the arm's model at the start posture, and of one signed
     distance of each (arm geom, obstacle geom) pair the reward measures there (the least of
@@ -305,6 +446,9 @@ def check_robot(task: TaskDefinition) -> RobotReport:
             f'postures at a joint limit: {near}; the safety check refuses every candidate '
             'that moves past the range (about half of the search\'s steps there): move the '
             'postures and the demonstration inside the range')
+    moving = passive_warning(passive_motion(arm))
+    if moving:
+        warnings.append(moving)
     resting = list(robot_contacts_at_rest(task))
     excluded = task.contacts_at_rest == 'exclude'
     if resting and not excluded:

@@ -44,6 +44,8 @@ class RolloutResult:
     aborted: str = ''                      # the controller's reason: the episode was stopped
     world: dict | None = None              # {body: (N+1, 7)} poses of the bodies the task
                                            # observes (reward.observe), when measured
+    qpos: np.ndarray | None = None         # (N+1, nq) the model's whole qpos, passive joints
+                                           # too (batch mode: what psl render draws)
 
     @property
     def has_trajectory(self) -> bool:

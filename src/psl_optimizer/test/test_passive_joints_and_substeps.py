@@ -279,3 +279,16 @@ def test_a_held_command_moves_a_mass_as_the_closed_form_recurrence(tmp_path):
     np.testing.assert_allclose(result.q[:, 0], recurrence(10), rtol=0, atol=1e-12)
     # the law evaluated on every physics step (what an in-actuator PD does) ends elsewhere
     assert np.abs(result.q[:, 0] - recurrence(1)).max() > 1e-4
+
+
+@pytest.mark.parametrize('control_rate', [500.0, 250.0])     # one physics step; two, held
+def test_batch_mode_gives_every_joint_as_the_graph_steps_it(tmp_path, control_rate):
+    """RolloutResult.qpos (what psl render draws): the whole model's qpos, passive joints
+    too, state for state as the graph's stepping leaves them."""
+    task = write(tmp_path, task_data(control_rate=control_rate))
+    batch = BatchRollouts(task)
+    theta, tau = perturbed_theta(batch), task.tau_default
+    _, qpos = graph_steps(task, theta, tau)
+    result = batch.run(theta[None], tau)[0]
+    assert result.qpos.shape == qpos.shape == (task.num_steps_of(tau) + 1, 6)
+    np.testing.assert_allclose(result.qpos, qpos, rtol=0, atol=1e-12)

@@ -13,6 +13,7 @@ from xml.etree import ElementTree
 import mujoco
 import numpy as np
 
+from psl_task.meshes import MeshError, stl_of_collada
 from psl_task.package_paths import PREFIX
 from psl_task.task import TaskDefinition, TaskError, package_file, rotation_xyz
 
@@ -301,9 +302,18 @@ def contacts_at_rest(task: TaskDefinition, spec: mujoco.MjSpec,
 
 
 def urdf_text(task: TaskDefinition) -> str:
-    """The task's URDF with ``package://`` and relative mesh paths made absolute, meshes MuJoCo
-    cannot read (.dae) dropped from visual elements and refused in collision elements, and
-    Gazebo and transmission tags removed (MuJoCo ignores them anyway)."""
+    """The task's URDF with ``package://`` and relative mesh paths made absolute, COLLADA
+    (.dae) collision meshes replaced by their STL (`psl_task.meshes`: converted once, cached;
+    MuJoCo reads STL, OBJ and MSH), and Gazebo and transmission tags removed (MuJoCo ignores
+    them anyway). COLLADA visual meshes are dropped unread: MuJoCo's URDF import discards a
+    URDF's visual elements (its ``discardvisual``, on for URDFs: UR5's model compiles to the
+    same 8 geoms with its 7 converted visual meshes in the URDF as without them), so
+    converting them would cost time (1.4 s for UR5's, once) for nothing.
+
+    Raises:
+        TaskError: the URDF cannot be parsed, a mesh is not a file, or a .dae cannot be
+            converted (damaged, no triangles), naming the file and the link.
+    """
     try:
         root = ElementTree.parse(task.model_path).getroot()
     except ElementTree.ParseError as exc:
@@ -323,16 +333,18 @@ def urdf_text(task: TaskDefinition) -> str:
                                                             f'{link.get("name")!r}')
                 else:
                     resolved = (task.model_path.parent / filename).resolve()
-                if resolved.suffix.lower() == '.dae':
-                    if kind == 'visual':
-                        link.remove(element)      # MuJoCo reads STL, OBJ and MSH, not COLLADA
-                        continue
-                    raise TaskError(f'{task.path}: the collision mesh {filename} of link '
-                                    f'{link.get("name")!r} is COLLADA (.dae), which MuJoCo '
-                                    'cannot read: convert it to STL or OBJ')
+                if resolved.suffix.lower() == '.dae' and kind == 'visual':
+                    link.remove(element)        # discarded by MuJoCo anyway (docstring)
+                    continue
                 if not resolved.is_file():
                     raise TaskError(f'{task.path}: the mesh {filename} of link '
                                     f'{link.get("name")!r} is not a file ({resolved})')
+                if resolved.suffix.lower() == '.dae':
+                    try:
+                        resolved = stl_of_collada(resolved)
+                    except MeshError as exc:
+                        raise TaskError(f'{task.path}: the collision mesh of link '
+                                        f'{link.get("name")!r}: {exc}') from None
                 mesh.set('filename', str(resolved))
     return ElementTree.tostring(root, encoding='unicode')
 
@@ -362,12 +374,14 @@ def urdf_velocity_limits(task: TaskDefinition, joint_names: list[str]) -> np.nda
 
 
 ONE_DOF = (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)
+ONE_DOF_TYPES = tuple(int(t) for t in ONE_DOF)    # as a compiled model's jnt_type holds them
 
 
 def driven_joints(task: TaskDefinition, spec: mujoco.MjSpec) -> list[str]:
     """The joints psl drives, in command order: ``robot.joints``, else the joints of the
     model's actuators (actuator order), else every hinge and slide joint of a model without
-    actuators (a URDF). Every other joint stays passive.
+    actuators (a URDF). Every other joint stays passive; locked joints (`lock_joints`, run
+    first) are gone from the spec with their actuators, so they are never among them.
 
     Raises:
         TaskError: robot.joints names a joint the model lacks, or one that is not a hinge or

@@ -4,7 +4,8 @@ is an arm — without locks its 22 other joints are passive and the body falls; 
 the hand holds — and a locked body sits where MuJoCo's own kinematics of the unlocked model
 puts it at the locked values (an independent reference), in a URDF and in an MJCF with what
 MJCF allows (degrees, Euler angles, frames, a joint's ref, slides, two joints on a body,
-floating bases, actuators, sensors and keyframes on the locked joints)."""
+floating bases, static bodies fused into their parents, actuators, sensors and keyframes on
+the locked joints)."""
 import textwrap
 
 import mujoco
@@ -101,8 +102,8 @@ def test_the_g1_body_falls_without_locks_and_holds_with_them(tmp_path):
 
 
 def _same_poses(locked: mujoco.MjModel, free: mujoco.MjModel, values: dict) -> int:
-    """Compare the world poses of the bodies (by name) and of the mesh geoms (by mesh name)
-    of the locked model at its reference pose with those of the unlocked model at the
+    """Compare the world poses of the bodies (by name) and of the geoms (by name, else by
+    their mesh's name) of the locked model at its reference pose with those of the unlocked model at the
     locked values (MuJoCo's kinematics: the independent reference); returns how many were
     compared."""
     d_locked, d_free = mujoco.MjData(locked), mujoco.MjData(free)
@@ -117,15 +118,17 @@ def _same_poses(locked: mujoco.MjModel, free: mujoco.MjModel, values: dict) -> i
         sign = np.sign(d_locked.xquat[a] @ d_free.xquat[b])          # q and -q: one turn
         np.testing.assert_allclose(d_locked.xquat[a], sign * d_free.xquat[b], rtol=0,
                                    atol=1e-9)
-    meshes = {}
-    for g in range(free.ngeom):
-        if free.geom_dataid[g] >= 0:
-            meshes[free.mesh(free.geom_dataid[g]).name] = g
+    def key(model, g):             # a geom by its name, else by its mesh's
+        if model.geom(g).name:
+            return model.geom(g).name
+        return model.mesh(model.geom_dataid[g]).name if model.geom_dataid[g] >= 0 else None
+
+    geoms = {key(free, g): g for g in range(free.ngeom)}
     count = len(pairs)
     for g in range(locked.ngeom):
-        if locked.geom_dataid[g] < 0:
+        if key(locked, g) is None:
             continue
-        h = meshes[locked.mesh(locked.geom_dataid[g]).name]
+        h = geoms[key(locked, g)]
         np.testing.assert_allclose(d_locked.geom_xpos[g], d_free.geom_xpos[h], rtol=0,
                                    atol=1e-9)
         np.testing.assert_allclose(d_locked.geom_xmat[g], d_free.geom_xmat[h], rtol=0,
@@ -149,28 +152,30 @@ def test_a_locked_urdf_body_sits_where_mujoco_kinematics_puts_it(tmp_path):
 
 MJCF = """
 <mujoco>
-  <compiler angle="degree"/>
+  <compiler angle="degree" fusestatic="true"/>
   <default><joint axis="0 1 0" damping="0.1"/></default>
   <worldbody>
     <body name="base" pos="0.1 0.2 1.0">
       <freejoint name="float"/>
-      <geom type="box" size="0.1 0.1 0.1"/>
+      <geom name="g_base" type="box" size="0.1 0.1 0.1"/>
+      <body name="plate" pos="0 0.05 0.02" euler="0 0 20">
       <frame pos="0 0 0.2" euler="0 30 0">
         <body name="upper" euler="10 0 90" pos="0.05 0 0">
           <joint name="yaw" axis="0 0 1" pos="0.02 0.01 0" range="-90 90" ref="10"/>
           <joint name="pitch" pos="0 0 0.03" range="-90 90"/>
-          <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03"/>
+          <geom name="g_upper" type="capsule" fromto="0 0 0 0.3 0 0" size="0.03"/>
           <body name="fore" pos="0.3 0 0" axisangle="1 1 0 20">
             <joint name="slide" type="slide" axis="1 0 0.5" range="-0.1 0.2"/>
-            <geom type="capsule" fromto="0 0 0 0.25 0 0" size="0.02"/>
+            <geom name="g_fore" type="capsule" fromto="0 0 0 0.25 0 0" size="0.02"/>
             <body name="hand" pos="0.25 0 0">
               <joint name="wrist" pos="0.01 0 0" range="-90 90"/>
-              <geom type="sphere" size="0.03"/>
+              <geom name="g_hand" type="sphere" size="0.03"/>
               <site name="tip" pos="0.05 0 0"/>
             </body>
           </body>
         </body>
       </frame>
+      </body>
     </body>
   </worldbody>
   <actuator>
@@ -207,7 +212,10 @@ def test_mjcf_locks_compose_as_mujoco_kinematics_does(tmp_path):
     assert locked.nu == 1 and locked.nsensor == 1 and locked.nq == 1
     np.testing.assert_array_equal(locked.key_qpos[0], [0.3])     # the wrist's entry kept
     free = mujoco.MjModel.from_xml_path(str(tmp_path / 'arm.xml'))
-    assert _same_poses(locked, free, values) == 4     # base, upper, fore, hand
+    # base, upper and fore fused into the world (fusestatic) with the plate: the hand and
+    # the four geoms
+    assert _same_poses(locked, free, values) == 5
+    assert locked.nbody == 2
     arm = ArmModel(task)                                # the arm model takes it as it is
     assert arm.joint_names == ['wrist'] and arm.passive_joints == []
 
