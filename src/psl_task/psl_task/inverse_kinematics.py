@@ -54,25 +54,22 @@ Joint velocity bounds (``max_velocity``, e.g. ``ArmModel.limits.velocity``: a UR
 ``<limit velocity>``; the safety check refuses a reference past them, as every controller psl
 serves does: `psl_task.joint_limits`): the steps toward a sample, all of them together, move
 each joint at most (1 - ``velocity_margin``) v_max h from where the sample began (h the time
-the sample covers: dt, or the knot's stride times dt); a step that would carry a joint
-further is scaled down uniformly, its direction kept (the task scaling factor of Flacco
-2015, which shrinks the task velocity until the joint velocity bounds hold): the hand lags the path where the
-path asks more than the arm's joints give, and catches up once it asks less (the residual is
-reported in ``IKResult.error`` like any other). The bound holds for the whole step, the null-
-space pull and the joints moved onto a limit included; a sample's first step is no exception,
-so the step from q0 to x_ref[0] (sample 0) alone is not bounded (no time passes there). The
-chords (q_{k+1} - q_k) / dt are within (1 - margin) v_max by construction, so are their central
-differences qd; the cubic a controller interpolates between points (q, qd) bulges past its
-chord only where the chord changes from sample to sample (by 1.25 c - (c_- + c_+) / 8 at a
-segment's middle: at most 1.5 times the chord for a reversal, 1.125 times for a start from
-rest); measured along TALOS's references (default and perturbed, psl_task test
-test_inverse_kinematics_velocity.py) it stays below 1.17 times the bound kept, so the default
-margin 0.2 keeps it below the bound itself, within `psl_task.joint_limits.VELOCITY_SLACK`. A
-spline between knots could bulge too: interpolated samples whose qd passes (1 - margin / 2)
-v_max are solved one by one. Unbounded joints (inf, the default None) take no part: with no
-finite bound the path is the one without bounds, bit for bit. Not chosen: a weighted least-
-norm step with weights from the bounds (Chan and Dubey 1995), which moves slow joints less
-everywhere (every path changes, also where no bound is near) and keeps no bound by itself.
+the sample covers: dt, or a knot's stride times dt); a step that would carry a joint further
+is scaled down uniformly, its direction kept (the task scaling of Flacco 2015, which shrinks
+the task velocity until the joint velocity bounds hold), the null-space pull and the joints
+moved onto a limit included. The hand lags the path where the path asks more than the joints
+give, and catches up once it asks less (the lag is reported in ``IKResult.error``). Sample 0
+(from q0 to x_ref[0]: no time passes) is not bounded. So every chord (q_{k+1} - q_k) / dt is
+within (1 - margin) v_max by construction (an interpolated sample between knots on a chord past
+it is solved one by one), and so is qd. The cubic a controller interpolates between the points
+(q, qd) passes its chord c only where the chord changes from sample to sample: by
+1.25 c - (c_- + c_+) / 8 at a segment's middle, up to 1.5 c for a reversal, 1.125 c for a start
+from rest; measured along TALOS's references (default and perturbed theta) it stays below 1.17
+times the bound kept, so the default margin 0.2 keeps it below the bound itself (0.93 v_max),
+within `psl_task.joint_limits.VELOCITY_SLACK`. Without a finite bound (None, inf: the default)
+the path is the one without bounds, bit for bit. Not chosen: a weighted least-norm step with
+weights from the bounds (Chan and Dubey 1995), which moves slow joints less everywhere (every
+path changes, also far from any bound) and keeps no bound by itself.
 
 qd is the finite difference of q (``numpy.gradient``: central inside, one-sided at the two
 ends), i.e. the velocity of the very q the PD controller tracks, null-space motion and stops
@@ -177,6 +174,7 @@ SINGULAR_REGION = 0.05   # m/rad: a singular value of J below this gets the sele
 SINGULAR_DAMPING = 0.02  # m: that damping at a singular posture (module docstring)
 VELOCITY_MARGIN = 0.2    # share of a joint's velocity bound the steps keep below it (module
                          # docstring, "Joint velocity bounds")
+_CHORD_ROUNDING = 1.0 + 1e-12   # a chord may pass the bound kept by this factor (rounding)
 _KNOT_PASSES = 3     # passes over a path with knots before every sample is solved
 _ONE_DOF_JOINTS = (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)
 _HALVINGS = 8        # a step that makes the error worse is halved back at most this often
@@ -638,12 +636,11 @@ class DifferentialIK:
                             > 2.0 * self.tolerance)
         if self._speed is not None and len(q) > 1:
             # a spline through knots the steps kept within the bound may still bulge past
-            # it between them: there the samples are solved one by one too
-            bound = (1.0 - 0.5 * self.velocity_margin) * self.max_velocity
-            fast = np.any(np.abs(np.gradient(q, dt, axis=0)) > bound, axis=1)
-            fast[1:] |= fast[:-1].copy()
-            fast[:-1] |= fast[1:].copy()
-            missed |= between & fast
+            # it between them: the samples of a chord past it are solved one by one too
+            fast = np.any(np.abs(np.diff(q, axis=0)) > self._speed * (dt * _CHORD_ROUNDING),
+                          axis=1)
+            missed[:-1] |= between[:-1] & fast
+            missed[1:] |= between[1:] & fast
         if missed.any():
             return None, missed
         return self._result(q, errors, dt), missed

@@ -731,10 +731,10 @@ TOL_CAUGHT_UP = 1e-4        # m, the hand's error once the path has come to rest
 RECORDED_Q_SHA256 = '1efa8a2ebc009f4b64fdd03ae609a75cd680cdc93e3812106ae670f56280e2a9'
 
 
-def fast_path():
-    """A 0.2 s circle of 0.1 m and a line out and back on the 7-DOF arm (hand up to ~4 m/s,
-    joints up to tens of rad/s), then 0.3 s at rest."""
-    model = seven_dof_arm()
+def fast_path(**ranges):
+    """The 7-DOF arm (with ``ranges``) and a 0.2 s circle of 0.1 m and a line out and back
+    (hand up to ~4 m/s, joints up to 13 rad/s), then 0.3 s at rest."""
+    model = seven_dof_arm(**ranges)
     ik = solver(model, ARM7_Q0)
     x0 = ik.forward(ARM7_Q0)
     ring, _ = circle(x0, 0.1, EY, np.array([0.0, 0.6, 0.8]), n=200)
@@ -747,8 +747,13 @@ def chord_speed(q):
     return np.abs(np.diff(q, axis=0)) / DT
 
 
-def test_the_bounds_hold_and_the_hand_catches_up():
-    model, x_ref = fast_path()
+# three joints in ranges of 0.25-0.4 rad around the start: the bounds and the ranges at once
+TIGHT_RANGES = dict(sh_roll=(0.05, 0.35), elbow=(1.0, 1.4), wr_pitch=(0.05, 0.3))
+
+
+@pytest.mark.parametrize('ranges', [{}, TIGHT_RANGES])
+def test_the_bounds_hold_and_the_hand_catches_up(ranges):
+    model, x_ref = fast_path(**ranges)
     free = solver(model, ARM7_Q0).solve(x_ref, ARM7_Q0, DT)
     bound = np.array([3.0, 3.0, 3.0, 4.0, 2.0, 2.0, 1.5])          # rad/s
     assert np.any(chord_speed(free.q) > 2.0 * bound)               # the path asks more
@@ -759,7 +764,25 @@ def test_the_bounds_hold_and_the_hand_catches_up():
     low, high = hinge_bounds(model)
     assert np.all(result.q >= low - TOL_LIMIT) and np.all(result.q <= high + TOL_LIMIT)
     assert result.error[500] > 0.01                                # it lagged
-    assert result.error[-1] < TOL_CAUGHT_UP                        # and caught up
+    if not ranges:
+        assert result.error[-1] < TOL_CAUGHT_UP                    # and caught up
+
+
+def test_a_path_speeding_up_past_the_bounds_between_knots_keeps_them():
+    """A hand path whose speed grows from rest (x0 + d (t / T)^3): the knots are taken while
+    it is slow, and it passes the bound between two of them (the knots' own bound and the
+    spline's check hold it there)."""
+    model = seven_dof_arm()
+    ik = solver(model, ARM7_Q0)
+    x0 = ik.forward(ARM7_Q0)
+    u = np.arange(400) / 399.0
+    x_ref = hold(x0 + np.outer(u ** 3, [-0.1, 0.05, 0.12]), 200)
+    bound = np.full(7, 2.0)                                         # rad/s
+    assert chord_speed(ik.solve(x_ref, ARM7_Q0, DT).q).max() > 1.4 * bound[0]
+    result = solver(model, ARM7_Q0, max_velocity=bound).solve(x_ref, ARM7_Q0, DT)
+    kept = (1.0 - VELOCITY_MARGIN) * bound
+    assert np.all(chord_speed(result.q) <= kept * (1.0 + 1e-12))
+    assert result.error[-1] < TOL_CAUGHT_UP
 
 
 def test_a_path_within_the_bounds_is_the_path_without_them():
