@@ -59,7 +59,11 @@ is scaled down uniformly, its direction kept (the task scaling of Flacco 2015, w
 the task velocity until the joint velocity bounds hold), the null-space pull and the joints
 moved onto a limit included. The hand lags the path where the path asks more than the joints
 give, and catches up once it asks less (the lag is reported in ``IKResult.error``). Sample 0
-(from q0 to x_ref[0]: no time passes) is not bounded. So every chord (q_{k+1} - q_k) / dt is
+(from q0 to x_ref[0]: no time passes) is not bounded. A reference is sent ending at rest
+(its last velocity 0: a JointTrajectoryController refuses one ending in motion), so the last
+chord is held to a quarter of it: where the hand still lags at the end, the cubic of the last
+segment, which then starts at the chord's speed and ends at 0, stays within its control
+points' hull (its middle one 2.5 c_last - c_prev / 2 <= 0.9 of the bound). So every chord (q_{k+1} - q_k) / dt is
 within (1 - margin) v_max by construction (an interpolated sample between knots on a chord past
 it is solved one by one), and so is qd. The cubic a controller interpolates between the points
 (q, qd) passes its chord c only where the chord changes from sample to sample: by
@@ -175,6 +179,8 @@ SINGULAR_DAMPING = 0.02  # m: that damping at a singular posture (module docstri
 VELOCITY_MARGIN = 0.2    # share of a joint's velocity bound the steps keep below it (module
                          # docstring, "Joint velocity bounds")
 _CHORD_ROUNDING = 1.0 + 1e-12   # a chord may pass the bound kept by this factor (rounding)
+_LAST_CHORD = 0.25   # the last chord's share of the bound kept (module docstring, "Joint
+                     # velocity bounds": a reference is sent ending at rest)
 _KNOT_PASSES = 3     # passes over a path with knots before every sample is solved
 _ONE_DOF_JOINTS = (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)
 _HALVINGS = 8        # a step that makes the error worse is halved back at most this often
@@ -567,7 +573,8 @@ class DifferentialIK:
                     slack = knot_slack
                 self._set(q)
             for k in range(a + 1, b + 1):
-                path.within[k] = reach(k, pull, pulled_rest, one_budget) <= tolerance2
+                budget = one_budget if k < T - 1 or speed is None else _LAST_CHORD * one_budget
+                path.within[k] = reach(k, pull, pulled_rest, budget) <= tolerance2
                 path.q[k] = q
             path.solved[a + 1:b + 1] = True
             a = b
@@ -637,8 +644,9 @@ class DifferentialIK:
         if self._speed is not None and len(q) > 1:
             # a spline through knots the steps kept within the bound may still bulge past
             # it between them: the samples of a chord past it are solved one by one too
-            fast = np.any(np.abs(np.diff(q, axis=0)) > self._speed * (dt * _CHORD_ROUNDING),
-                          axis=1)
+            chord = np.abs(np.diff(q, axis=0))
+            chord[-1] /= _LAST_CHORD
+            fast = np.any(chord > self._speed * (dt * _CHORD_ROUNDING), axis=1)
             missed[:-1] |= between[:-1] & fast
             missed[1:] |= between[1:] & fast
         if missed.any():

@@ -785,6 +785,28 @@ def test_a_path_speeding_up_past_the_bounds_between_knots_keeps_them():
     assert result.error[-1] < TOL_CAUGHT_UP
 
 
+def test_a_path_ending_in_motion_is_sent_within_the_bounds():
+    """The hand still lagging at the end (a ramp cut before it slows down): the reference is
+    sent ending at rest (its last velocity 0), and the cubic of every segment a controller
+    interpolates, the last one included, keeps the bounds (`psl_task.joint_limits`)."""
+    from psl_task.joint_limits import JointLimits, control_points, interpolation_excess
+    model = seven_dof_arm()
+    ik = solver(model, ARM7_Q0)
+    x0 = ik.forward(ARM7_Q0)
+    u = np.arange(400) / 399.0
+    x_ref = x0 + np.outer(u ** 3, [-0.1, 0.05, 0.12])               # fastest at its end
+    bound = np.full(7, 2.0)                                         # rad/s
+    result = solver(model, ARM7_Q0, max_velocity=bound).solve(x_ref, ARM7_Q0, DT)
+    assert result.error[-1] > 0.01                                  # still lagging
+    sent = np.array(result.qd)
+    sent[-1] = 0.0
+    n = len(bound)
+    limits = JointLimits(tuple(map(str, range(n))), np.full(n, -np.inf), np.full(n, np.inf),
+                         bound, np.full(n, -1.0), np.full(n, 1.0))
+    assert interpolation_excess(limits, *control_points(np.full(len(sent) - 1, DT), result.q,
+                                                        sent)) is None
+
+
 def test_a_path_within_the_bounds_is_the_path_without_them():
     model, x_ref = fast_path()
     free = solver(model, ARM7_Q0).solve(x_ref, ARM7_Q0, DT)
