@@ -396,9 +396,9 @@ def policy_for(task: TaskDefinition) -> TaskPolicy:
 def end_effector_ik(task: TaskDefinition):
     """Differential inverse kinematics (`psl_task.inverse_kinematics.DifferentialIK`) of the
     task's end-effector site on its own model, pulled toward the start posture in the null
-    space."""
+    space, its steps within the arm's joint velocity bounds (``ArmModel.limits.velocity``)."""
     from psl_task.arm_model import ArmModel
     from psl_task.inverse_kinematics import DifferentialIK
     arm = ArmModel(task)
     return DifferentialIK(arm.model, task.end_effector_site, arm.qpos_adr, arm.dof_adr,
-                          q_rest=task.start_posture)
+                          q_rest=task.start_posture, max_velocity=arm.limits.velocity)

@@ -50,6 +50,31 @@ that would cross a bound moves that joint onto the bound and is solved again wit
 the other joints take over its share within the same step (one pass of the saturation in the
 null space of Flacco 2015); the result is clipped to the bounds.
 
+Joint velocity bounds (``max_velocity``, e.g. ``ArmModel.limits.velocity``: a URDF's
+``<limit velocity>``; the safety check refuses a reference past them, as every controller psl
+serves does: `psl_task.joint_limits`): the steps toward a sample, all of them together, move
+each joint at most (1 - ``velocity_margin``) v_max h from where the sample began (h the time
+the sample covers: dt, or a knot's stride times dt); a step that would carry a joint further
+is scaled down uniformly, its direction kept (the task scaling of Flacco 2015, which shrinks
+the task velocity until the joint velocity bounds hold), the null-space pull and the joints
+moved onto a limit included. The hand lags the path where the path asks more than the joints
+give, and catches up once it asks less (the lag is reported in ``IKResult.error``). Sample 0
+(from q0 to x_ref[0]: no time passes) is not bounded. A reference is sent ending at rest
+(its last velocity 0: a JointTrajectoryController refuses one ending in motion), so the last
+chord is held to a quarter of it: where the hand still lags at the end, the cubic of the last
+segment, which then starts at the chord's speed and ends at 0, stays within its control
+points' hull (its middle one 2.5 c_last - c_prev / 2 <= 0.9 of the bound). So every chord (q_{k+1} - q_k) / dt is
+within (1 - margin) v_max by construction (an interpolated sample between knots on a chord past
+it is solved one by one), and so is qd. The cubic a controller interpolates between the points
+(q, qd) passes its chord c only where the chord changes from sample to sample: by
+1.25 c - (c_- + c_+) / 8 at a segment's middle, up to 1.5 c for a reversal, 1.125 c for a start
+from rest; measured along TALOS's references (default and perturbed theta) it stays below 1.17
+times the bound kept, so the default margin 0.2 keeps it below the bound itself (0.93 v_max),
+within `psl_task.joint_limits.VELOCITY_SLACK`. Without a finite bound (None, inf: the default)
+the path is the one without bounds, bit for bit. Not chosen: a weighted least-norm step with
+weights from the bounds (Chan and Dubey 1995), which moves slow joints less everywhere (every
+path changes, also far from any bound) and keeps no bound by itself.
+
 qd is the finite difference of q (``numpy.gradient``: central inside, one-sided at the two
 ends), i.e. the velocity of the very q the PD controller tracks, null-space motion and stops
 at limits included; it is finite and as smooth as q.
@@ -128,6 +153,10 @@ Journal of Graphics Tools, 10(3), 37-49.
 Flacco, F., De Luca, A., Khatib, O. (2015). Control of redundant robots under hard joint
 constraints: saturation in the null space. IEEE Transactions on Robotics, 31(3), 637-654.
 
+Chan, T. F., Dubey, R. V. (1995). A weighted least-norm solution based scheme for avoiding
+joint limits for redundant joint manipulators. IEEE Transactions on Robotics and Automation,
+11(2), 286-292.
+
 Ude, A., Nemec, B., Petric, T., Morimoto, J. (2014). Orientation in Cartesian space dynamic
 movement primitives. IEEE International Conference on Robotics and Automation (ICRA),
 2997-3004.
@@ -147,6 +176,11 @@ QUATERNION_NORM_TOLERANCE = 1e-6   # |q| of an orientation reference may be off 
 KNOT_STEP = 0.008    # s between the samples solved step by step (module docstring, "Knots")
 SINGULAR_REGION = 0.05   # m/rad: a singular value of J below this gets the selective damping
 SINGULAR_DAMPING = 0.02  # m: that damping at a singular posture (module docstring)
+VELOCITY_MARGIN = 0.2    # share of a joint's velocity bound the steps keep below it (module
+                         # docstring, "Joint velocity bounds")
+_CHORD_ROUNDING = 1.0 + 1e-12   # a chord may pass the bound kept by this factor (rounding)
+_LAST_CHORD = 0.25   # the last chord's share of the bound kept (module docstring, "Joint
+                     # velocity bounds": a reference is sent ending at rest)
 _KNOT_PASSES = 3     # passes over a path with knots before every sample is solved
 _ONE_DOF_JOINTS = (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)
 _HALVINGS = 8        # a step that makes the error worse is halved back at most this often
@@ -205,6 +239,10 @@ class DifferentialIK:
             direction whose singular value of J lies below it is damped selectively (module
             docstring); 0 switches it off.
         singular_damping: the selective damping [m] at a singular posture.
+        max_velocity: the joints' velocity bounds (n,) or one for all [rad/s (m/s)], e.g.
+            ``ArmModel.limits.velocity``; None or inf: unbounded (module docstring, "Joint
+            velocity bounds").
+        velocity_margin: the share of each bound the steps keep below it, in [0, 1).
 
     Raises:
         IKError: an unknown site, addresses that are not one-dof joints of the model, shapes
@@ -217,7 +255,9 @@ class DifferentialIK:
                  iterations: int = 3, tolerance: float = 1e-5,
                  orientation_weight: float = ORIENTATION_WEIGHT, knot_step: float = KNOT_STEP,
                  singular_region: float = SINGULAR_REGION,
-                 singular_damping: float = SINGULAR_DAMPING):
+                 singular_damping: float = SINGULAR_DAMPING,
+                 max_velocity: np.ndarray | float | None = None,
+                 velocity_margin: float = VELOCITY_MARGIN):
         self.model = model
         self.site = self._site_id(model, site)
         joints = self._joints(model, qpos_adr, dof_adr)
@@ -238,6 +278,20 @@ class DifferentialIK:
                               f'got {value!r}')
         if int(iterations) != iterations or iterations < 1:
             raise IKError(f'iterations must be an integer >= 1, got {iterations!r}')
+        if not (np.isfinite(velocity_margin) and 0.0 <= velocity_margin < 1.0):
+            raise IKError(f'velocity_margin must lie in [0, 1), got {velocity_margin!r}')
+        try:
+            velocity = np.broadcast_to(np.inf if max_velocity is None else
+                                       np.asarray(max_velocity, dtype=float), (self.n,)).copy()
+        except ValueError:
+            raise IKError(f'max_velocity must be one number or {self.n}, got '
+                          f'{np.shape(max_velocity)}') from None
+        if np.isnan(velocity).any() or not np.all(velocity > 0.0):
+            raise IKError(f'max_velocity must be > 0 (inf: unbounded), got {velocity.tolist()}')
+        self.max_velocity, self.velocity_margin = velocity, float(velocity_margin)
+        # the joint move [rad (m)] a step may take per second of the path, (n,); None: any
+        self._speed = (None if np.isinf(velocity).all()
+                       else (1.0 - self.velocity_margin) * velocity)
         self.damping, self.nullspace_gain = float(damping), float(nullspace_gain)
         self.limit_margin, self.tolerance = float(limit_margin), float(tolerance)
         self.iterations = int(iterations)
@@ -442,11 +496,18 @@ class DifferentialIK:
         slack = _slack(q, low, high)
         self._set(q)
 
-        def reach(k: int, pull: float, pulled_rest: np.ndarray) -> float:
-            """Take the steps toward sample k from q (in place); the squared error left."""
+        speed = self._speed
+        q_sample = np.empty(n)                        # q where a sample's steps began
+
+        def reach(k: int, pull: float, pulled_rest: np.ndarray,
+                  budget: np.ndarray | None = None) -> float:
+            """Take the steps toward sample k from q (in place), all of them together moving
+            each joint at most budget (n,) [rad] (None: any move); the squared error left."""
             nonlocal q, slack, e, e_new
             error.sample = k
             error(e)
+            if budget is not None:
+                mujoco.mju_copy(q_sample, q)
             ee = mujoco.mju_dot(e, e)
             for i in range(iterations):
                 if i > 0 and ee <= tolerance2:
@@ -468,6 +529,8 @@ class DifferentialIK:
                 else:
                     q, slack = _respect_limits(step_solve, q, dq, jac, e, pulled, lam2, low,
                                                high)
+                if budget is not None and _within_budget(q, q_old, q_sample, budget):
+                    slack = _slack(q, low, high)
                 self._set(q)
                 error(e_new)
                 ee_new = mujoco.mju_dot(e_new, e_new)
@@ -479,6 +542,7 @@ class DifferentialIK:
 
         pull = min(1.0, gain * dt)
         pulled_rest = pull * q_rest
+        one_budget = None if speed is None else speed * dt
         if a == 0:
             path.within[0] = reach(0, pull, pulled_rest) <= tolerance2
             path.q[0], path.solved[0] = q, True
@@ -490,7 +554,8 @@ class DifferentialIK:
                 mujoco.mju_copy(q_knot, q)
                 knot_slack = slack
                 knot_pull = min(1.0, gain * (b - a) * dt)
-                if reach(b, knot_pull, knot_pull * q_rest) <= tolerance2:
+                if reach(b, knot_pull, knot_pull * q_rest,
+                         None if speed is None else speed * ((b - a) * dt)) <= tolerance2:
                     path.q[b], path.solved[b] = q, True
                     path.within[a + 1:b + 1] = True
                     a = b
@@ -508,7 +573,8 @@ class DifferentialIK:
                     slack = knot_slack
                 self._set(q)
             for k in range(a + 1, b + 1):
-                path.within[k] = reach(k, pull, pulled_rest) <= tolerance2
+                budget = one_budget if k < T - 1 or speed is None else _LAST_CHORD * one_budget
+                path.within[k] = reach(k, pull, pulled_rest, budget) <= tolerance2
                 path.q[k] = q
             path.solved[a + 1:b + 1] = True
             a = b
@@ -575,6 +641,14 @@ class DifferentialIK:
         position, rotation = errors = self._errors(q, x_ref, quat_ref)
         missed = between & (_stacked(position, rotation, self.orientation_weight)
                             > 2.0 * self.tolerance)
+        if self._speed is not None and len(q) > 1:
+            # a spline through knots the steps kept within the bound may still bulge past
+            # it between them: the samples of a chord past it are solved one by one too
+            chord = np.abs(np.diff(q, axis=0))
+            chord[-1] /= _LAST_CHORD
+            fast = np.any(chord > self._speed * (dt * _CHORD_ROUNDING), axis=1)
+            missed[:-1] |= between[:-1] & fast
+            missed[1:] |= between[1:] & fast
         if missed.any():
             return None, missed
         return self._result(q, errors, dt), missed
@@ -722,6 +796,22 @@ class _Step:
         else:
             self.sigma2[:], self.basis[:] = np.linalg.eigh(a)
         return float(self.sigma2.min())
+
+
+def _within_budget(q: np.ndarray, q_old: np.ndarray, q_sample: np.ndarray,
+                   budget: np.ndarray) -> bool:
+    """The step q_old -> q (n,) scaled down uniformly (its direction kept) so that no joint
+    moves further than budget (n,) from q_sample, where the sample's steps began (q_old is
+    within it): q updated in place; whether it was scaled."""
+    step = q - q_old
+    room = np.where(step > 0.0, budget - (q_old - q_sample), budget + (q_old - q_sample))
+    over = np.abs(step) > room
+    if not over.any():
+        return False
+    scale = float(np.min(np.maximum(room[over], 0.0) / np.abs(step[over])))
+    np.multiply(step, scale, out=step)
+    np.add(q_old, step, out=q)
+    return True
 
 
 def _slack(q: np.ndarray, low: np.ndarray, high: np.ndarray) -> float:

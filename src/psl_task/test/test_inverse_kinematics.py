@@ -1,14 +1,17 @@
 """Tests of DifferentialIK against independent references: closed-form planar kinematics and
 two-link inverse kinematics, forward kinematics on a separate MjData, the geometric bound
 |x| - reach for targets out of reach; plus properties (joint limits hold, the null-space
-pull keeps the rest posture, finite output at singular postures, determinism)."""
+pull keeps the rest posture, finite output at singular postures, determinism, joint velocity
+bounds)."""
+
+import hashlib
 
 import mujoco
 import numpy as np
 import pytest
 
-from psl_task.inverse_kinematics import (SINGULAR_DAMPING, SINGULAR_REGION, DifferentialIK,
-                                         IKError, IKResult, _Step)
+from psl_task.inverse_kinematics import (SINGULAR_DAMPING, SINGULAR_REGION, VELOCITY_MARGIN,
+                                         DifferentialIK, IKError, IKResult, _Step)
 
 DT = 1e-3                   # s, control grid
 T_PATH = 800                # samples of a path (0.8 s)
@@ -714,3 +717,118 @@ def test_bad_knot_and_orientation_settings_are_refused(settings, message):
     model = seven_dof_arm()
     with pytest.raises(IKError, match=message):
         solver(model, ARM7_Q0, **settings)
+
+
+# -- joint velocity bounds ------------------------------------------------------------------------
+# (the module docstring, "Joint velocity bounds"): a path faster than the bounds allow is followed
+# with every chord (q_{k+1} - q_k) / dt within (1 - margin) of the bound, the hand lagging and
+# catching up, the ranges kept; a path within the bounds is the path without them, bit for bit;
+# with every bound infinite the solve is the one recorded before the bounds existed. TALOS's
+# references under its URDF's bounds: src/psl_controller/test/test_policy_velocity.py.
+TOL_CAUGHT_UP = 1e-4        # m, the hand's error once the path has come to rest
+# SHA-256 of q.tobytes() of `fast_path` solved on the 7-DOF arm without velocity bounds, by
+# the solver before they existed (commit 1468014)
+RECORDED_Q_SHA256 = '1efa8a2ebc009f4b64fdd03ae609a75cd680cdc93e3812106ae670f56280e2a9'
+
+
+def fast_path(**ranges):
+    """The 7-DOF arm (with ``ranges``) and a 0.2 s circle of 0.1 m and a line out and back
+    (hand up to ~4 m/s, joints up to 13 rad/s), then 0.3 s at rest."""
+    model = seven_dof_arm(**ranges)
+    ik = solver(model, ARM7_Q0)
+    x0 = ik.forward(ARM7_Q0)
+    ring, _ = circle(x0, 0.1, EY, np.array([0.0, 0.6, 0.8]), n=200)
+    out, _ = line(x0, x0 + [-0.1, 0.05, 0.12], n=150)
+    back, _ = line(out[-1], x0, n=150)
+    return model, hold(np.vstack([ring, out, back]), 300)
+
+
+def chord_speed(q):
+    return np.abs(np.diff(q, axis=0)) / DT
+
+
+# three joints in ranges of 0.25-0.4 rad around the start: the bounds and the ranges at once
+TIGHT_RANGES = dict(sh_roll=(0.05, 0.35), elbow=(1.0, 1.4), wr_pitch=(0.05, 0.3))
+
+
+@pytest.mark.parametrize('ranges', [{}, TIGHT_RANGES])
+def test_the_bounds_hold_and_the_hand_catches_up(ranges):
+    model, x_ref = fast_path(**ranges)
+    free = solver(model, ARM7_Q0).solve(x_ref, ARM7_Q0, DT)
+    bound = np.array([3.0, 3.0, 3.0, 4.0, 2.0, 2.0, 1.5])          # rad/s
+    assert np.any(chord_speed(free.q) > 2.0 * bound)               # the path asks more
+    result = solver(model, ARM7_Q0, max_velocity=bound).solve(x_ref, ARM7_Q0, DT)
+    kept = (1.0 - VELOCITY_MARGIN) * bound
+    assert np.all(chord_speed(result.q) <= kept * (1.0 + 1e-12))
+    assert np.all(np.abs(result.qd) <= kept * (1.0 + 1e-12))
+    low, high = hinge_bounds(model)
+    assert np.all(result.q >= low - TOL_LIMIT) and np.all(result.q <= high + TOL_LIMIT)
+    assert result.error[500] > 0.01                                # it lagged
+    if not ranges:
+        assert result.error[-1] < TOL_CAUGHT_UP                    # and caught up
+
+
+def test_a_path_speeding_up_past_the_bounds_between_knots_keeps_them():
+    """A hand path whose speed grows from rest (x0 + d (t / T)^3): the knots are taken while
+    it is slow, and it passes the bound between two of them (the knots' own bound and the
+    spline's check hold it there)."""
+    model = seven_dof_arm()
+    ik = solver(model, ARM7_Q0)
+    x0 = ik.forward(ARM7_Q0)
+    u = np.arange(400) / 399.0
+    x_ref = hold(x0 + np.outer(u ** 3, [-0.1, 0.05, 0.12]), 200)
+    bound = np.full(7, 2.0)                                         # rad/s
+    assert chord_speed(ik.solve(x_ref, ARM7_Q0, DT).q).max() > 1.4 * bound[0]
+    result = solver(model, ARM7_Q0, max_velocity=bound).solve(x_ref, ARM7_Q0, DT)
+    kept = (1.0 - VELOCITY_MARGIN) * bound
+    assert np.all(chord_speed(result.q) <= kept * (1.0 + 1e-12))
+    assert result.error[-1] < TOL_CAUGHT_UP
+
+
+def test_a_path_ending_in_motion_is_sent_within_the_bounds():
+    """The hand still lagging at the end (a ramp cut before it slows down): the reference is
+    sent ending at rest (its last velocity 0), and the cubic of every segment a controller
+    interpolates, the last one included, keeps the bounds (`psl_task.joint_limits`)."""
+    from psl_task.joint_limits import JointLimits, control_points, interpolation_excess
+    model = seven_dof_arm()
+    ik = solver(model, ARM7_Q0)
+    x0 = ik.forward(ARM7_Q0)
+    u = np.arange(400) / 399.0
+    x_ref = x0 + np.outer(u ** 3, [-0.1, 0.05, 0.12])               # fastest at its end
+    bound = np.full(7, 2.0)                                         # rad/s
+    result = solver(model, ARM7_Q0, max_velocity=bound).solve(x_ref, ARM7_Q0, DT)
+    assert result.error[-1] > 0.01                                  # still lagging
+    sent = np.array(result.qd)
+    sent[-1] = 0.0
+    n = len(bound)
+    limits = JointLimits(tuple(map(str, range(n))), np.full(n, -np.inf), np.full(n, np.inf),
+                         bound, np.full(n, -1.0), np.full(n, 1.0))
+    assert interpolation_excess(limits, *control_points(np.full(len(sent) - 1, DT), result.q,
+                                                        sent)) is None
+
+
+def test_a_path_within_the_bounds_is_the_path_without_them():
+    model, x_ref = fast_path()
+    free = solver(model, ARM7_Q0).solve(x_ref, ARM7_Q0, DT)
+    roomy = 1.5 * np.abs(free.qd).max(axis=0) / (1.0 - VELOCITY_MARGIN) + 1e-3
+    bounded = solver(model, ARM7_Q0, max_velocity=roomy).solve(x_ref, ARM7_Q0, DT)
+    assert np.array_equal(bounded.q, free.q) and np.array_equal(bounded.qd, free.qd)
+
+
+@pytest.mark.parametrize('unbounded', [None, np.inf, [np.inf] * 7])
+def test_infinite_bounds_give_the_recorded_path(unbounded):
+    model, x_ref = fast_path()
+    q = solver(model, ARM7_Q0, max_velocity=unbounded).solve(x_ref, ARM7_Q0, DT).q
+    assert hashlib.sha256(q.tobytes()).hexdigest() == RECORDED_Q_SHA256
+
+
+@pytest.mark.parametrize('settings,message', [
+    (dict(max_velocity=[1.0] * 3), 'max_velocity must be one number or 7'),
+    (dict(max_velocity=0.0), 'max_velocity must be > 0'),
+    (dict(max_velocity=[1.0] * 6 + [np.nan]), 'max_velocity must be > 0'),
+    (dict(velocity_margin=1.0), 'velocity_margin must lie in'),
+    (dict(velocity_margin=-0.1), 'velocity_margin must lie in'),
+])
+def test_bad_bounds_are_refused(settings, message):
+    with pytest.raises(IKError, match=message):
+        solver(seven_dof_arm(), ARM7_Q0, **settings)

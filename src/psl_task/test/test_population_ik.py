@@ -148,6 +148,9 @@ class PopulationIK:
     """
 
     def __init__(self, ik: DifferentialIK):
+        if np.isfinite(ik.max_velocity).any():     # not implemented here: refused, not ignored
+            raise IKError('PopulationIK does not keep joint velocity bounds; give it a '
+                          'DifferentialIK without max_velocity')
         model = ik.model
         joints = []
         for adr in ik.qpos_adr.tolist():
@@ -523,6 +526,14 @@ def test_an_arm_joint_off_the_chain_is_refused():
     ik = mixed_ik(mixed_chain(), MIXED_ARM + ['other'])
     with pytest.raises(IKError, match=r"\['other'\] are not on the chain"):
         PopulationIK(ik)
+
+
+def test_a_solver_with_joint_velocity_bounds_is_refused():
+    ik = mixed_ik(mixed_chain())
+    bounded = DifferentialIK(ik.model, ik.site, ik.qpos_adr, ik.dof_adr, ik.q_rest,
+                             max_velocity=2.0)
+    with pytest.raises(IKError, match='does not keep joint velocity bounds'):
+        PopulationIK(bounded)
 
 
 def test_quaternions_and_rotation_vectors_match_mujoco():
