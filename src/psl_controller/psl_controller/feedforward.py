@@ -8,7 +8,11 @@ with the same normalised Gaussians ``psi_k`` (eq. 2.24) on the same canonical ph
 as the DMP's forcing term, but **ungated**: after the motion the phase rests at 0 and the
 signal holds the value of the last basis functions, so a held payload stays compensated while
 the episode settles. Linear in theta_D, so an arbitrary torque profile is projected onto it by
-least squares (`FeedForward.fit`, used for the inverse-dynamics oracle). Pure numpy; no ROS.
+least squares (`FeedForward.fit`, used for the inverse-dynamics oracle). Given the arm's torque
+limits, the signal is clipped into them: the PD law clips the total torque anyway, and every
+controller psl serves rejects a goal whose effort passes them (`psl_task.joint_limits`), so a
+candidate whose theta_D asks more runs with the most the motors give instead of being refused.
+Pure numpy; no ROS.
 """
 from __future__ import annotations
 
@@ -25,16 +29,27 @@ class FeedForward:
         canonical: the DMP's canonical system (phase x(t)).
         basis: the DMP's normalised Gaussian basis on the phase.
         n_joints: number of joints (>= 1).
+        torque_low, torque_high: (n_joints,) N m, the arm's torque limits the signal is
+            clipped into (module docstring); None: not clipped.
 
     Raises:
-        ValueError: n_joints < 1.
+        ValueError: n_joints < 1, torque limits of another size or low > high.
     """
 
     def __init__(self, canonical: CanonicalSystem, basis: NormalizedGaussianBasis,
-                 n_joints: int) -> None:
+                 n_joints: int, torque_low: np.ndarray | None = None,
+                 torque_high: np.ndarray | None = None) -> None:
         if int(n_joints) != n_joints or n_joints < 1:
             raise ValueError(f'n_joints must be an integer >= 1, got {n_joints!r}')
         self._canonical, self._basis, self._n_joints = canonical, basis, int(n_joints)
+        self._low = None if torque_low is None else np.asarray(torque_low, dtype=float)
+        self._high = None if torque_high is None else np.asarray(torque_high, dtype=float)
+        for bound in (self._low, self._high):
+            if bound is not None and bound.shape != (self._n_joints,):
+                raise ValueError(f'torque limits must have {self._n_joints} entries, got '
+                                 f'{bound.shape}')
+        if self._low is not None and self._high is not None and np.any(self._low > self._high):
+            raise ValueError(f'torque_low {self._low} above torque_high {self._high}')
 
     @property
     def n_joints(self) -> int:
@@ -59,7 +74,14 @@ class FeedForward:
         Raises:
             ValueError: theta_d of the wrong size or not finite.
         """
-        return self.design(t) @ self._weights(theta_d).T
+        return self._clipped(self.design(t) @ self._weights(theta_d).T)
+
+    def _clipped(self, u: np.ndarray) -> np.ndarray:
+        """u (..., n_joints) clipped into the torque limits, if any (the same array when
+        every value is inside: bit-identical)."""
+        if self._low is None and self._high is None:
+            return u
+        return np.clip(u, self._low, self._high, out=u)
 
     def signal_population(self, theta_ds: np.ndarray, t: np.ndarray) -> np.ndarray:
         """`signal` of each row of theta_ds (B, num_parameters) within rounding (one product
@@ -73,8 +95,8 @@ class FeedForward:
             raise ValueError(f'theta_ds must be (B, {self.num_parameters}), got {theta_ds.shape}')
         weights = np.stack([self._weights(theta_d) for theta_d in theta_ds])   # (B, n, K)
         signal = self.design(t) @ weights.reshape(-1, self.n_basis).T        # (T, B n)
-        return np.ascontiguousarray(
-            signal.reshape(len(signal), len(theta_ds), self._n_joints).transpose(1, 0, 2))
+        return self._clipped(np.ascontiguousarray(
+            signal.reshape(len(signal), len(theta_ds), self._n_joints).transpose(1, 0, 2)))
 
     def fit(self, t: np.ndarray, u: np.ndarray, regularization: float = 1e-9) -> np.ndarray:
         """Least-squares projection of torques u (T, n_joints) sampled at t (T,) onto the basis:

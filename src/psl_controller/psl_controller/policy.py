@@ -103,7 +103,9 @@ class TaskPolicy:
             self.movement.orientation.fit(t, quat, dt)
         else:
             self.movement = self.dmp
-        self.feedforward = (FeedForward(self.dmp.canonical, self.dmp.basis, task.n_joints)
+        self._torque_limits = torque_limits(task) if spec.feedforward else (None, None)
+        self.feedforward = (FeedForward(self.dmp.canonical, self.dmp.basis, task.n_joints,
+                                        *self._torque_limits)
                             if spec.feedforward else None)
         self._stretched: dict[float, tuple] = {}      # duration -> (movement, feedforward)
         n_kin = self.movement.num_parameters
@@ -203,7 +205,8 @@ class TaskPolicy:
             dmp = DMP(n_dims=base.n_dims, n_basis=base.n_basis, duration=duration,
                       y0=base.y0, goal=base.goal, k_s=spec.k_s, canonical=spec.canonical,
                       learn_goal=spec.learn_goal, time_scale=duration / self.task.duration)
-            feedforward = (FeedForward(dmp.canonical, dmp.basis, self.task.n_joints)
+            feedforward = (FeedForward(dmp.canonical, dmp.basis, self.task.n_joints,
+                                       *self._torque_limits)
                            if self.feedforward is not None else None)
             movement = dmp
             if self.controls_orientation:
@@ -391,6 +394,14 @@ class TaskPolicy:
 @functools.lru_cache(maxsize=16)
 def policy_for(task: TaskDefinition) -> TaskPolicy:
     return TaskPolicy(task)
+
+
+def torque_limits(task: TaskDefinition) -> tuple[np.ndarray, np.ndarray]:
+    """The arm's torque limits (low, high) per driven joint (``ArmModel``), which the
+    feed-forward is clipped into (`psl_controller.feedforward`)."""
+    from psl_task.arm_model import ArmModel
+    arm = ArmModel(task)
+    return arm.torque_low.copy(), arm.torque_high.copy()
 
 
 def end_effector_ik(task: TaskDefinition):

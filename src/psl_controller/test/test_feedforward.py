@@ -1,4 +1,6 @@
 """The feed-forward signal of the dynamics modality and theta = [theta_K, theta_D] in the policy."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 import yaml
@@ -82,3 +84,47 @@ def test_feedforward_option_must_be_a_boolean(tmp_path):
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(ValueError, match='feedforward'):
         TaskPolicy(load_task(str(path)))
+
+
+def test_the_signal_is_clipped_into_the_torque_limits_given():
+    """A theta_D asking more than the motors give: the signal is the unclipped one clipped
+    into the limits, row by row alike in the population form; inside the limits it is the
+    unclipped signal bit for bit (issue 46: the safety check and the controllers refuse an
+    effort past the limits, and a candidate asking it runs with the most the motors give)."""
+    canonical, basis = CanonicalSystem(1.0), NormalizedGaussianBasis(5)
+    low, high = np.array([-1.0, -2.0]), np.array([1.5, 2.0])
+    free = FeedForward(canonical, basis, 2)
+    held = FeedForward(canonical, basis, 2, low, high)
+    t = np.linspace(0.0, 1.5, 151)
+    rng = np.random.default_rng(3)
+    thetas = rng.normal(0.0, 3.0, (4, free.num_parameters))
+    for theta in thetas:
+        np.testing.assert_array_equal(held.signal(theta, t), np.clip(free.signal(theta, t),
+                                                                     low, high))
+    np.testing.assert_array_equal(held.signal_population(thetas, t),
+                                  np.clip(free.signal_population(thetas, t), low, high))
+    assert np.any(free.signal(thetas[0], t) > high)          # the case is one of clipping
+    inside = thetas[0] * 0.01
+    assert np.array_equal(held.signal(inside, t), free.signal(inside, t))
+    with pytest.raises(ValueError, match='2 entries'):
+        FeedForward(canonical, basis, 2, np.zeros(3), np.ones(3))
+    with pytest.raises(ValueError, match='above torque_high'):
+        FeedForward(canonical, basis, 2, high, low)
+
+
+def test_a_policys_feedforward_keeps_the_arms_torque_limits():
+    """TALOS's arm (torque limits 3-22 N m): a theta_D of 50 N m is sent at the limits and
+    passes the safety check (it was refused: 'the feed-forward of -9.1 N m ... below its torque
+    limit -6.6 N m' on 206 candidates of a session)."""
+    from psl_task.arm_model import ArmModel
+    from psl_task.safety_check import SafetyCheck
+    task = load_task(str(Path(__file__).resolve().parents[3] / 'examples'
+                         / 'talos_arm_point_reach.yaml'))
+    policy, arm = policy_for(task), ArmModel(task)
+    theta = policy.default_theta.copy()
+    theta[policy.dynamics] = 50.0 * np.sign(np.arange(len(theta[policy.dynamics])) % 2 - 0.5)
+    ref = policy.reference(theta, task.tau_default)
+    assert np.all(ref.u_ffwd <= arm.torque_high) and np.all(ref.u_ffwd >= arm.torque_low)
+    assert np.any(ref.u_ffwd == arm.torque_high) and np.any(ref.u_ffwd == arm.torque_low)
+    verdict = SafetyCheck(arm).check(task.tau_default, ref.q, ref.qd, ref.u_ffwd)
+    assert verdict.safe, verdict.reason
