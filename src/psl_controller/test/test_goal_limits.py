@@ -467,9 +467,11 @@ def test_the_safety_check_passes_exactly_the_candidates_a_controller_takes(name,
     as psl sends it (`robot_link.trajectory_msg`) to the controllers' goal parser with the
     default parameters: the safety check passes a candidate exactly when the controller takes
     its goal, so batch mode (which runs what the check passes) never runs one the graph's
-    controller rejects, and graph mode never sends one. The family holds refusals of every
-    kind (a range, the velocity bound, the feed-forward beyond the torque limits, the cubic
-    between points). Catches: a rule or a limit in one place and not the other."""
+    controller rejects, and graph mode never sends one. The family holds refusals of the kinds
+    a policy's reference can still have (a range, the cubic between points); none for the
+    velocity bound (an end-effector reference keeps it by construction) or the torque limits
+    (the feed-forward is clipped into them). Catches: a rule or a limit in one place and not
+    the other."""
     from psl_optimizer.learning import search_normalisation
     from psl_task.safety_check import SafetyCheck
     task = load_task(name)
@@ -497,6 +499,7 @@ def test_the_safety_check_passes_exactly_the_candidates_a_controller_takes(name,
                 else 'between' if 'between the points' in verdict.reason else 'range')
         kinds[kind] = kinds.get(kind, 0) + 1
     wanted = {'reach_over_obstacle': ('safe', 'range'),
-              'payload_transport': ('safe', 'range', 'feed-forward'),
-              'pose_reach_3d': ('safe', 'velocity', 'feed-forward', 'between')}[name]
+              'payload_transport': ('safe', 'range'),
+              'pose_reach_3d': ('safe', 'between')}[name]
     assert all(kinds.get(kind) for kind in wanted), kinds
+    assert not kinds.get('velocity') and not kinds.get('feed-forward'), kinds
