@@ -49,7 +49,7 @@ from psl_task.gain_rule import (DEFAULT_BANDWIDTH_HZ, DEFAULT_DAMPING_RATIO, Gai
                                 joint_inertia, model_gains)
 from psl_task.inverse_kinematics import SINGULAR_REGION
 from psl_task.model_spec import urdf_text, visual_only
-from psl_task.package_paths import PREFIX
+from psl_task.package_paths import PREFIX, resolve
 from psl_task.schema import RobotSection
 from psl_task.task import TaskDefinition, TaskError, task_from_data
 
@@ -67,7 +67,8 @@ SAG_BOUND = 0.05          # rad: a joint's gravity sag under PD alone the gains 
 BANDWIDTH_STEP = 0.7      # the bandwidth shrinks by this while a torque saturates
 GAIN_TRIES = 5
 CONTROL_RATE = 500.0      # Hz, as point_reach_3d.yaml (an MJCF: the nearest whole divisor)
-DURATION = 1.0            # s, as point_reach_3d.yaml
+DURATION = 1.0            # s, as point_reach_3d.yaml (longer for a slow arm: movement_duration)
+SLOW_STEP = 0.4           # rad the slowest joint may move within the duration
 SETTLE_TIME = 0.5         # s
 SUCCESS_THRESHOLD = -0.2  # as point_reach_3d.yaml
 WEIGHTS = {'goal_error': 10.0, 'smoothness': 1.0e-5, 'effort': 1.0e-4, 'tracking_error': 1.0}
@@ -172,7 +173,7 @@ def _probe(model_ref: str, end_effector: str, out: Path, joints: list[str] | Non
         robot['joints'] = list(joints)
     if locked and 'locked_joints' in RobotSection.model_fields:
         robot['locked_joints'] = dict(locked)
-    data = {'robot': robot, 'control_rate': CONTROL_RATE, 'duration': DURATION,
+    data = {'robot': robot, 'control_rate': _probe_rate(model_ref, out), 'duration': DURATION,
             'start_posture': start.tolist(), 'goal_posture': goal.tolist(),
             'task_parameters': [],
             'controller': {'kp': (np.ones(n) if kp is None else kp).tolist(),
@@ -182,6 +183,19 @@ def _probe(model_ref: str, end_effector: str, out: Path, joints: list[str] | Non
                               'positions': [start.tolist(), goal.tolist()]},
             'reward': {'weights': {}, 'success_threshold': SUCCESS_THRESHOLD}}
     return task_from_data(out, data)
+
+
+def _probe_rate(model_ref: str, out: Path) -> float:
+    """A control rate the model's physics rate allows, for the probe: `CONTROL_RATE` for a URDF
+    (psl sets its timestep), an MJCF's own physics rate otherwise (gymnasium's pusher steps
+    at 100 Hz); `_control_rate` picks the task's."""
+    path = resolve(model_ref) if model_ref.startswith(PREFIX) else out.parent / model_ref
+    if path.suffix.lower() != '.xml':
+        return CONTROL_RATE
+    try:
+        return 1.0 / mujoco.MjSpec.from_file(str(path)).option.timestep
+    except (ValueError, OSError):
+        return CONTROL_RATE                     # the probe's load names what is wrong
 
 
 def description_model(task: TaskDefinition) -> mujoco.MjModel:
@@ -416,7 +430,7 @@ def choose_postures(arm: ArmModel, chain: Chain, start_q: np.ndarray | None = No
                     key=lambda p: float(np.linalg.norm((p.q - middle) / spread)))
     # the demonstration's peak joint speed is about 1.9 |q_goal - q_start| / duration (a
     # minimum-jerk-like path): keep it within VELOCITY_SHARE of each joint's velocity limit
-    step = np.minimum(0.8, VELOCITY_SHARE * arm.limits.velocity * DURATION / 1.9)
+    step = np.minimum(0.8, VELOCITY_SHARE * arm.limits.velocity * movement_duration(arm) / 1.9)
     near = np.clip(rng.uniform(-step, step, (SAMPLES, len(low))) + start.q, low, high)
     ranked = []
     for q in near:
@@ -432,6 +446,16 @@ def choose_postures(arm: ArmModel, chain: Chain, start_q: np.ndarray | None = No
     ranked.sort(key=lambda c: -c[0])
     goals = tiers([p for _, p in ranked])
     return start, goals[:5], reach
+
+
+def movement_duration(arm: ArmModel) -> float:
+    """The movement's duration [s]: `DURATION`, or longer for a slow arm, in half seconds, so
+    that its slowest joint may move `SLOW_STEP` rad at a peak speed within `VELOCITY_SHARE` of
+    its velocity limit (a minimum-jerk-like path peaks at about 1.9 times its mean speed):
+    Kinova JACO2's 0.63 rad/s gives 2.5 s."""
+    slowest = float(np.min(arm.limits.velocity))
+    need = 1.9 * SLOW_STEP / (VELOCITY_SHARE * slowest)
+    return float(max(DURATION, np.ceil(need / 0.5 - 1e-9) * 0.5))
 
 
 def _floor(arm: ArmModel, base: np.ndarray) -> float:
@@ -543,6 +567,7 @@ def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
     """The commented task YAML."""
     centre = goal.hand
     low, high = centre - half, centre + half
+    duration = movement_duration(arm)
     limits = _torque_limits(arm)
     kin.at(goal.q)
     gravity = (kin.data.qfrc_bias - kin.data.qfrc_gravcomp)[arm.dof_adr]
@@ -574,13 +599,15 @@ def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
     if chain.locked:
         lines.append('  # every other joint, held at 0 (or the nearest end of its range):')
         lines.append('  locked_joints:')
-        lines += [f'    {name}: {value:g}' for name, value in chain.locked.items()]
+        lines += [f'    {name}: {float(value)!r}' for name, value in chain.locked.items()]
     lines += [
         '  # torque limits ' + ' / '.join(f'{v:.3g}' for v in limits)
         + " N m and the joint ranges: the model's",
-        f'control_rate: {control_rate:.1f}   # Hz, as point_reach_3d.yaml'
+        f'control_rate: {float(control_rate)!r}   # Hz, as point_reach_3d.yaml'
         + ('' if urdf else " (a whole divisor of the model's physics rate)"),
-        f'duration: {DURATION:.1f}        # s, as point_reach_3d.yaml',
+        f'duration: {duration:.1f}        # s, '
+        + ('as point_reach_3d.yaml' if duration == DURATION else
+           f'for joints as slow as {np.min(arm.limits.velocity):.2g} rad/s'),
         f'settle_time: {SETTLE_TIME:.1f}     # s, as point_reach_3d.yaml',
         '',
         '# Postures drawn inside every joint range with a margin of '
@@ -640,7 +667,7 @@ def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
         '  canonical: linear',
         '',
         'demonstration:   # from the start to the goal, straight in joint space',
-        f'  times: [0.0, {DURATION:.1f}]',
+        f'  times: [0.0, {duration:.1f}]',
         '  positions:',
         f'    - {_vec(start.q)}',
         f'    - {_vec(goal.q)}',

@@ -10,21 +10,30 @@ import numpy as np
 import pytest
 import yaml
 
+import gymnasium
+
 from psl_controller.policy import policy_for
 from psl_optimizer import task_generator
 from psl_optimizer.robot_check import check_robot
 from psl_optimizer.task_generator import InitError, generate, tool_point
 from psl_task.arm_model import ArmModel
+from psl_task.inverse_kinematics import VELOCITY_MARGIN
 from psl_task.task import load_task, task_from_data
 
 EMBEDDED = Path(task_generator.__file__).resolve().parents[2] / 'psl_task' / 'psl_task' / 'tasks'
 ERD = 'package://example-robot-data/robots/'
+GYMNASIUM = Path(gymnasium.__file__).parent / 'envs' / 'mujoco' / 'assets'
 ARMS = {    # name -> (model, end-effector link, base link)
     'xarm7': (ERD + 'xarm_description/urdf/xarm7.urdf', 'link7', None),
     'panda': (ERD + 'panda_description/urdf/panda.urdf', 'panda_hand_tcp', None),
     'so_arm100': (ERD + 'so_arm_description/urdf/so100.urdf', 'gripper', None),
     'talos_left_arm': (ERD + 'talos_data/robots/talos_left_arm.urdf', 'arm_left_7_link', None),
     'point_reach_3d_mjcf': (str(EMBEDDED / 'point_reach_3d.xml'), 'hand', None),
+    # COLLADA meshes, joints as slow as 0.63 rad/s
+    'kinova_jaco2': (ERD + 'kinova_description/robots/kinova.urdf', 'j2s6s200_end_effector',
+                     None),
+    # a humanoid's arm from its full-body MJCF: tendons, motors geared 25:1, physics at 333 Hz
+    'gymnasium_humanoid_left_arm': (str(GYMNASIUM / 'humanoid.xml'), 'left_lower_arm', 'torso'),
 }
 
 
@@ -40,7 +49,7 @@ def generated(request, tmp_path_factory):
 def test_the_file_loads_as_generated(generated):
     name, out, result = generated
     task = load_task(str(out))
-    assert task.n_joints == result.task.n_joints >= 5
+    assert task.n_joints == result.task.n_joints >= 3
     assert task.policy.space == 'end_effector' and task.policy.learn_goal
     assert task.policy.feedforward
     assert [p.name for p in task.parameters] == ['target_x', 'target_y', 'target_z']
@@ -83,6 +92,21 @@ def test_every_corner_of_the_box_is_reached(generated):
                 corners += 1
     assert corners == 8
     assert np.all(task.tau_high - task.tau_low >= 0.02)     # a box, not a point
+
+
+def test_the_demonstration_keeps_within_the_joints_speeds(generated):
+    """The policy's default joint reference (the demonstration through the differential IK),
+    differentiated: each joint's peak speed within the share of its velocity limit the IK
+    keeps (1 - VELOCITY_MARGIN), however slow the arm (Kinova JACO2's 0.63 rad/s gets a
+    longer movement: without it psl init finds no goal)."""
+    _, out, _ = generated
+    task = load_task(str(out))
+    arm = ArmModel(task)
+    policy = policy_for(task)
+    reference = policy.reference(policy.default_theta.copy(), task.tau_default)
+    speed = np.max(np.abs(np.diff(reference.q, axis=0)), axis=0) * task.control_rate
+    bound = (1.0 - VELOCITY_MARGIN) * arm.limits.velocity
+    assert np.all(speed <= bound * (1 + 1e-6)), (speed / arm.limits.velocity, task.duration)
 
 
 def test_psl_check_has_no_warning(generated):

@@ -97,8 +97,9 @@ class ArmModel:
 
     # -- set-up -------------------------------------------------------------------------
     def _check_motors(self) -> None:
-        """psl sends joint torques: every actuator must be a plain motor on a joint (gain 1,
-        no bias, no activation dynamics, gear 1), so that ctrl is the joint torque."""
+        """psl sends joint torques: every actuator must be a plain motor on a joint (no bias,
+        no activation dynamics; a geared one is made gear 1 with its ctrlrange scaled by
+        `model_spec`), so that ctrl is the joint torque."""
         m = self.model
         plain = ((m.actuator_trntype == mujoco.mjtTrn.mjTRN_JOINT)
                  & (m.actuator_dyntype == mujoco.mjtDyn.mjDYN_NONE)
@@ -112,8 +113,8 @@ class ArmModel:
                      else m.actuator(i).name or f'#{i}' for i in np.flatnonzero(~plain)]
             raise TaskError(
                 f'{self.task.model_path}: actuators {names} are not plain joint motors; psl '
-                'needs <motor joint="..." ctrlrange="-limit limit"/> (gear 1) on every joint, '
-                'ctrl = joint torque')
+                'needs <motor joint="..." ctrlrange="-limit limit"/> on every joint, '
+                'ctrl = joint torque (times its gear)')
 
     def _check_postures(self) -> None:
         """Start and goal posture and every demonstration waypoint within the joints' ranges

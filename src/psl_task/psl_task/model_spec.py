@@ -169,9 +169,45 @@ def lock_joints(task: TaskDefinition, spec: mujoco.MjSpec) -> None:
         if equality.type == mujoco.mjtEq.mjEQ_JOINT and (equality.name1 in locked
                                                          or equality.name2 in locked):
             spec.delete(equality)
+    _drop_tendons_of(task, spec, reference, locked)
     _drop_from_keys(spec, reference, locked_adr)
     for name in task.locked_joints:
         spec.delete(by_name[name])
+
+
+def _drop_tendons_of(task: TaskDefinition, spec: mujoco.MjSpec, reference: mujoco.MjModel,
+                     locked: set[str]) -> None:
+    """Delete each fixed tendon all of whose joints are locked (its length is then a constant:
+    gymnasium's humanoid couples hip and knee so), with the actuators, sensors and equalities
+    on it. A tendon coupling a locked joint with one that stays driven is refused, naming
+    both (lock all of its joints or none)."""
+    tendons = list(spec.tendons)
+    key = 'robot.locked_joints'
+    for t in range(reference.ntendon):
+        adr, num = reference.tendon_adr[t], reference.tendon_num[t]
+        joints = [reference.joint(int(reference.wrap_objid[w])).name
+                  for w in range(adr, adr + num)
+                  if reference.wrap_type[w] == mujoco.mjtWrap.mjWRAP_JOINT]
+        held = [j for j in joints if j in locked]
+        if not held:
+            continue
+        name = reference.tendon(t).name
+        if len(held) < len(joints):
+            raise TaskError(f'{task.path}: {key}: the tendon {name or t!r} couples '
+                            f'{", ".join(held)} (locked) with '
+                            f'{", ".join(j for j in joints if j not in locked)}: lock all of '
+                            'its joints or none')
+        for actuator in list(spec.actuators):
+            if actuator.trntype == mujoco.mjtTrn.mjTRN_TENDON and actuator.target == name:
+                spec.delete(actuator)
+        for sensor in list(spec.sensors):
+            if sensor.objtype == mujoco.mjtObj.mjOBJ_TENDON and sensor.objname == name:
+                spec.delete(sensor)
+        for equality in list(spec.equalities):
+            if equality.type == mujoco.mjtEq.mjEQ_TENDON and name in (equality.name1,
+                                                                      equality.name2):
+                spec.delete(equality)
+        spec.delete(tendons[t])
 
 
 _QPOS_SIZE = {int(mujoco.mjtJoint.mjJNT_FREE): 7, int(mujoco.mjtJoint.mjJNT_BALL): 4,
@@ -412,6 +448,8 @@ def _set_motors(task: TaskDefinition, spec: mujoco.MjSpec, driven: list[str]) ->
         for actuator in list(spec.actuators):
             if actuator.trntype != mujoco.mjtTrn.mjTRN_JOINT or actuator.target not in driven:
                 spec.delete(actuator)
+    for actuator in spec.actuators:
+        _torque_motor(actuator)
     actuated = {a.target for a in spec.actuators if a.trntype == mujoco.mjtTrn.mjTRN_JOINT}
     for i, name in enumerate(driven):
         if name in actuated:
@@ -430,6 +468,25 @@ def _set_motors(task: TaskDefinition, spec: mujoco.MjSpec, driven: list[str]) ->
         motor.trntype = mujoco.mjtTrn.mjTRN_JOINT
         motor.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
         motor.ctrlrange = [-limit, limit]
+
+
+def _torque_motor(actuator) -> None:
+    """A joint motor with a gear or gain other than 1 (gymnasium's humanoid: gear 25,
+    ctrlrange +-0.4) made one whose ctrl is the joint torque: gear and gain 1, the ctrlrange
+    scaled by their product (torque = gear * gain * ctrl, MuJoCo documentation, "Actuation
+    model"), so the torque limits are unchanged. Other actuators are left as they are
+    (`ArmModel` names them)."""
+    plain = (actuator.trntype == mujoco.mjtTrn.mjTRN_JOINT
+             and actuator.dyntype == mujoco.mjtDyn.mjDYN_NONE
+             and actuator.gaintype == mujoco.mjtGain.mjGAIN_FIXED
+             and actuator.biastype == mujoco.mjtBias.mjBIAS_NONE
+             and not np.any(actuator.gear[1:]))
+    scale = float(actuator.gear[0] * actuator.gainprm[0])
+    if not plain or scale == 1.0 or scale == 0.0:
+        return
+    actuator.ctrlrange = np.sort(np.asarray(actuator.ctrlrange, dtype=float) * scale)
+    actuator.gear[0] = 1.0
+    actuator.gainprm[0] = 1.0
 
 
 def _driven_bodies(body, driven: set[str], moving: bool = False):

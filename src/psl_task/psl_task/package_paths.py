@@ -66,6 +66,9 @@ def find_package(name: str, package_paths: dict[str, Path] | None = None) -> Pat
 
 
 def resolve(url: str, package_paths: dict[str, Path] | None = None) -> Path:
-    """``package://NAME/rest`` -> find_package(NAME) / rest (PackageNotFound otherwise)."""
-    name, _, rest = url[len(PREFIX):].partition('/')
+    """``package://NAME/rest`` -> find_package(NAME) / rest (PackageNotFound otherwise).
+    ``package:///NAME/rest`` (an empty package name, as TALOS's and others' URDFs in
+    example-robot-data write it for a path below a folder of packages, pinocchio's reading)
+    is read the same."""
+    name, _, rest = url[len(PREFIX):].lstrip('/').partition('/')
     return find_package(name, package_paths) / rest

@@ -516,7 +516,6 @@ def _rewrite_model(folder, old, new):
 
 @pytest.mark.parametrize('actuator, name', [
     ('<position joint="j2" kp="50" ctrlrange="-1 1"/>', 'a position servo'),
-    ('<motor joint="j2" gear="2" ctrlrange="-30 30"/>', 'a geared motor'),
     ('<general joint="j2" dyntype="filter" dynprm="0.05" ctrlrange="-30 30"/>', 'a filter'),
 ])
 def test_actuators_other_than_plain_joint_motors_are_refused(tmp_path, actuator, name):
