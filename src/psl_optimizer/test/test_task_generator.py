@@ -32,6 +32,8 @@ ARMS = {    # name -> (model, end-effector link, base link)
     # COLLADA meshes, joints as slow as 0.63 rad/s
     'kinova_jaco2': (ERD + 'kinova_description/robots/kinova.urdf', 'j2s6s200_end_effector',
                      None),
+    # an MJCF at 100 Hz, +-2 N m on a shoulder moving 13.7 kg: a slow closed loop, a long settle
+    'gymnasium_pusher': (str(GYMNASIUM / 'pusher_v5.xml'), 'tips_arm', None),
     # a humanoid's arm from its full-body MJCF: tendons, motors geared 25:1, physics at 333 Hz
     'gymnasium_humanoid_left_arm': (str(GYMNASIUM / 'humanoid.xml'), 'left_lower_arm', 'torso'),
 }

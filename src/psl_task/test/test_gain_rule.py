@@ -332,3 +332,20 @@ def test_the_coupled_modes_are_bounded_over_every_posture_given():
     assert np.max(np.abs(poles)) < 1 and np.min(poles.real) > 0
     with pytest.raises(ValueError, match='one posture or a'):
         model_gains(model, dofs, np.zeros((1, 1, 3)), limits, TIMESTEP)
+
+
+@pytest.mark.parametrize('limit', [0.5, 2.0, 1000.0])
+def test_psl_inits_settle_time_covers_the_measured_settling(limit):
+    """psl init gives the hand `settle_time(gains)` after the movement: the pendulum's step
+    response under the rule's gains, simulated, stays within 2 % of the step from then on (a
+    small torque limit lowers the bandwidth and lengthens it; the default is 0.5 s)."""
+    from psl_optimizer.task_generator import SETTLE_TIME, settle_time
+
+    model = pendulum()
+    gains = model_gains(model, np.array([0]), np.array([0.0]), np.array([limit]), TIMESTEP)
+    settle = settle_time(gains)
+    t, e = step_response(model, gains.kp[0], gains.kd[0], seconds=settle + 2.0)
+    outside = np.flatnonzero(np.abs(e) > 0.02 * STEP)
+    measured = t[outside[-1] + 1]
+    assert measured <= settle, (measured, settle, gains.bandwidth_hz)
+    assert settle - measured < 0.5 + 0.25 * measured or settle == SETTLE_TIME
