@@ -14,6 +14,8 @@ from pathlib import Path
 
 from psl_cli.options import fail
 
+KINDS = ('point', 'pose')
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument('model', help='the URDF or MJCF: a path or package://NAME/... (as a task '
@@ -26,10 +28,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument('--posture', type=float, nargs='+', metavar='Q',
                    help='the start posture, one value per driven joint (base outward) '
                    '[rad (m)] (default: drawn from the ranges)')
-    p.add_argument('--kind', default='point', choices=('point',),
-                   help='the task: point (reach a target point) (default point)')
+    p.add_argument('--kind', default='point', choices=KINDS,   # task_generator.KINDS (not imported here: mujoco)
+                   help='the task: point (reach a target point) or pose (a point and a '
+                   'turn about the vertical; 6 driven joints or more) (default point)')
     p.add_argument('--out', '-o', metavar='FILE',
-                   help='the task file to write (default: <model>_<link>_point_reach.yaml)')
+                   help='the task file to write (default: <model>_<link>_<kind>_reach.yaml)')
     p.add_argument('--force', action='store_true', help='overwrite FILE if it exists')
 
 
@@ -56,7 +59,10 @@ def run(args: argparse.Namespace) -> int:
         return fail('psl init', exc, 1)
     task = generated.task
     worst = max(miss for _, miss in generated.reach)
+    box = [p for p in task.parameters if p.binds.kind == 'target_position']
+    turns = [p for p in task.parameters if p.binds.kind == 'target_orientation']
     print(f'wrote {out}: {len(task.start_posture)} driven joints, target box '
-          + ' x '.join(f'{100 * (p.high - p.low):.1f}' for p in task.parameters)
-          + f' cm, every corner reached within {1000 * worst:.1f} mm; psl check: no warnings')
+          + ' x '.join(f'{100 * (p.high - p.low):.1f}' for p in box) + ' cm'
+          + ''.join(f', {p.name} +-{(p.high - p.low) / 2:.2f} rad' for p in turns)
+          + f', every corner reached within {1000 * worst:.1f} mm; psl check: no warnings')
     return 0

@@ -167,6 +167,44 @@ def target_reach(task: TaskDefinition) -> list[tuple[np.ndarray, float]]:
     return out
 
 
+def orientation_reach(task: TaskDefinition) -> list[tuple[np.ndarray, float]]:
+    """(tau, angle [rad]) at each corner of the target range, orientation parameters
+    included: the angle between the hand's final orientation and the target's after the
+    default movement with its goal point and goal orientation at that instance's target (the
+    goal rotation relative to the demonstration's last orientation, as `psl_optimizer.ilc`
+    composes it); [] for a task whose policy does not learn a goal orientation or whose task
+    parameters turn no target."""
+    from psl_controller.policy import policy_for
+    from psl_task import quaternion
+    from psl_task.quaternion import quaternion_of
+    policy = policy_for(task)
+    kinds = ('target_position', 'target_orientation')
+    moving = [k for k, p in enumerate(task.parameters) if p.binds.kind in kinds]
+    if (policy.ik is None or not task.policy.learn_goal or task.target is None
+            or not policy.controls_orientation
+            or not any(task.parameters[k].binds.kind == kinds[1] for k in moving)):
+        return []
+    default = policy.default_theta.copy()
+    _, last = policy.ik.pose(policy.reference(default, task.tau_default).q[-1])
+    # the hand's final orientation is exp(goal) (x) its demonstration's: this factor maps a
+    # wanted final orientation to the goal rotation that gives it
+    last = quaternion.product(quaternion.conjugate(last),
+                              quaternion.exp_map(default[policy.orientation_goal]))
+    out = []
+    for corner in itertools.product(*((task.tau_low[k], task.tau_high[k]) for k in moving)):
+        tau = np.array(task.tau_default, dtype=float)
+        tau[moving] = corner
+        theta = default.copy()
+        target, rotation = task.target_of(tau)
+        theta[policy.goal] = target
+        want = quaternion_of(rotation)
+        theta[policy.orientation_goal] = quaternion.log_map(quaternion.product(want, last))
+        _, hand = policy.ik.pose(policy.reference(theta, tau).q[-1])
+        turn = quaternion.log_map(quaternion.product(want, quaternion.conjugate(hand)))
+        out.append((tau, float(np.linalg.norm(turn))))
+    return out
+
+
 def hand_at(arm: ArmModel, q: np.ndarray) -> np.ndarray:
     """The end-effector site's position [m] (3,) at joint angles q (forward kinematics)."""
     data = mujoco.MjData(arm.model)
@@ -472,6 +510,18 @@ def check_robot(task: TaskDefinition) -> RobotReport:
             f'{np.array2string(tau, precision=3)}), goal_error alone '
             f'{weight * miss:.3f} of the success threshold\'s {abs(task.reward.success_threshold):g}: '
             'move or shrink the target_position ranges into the arm\'s reach')
+    turns = orientation_reach(task)
+    weight = task.reward.weights.get('orientation_error', 0.0)
+    far = [(tau, angle) for tau, angle in turns
+           if weight * angle > REACH_WARNING * abs(task.reward.success_threshold)]
+    if far:
+        tau, angle = max(far, key=lambda c: c[1])
+        warnings.append(
+            f'target orientations out of reach: at {len(far)} of the {len(turns)} corners of the '
+            f'target range the hand ends up to {angle:.3f} rad from the target orientation (tau '
+            f'{np.array2string(tau, precision=3)}), orientation_error alone '
+            f'{weight * angle:.3f} of the success threshold\'s '
+            f'{abs(task.reward.success_threshold):g}: narrow the target_orientation ranges')
     if saturated > SATURATION_WARNING:
         joints_at = [arm.joint_names[j] for j in np.flatnonzero(np.any(at_limit, axis=0))]
         gain = max(('kp', 'kd'), key=lambda name: parts.get(name, 0.0))

@@ -43,6 +43,7 @@ from xml.etree import ElementTree
 import mujoco
 import numpy as np
 import yaml
+from scipy.spatial.transform import Rotation
 
 from psl_task.arm_model import ArmModel
 from psl_task.gain_rule import (DEFAULT_BANDWIDTH_HZ, DEFAULT_DAMPING_RATIO, Gains,
@@ -72,9 +73,12 @@ SLOW_STEP = 0.4           # rad the slowest joint may move within the duration
 SETTLE_TIME = 0.5         # s (longer for slow closed loops: settle_time)
 SUCCESS_THRESHOLD = -0.2  # as point_reach_3d.yaml
 WEIGHTS = {'goal_error': 10.0, 'smoothness': 1.0e-5, 'effort': 1.0e-4, 'tracking_error': 1.0}
+ORIENTATION_WEIGHT = 1.0  # a pose's orientation_error weight, as pose_reach_3d.yaml
 EFFORT_SHARE = 0.1        # the effort of holding the goal posture: at most this share of the
                           # threshold (the weight is lowered where the arm is heavy)
-KINDS = ('point',)
+KINDS = ('point', 'pose')  # what the hand reaches: a point, or a point and a turn about the vertical
+YAW_HALF = 0.3            # rad: a pose target's yaw range about the hand's at the goal (pose_reach_3d)
+ORIENTATION_MARGIN = 0.02   # rad: each pose corner is reached this closely in orientation
 ONE_DOF = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
 
 
@@ -122,6 +126,9 @@ def generate(model: str, end_effector: str, out: Path, base: str | None = None,
     out = Path(out).resolve()
     model_ref = _model_reference(model, out)
     chain = split_joints(model_ref, end_effector, out, base)
+    if kind == 'pose' and len(chain.driven) < 6:
+        raise InitError(f'--kind pose needs at least 6 driven joints (a position and an '
+                        f'orientation); the chain to {end_effector} has {len(chain.driven)}')
     arm = _arm(model_ref, end_effector, chain, out)
     margin_low, margin_high = _ranges(arm)
     if posture is not None:
@@ -137,7 +144,7 @@ def generate(model: str, end_effector: str, out: Path, base: str | None = None,
                             'margin)')
     start, goals, reach = choose_postures(arm, chain, posture)
     for goal in goals:
-        draft = _fit(model_ref, end_effector, chain, out, start, goal, reach, arm)
+        draft = _fit(model_ref, end_effector, chain, out, start, goal, reach, arm, kind)
         if draft is not None:
             return draft
     raise InitError(f'no goal posture of {end_effector} found whose target box psl check '
@@ -499,13 +506,15 @@ def _base_origin(arm: ArmModel) -> np.ndarray:
 
 
 # -- the draft, fitted until psl check passes it --------------------------------------------
-def _fit(model_ref, end_effector, chain, out, start, goal, reach, arm) -> Generated | None:
+def _fit(model_ref, end_effector, chain, out, start, goal, reach, arm,
+         kind: str = 'point') -> Generated | None:
     """The task with `start` and `goal`: the box shrunk until every corner is reached, the
     bandwidth lowered while a torque saturates; None when the box cannot be reached."""
-    from psl_optimizer.robot_check import check_robot, target_reach
+    from psl_optimizer.robot_check import check_robot, orientation_reach, target_reach
 
     kin = _Kinematics(arm, chain)
     half = reach * np.array(BOX_HALF)
+    yaw = YAW_HALF if kind == 'pose' else 0.0
     control_rate = _control_rate(arm)
 
     asked = sag_bandwidth(arm, kin, (start, goal))
@@ -514,13 +523,15 @@ def _fit(model_ref, end_effector, chain, out, start, goal, reach, arm) -> Genera
         gains = joint_gains(arm, np.stack([kin.qpos(start.q), kin.qpos(goal.q)]),
                             asked * scale, control_rate)
         text = render(model_ref, end_effector, chain, start, goal, half, gains, arm,
-                      control_rate, reach, kin)
+                      control_rate, reach, kin, yaw)
         return text, task_from_data(out, yaml.safe_load(text))
 
     for _ in range(BOX_TRIES):
         text, task = draft(1.0)
-        if max(miss for _, miss in target_reach(task)) > REACH_MARGIN:
-            half = half * BOX_SHRINK
+        if (max(miss for _, miss in target_reach(task)) > REACH_MARGIN
+                or max((turn for _, turn in orientation_reach(task)), default=0.0)
+                > ORIENTATION_MARGIN):
+            half, yaw = half * BOX_SHRINK, yaw * BOX_SHRINK
             continue
         scale = 1.0
         for _ in range(GAIN_TRIES):
@@ -579,14 +590,17 @@ def _gain_vec(values) -> str:
 
 def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
            half: np.ndarray, gains, arm: ArmModel, control_rate: float,
-           reach: float, kin: _Kinematics) -> str:
-    """The commented task YAML."""
+           reach: float, kin: _Kinematics, yaw: float = 0.0) -> str:
+    """The commented task YAML: a point reach, or with `yaw` > 0 a pose reach (the hand's
+    orientation at the goal, turned by up to `yaw` rad about the vertical)."""
+    pose = yaw > 0.0
     centre = goal.hand
     low, high = centre - half, centre + half
     duration = movement_duration(arm)
     settle = settle_time(gains)
     limits = _torque_limits(arm)
     kin.at(goal.q)
+    angles = Rotation.from_matrix(kin.data.site_xmat[arm.ee_site].reshape(3, 3)).as_euler('xyz')
     gravity = (kin.data.qfrc_bias - kin.data.qfrc_gravcomp)[arm.dof_adr]
     effort, held = WEIGHTS['effort'], float(np.mean(gravity**2))
     if held * effort > EFFORT_SHARE * abs(SUCCESS_THRESHOLD):
@@ -598,14 +612,18 @@ def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
                + (f' --base {chain.base}' if chain.base != 'world' else ''))
     urdf = arm.task.model_path.suffix.lower() == '.urdf'
     lines = [
-        f'# Point reach with {file} as published, written by',
-        f'#   {command}',
-        '# The hand moves from the start posture to a target point that changes from instance',
-        "# to instance (tau = the target's x, y, z), under gravity, with gains from the model",
+        f'# {"Pose" if pose else "Point"} reach with {file} as published, written by',
+        f'#   {command}' + (' --kind pose' if pose else ''),
+        '# The hand moves from the start posture to a target '
+        + ('pose' if pose else 'point') + ' that changes from instance',
+        "# to instance (tau = the target's x, y, z" + (', yaw' if pose else '')
+        + '), under gravity, with gains from the model',
         '# and a learned feed-forward torque. Each value says where it came from. Edit the',
         '# target box (task_parameters) to your task, then run psl check again.',
-        f'name: {Path(arm.task.model_path).stem}_{end_effector}_point_reach',
-        f'description: {end_effector} of {file} reaches a target point under gravity.',
+        f'name: {Path(arm.task.model_path).stem}_{end_effector}_'
+        + ('pose' if pose else 'point') + '_reach',
+        f'description: {end_effector} of {file} reaches a target '
+        + ('pose (point and yaw)' if pose else 'point') + ' under gravity.',
         'robot:',
         f'  model: {model_ref}',
         f'  # the end effector: {chain.offset_from}',
@@ -645,6 +663,8 @@ def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
         '',
         'target:',
         f"  position: {_vec(centre, 3)}   # the hand at goal_posture: the box's centre",
+        *([f'  orientation: {_vec(angles)}   # rad, extrinsic x-y-z: the hand at goal_posture']
+          if pose else []),
         f'  body: {marker}',
         '',
         f'# The target box, sized by the reach ({reach:.3f} m from the first joint): the default',
@@ -656,6 +676,10 @@ def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
     for axis, label in enumerate('xyz'):
         lines.append(f'  - {{name: target_{label}, unit: m, low: {low[axis]:.3f}, high: '
                      f'{high[axis]:.3f}, binds: {{kind: target_position, axis: {axis}}}}}')
+    if pose:
+        lines.append(f'  - {{name: target_yaw, unit: rad, low: {angles[2] - yaw:.4f}, high: '
+                     f'{angles[2] + yaw:.4f}, binds: {{kind: target_orientation, axis: 2}}}}'
+                     f"   # the hand's turn about the vertical, +-{yaw:.2g} rad")
     lines += [
         '',
         "scene:   # a marker at the target (moved to each instance's)",
@@ -676,11 +700,14 @@ def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
         f'  kp: {_gain_vec(gains.kp)}   # N m / rad',
         f'  kd: {_gain_vec(gains.kd)}   # N m s / rad',
         '',
-        'policy:   # as point_reach_3d.yaml',
+        'policy:   # as ' + ('pose' if pose else 'point') + '_reach_3d.yaml',
         '  kind: dmp',
         '  n_basis: 5',
         '  space: end_effector   # the DMP over the hand point, joints by differential IK',
-        '  learn_goal: true      # theta_K = [weights (3 x 5), goal point (3)]',
+        *(['  orientation: true     # and a quaternion DMP over its orientation',
+           '  learn_goal: true      # theta_K = [weights (3 x 5), goal point (3), '
+           'orientation weights (3 x 5), goal rotation (3)]'] if pose else
+          ['  learn_goal: true      # theta_K = [weights (3 x 5), goal point (3)]']),
         f'  feedforward: true     # theta = [theta_K, theta_D ({len(chain.driven)} x 5)]',
         '  k_s: 400.0',
         '  canonical: linear',
@@ -691,10 +718,12 @@ def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
         f'    - {_vec(start.q)}',
         f'    - {_vec(goal.q)}',
         '',
-        'reward:   # as point_reach_3d.yaml',
+        'reward:   # as ' + ('pose' if pose else 'point') + '_reach_3d.yaml',
         '  weights:',
         f'    goal_error: {WEIGHTS["goal_error"]:.1f}   # m, the hand\'s distance to the target '
         'at the end',
+        *([f'    orientation_error: {ORIENTATION_WEIGHT:.1f}   # rad, the hand\'s angle to the '
+           'target orientation at the end'] if pose else []),
         f'    smoothness: {WEIGHTS["smoothness"]:.1e}',
         f'    effort: {effort:.1e}'
         + ('' if effort == WEIGHTS['effort'] else

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from psl_optimizer.robot_check import SAG_WARNING, check_robot, format_report
+from psl_optimizer.robot_check import REACH_WARNING, SAG_WARNING, check_robot, format_report
 from psl_task.arm_model import ArmModel
 from psl_task.task import EMBEDDED_TASKS, load_task
 
@@ -141,6 +141,27 @@ def test_a_target_range_out_of_reach_is_a_warning(tmp_path):
     assert min(miss for _, miss in report.reach) > 0.1
     (warning,) = [w for w in report.warnings if 'out of reach' in w]
     assert 'at 8 of the 8 corners' in warning and 'target_position ranges' in warning
+
+
+def test_a_target_orientation_range_out_of_reach_is_a_warning(tmp_path):
+    """pose_reach_3d's yaw range (+-0.3 rad) is reached at all 16 corners (its orientation
+    goal turned to each target); widened to +-2.5 rad the arm's ranges stop the hand short
+    at some: the warning counts them and names what to change."""
+    from psl_optimizer.robot_check import orientation_reach
+    task = load_task('pose_reach_3d')
+    turns = orientation_reach(task)
+    assert len(turns) == 16 and max(angle for _, angle in turns) < 1e-2
+    assert not any('orientations out of reach' in w for w in check_robot(task).warnings)
+    wide = variant(tmp_path, 'pose_reach_3d', lambda d: d['task_parameters'][3].update(
+        low=3.085 - 2.5, high=3.085 + 2.5))
+    turns = orientation_reach(wide)
+    assert max(angle for _, angle in turns) > 0.1
+    (warning,) = [w for w in check_robot(wide).warnings if 'orientations out of reach' in w]
+    weight, threshold = wide.reward.weights['orientation_error'], wide.reward.success_threshold
+    far = sum(weight * angle > REACH_WARNING * abs(threshold) for _, angle in turns)
+    assert far > 0
+    assert f'at {far} of the 16 corners' in warning
+    assert 'target_orientation ranges' in warning
 
 
 def test_the_saturation_warning_names_the_gain_whose_torque_saturates(tmp_path):

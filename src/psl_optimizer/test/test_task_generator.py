@@ -36,14 +36,16 @@ ARMS = {    # name -> (model, end-effector link, base link)
     'gymnasium_pusher': (str(GYMNASIUM / 'pusher_v5.xml'), 'tips_arm', None),
     # a humanoid's arm from its full-body MJCF: tendons, motors geared 25:1, physics at 333 Hz
     'gymnasium_humanoid_left_arm': (str(GYMNASIUM / 'humanoid.xml'), 'left_lower_arm', 'torso'),
+    # a pose: the point and a turn about the vertical
+    'panda_pose': (ERD + 'panda_description/urdf/panda.urdf', 'panda_hand_tcp', None, 'pose'),
 }
 
 
 @pytest.fixture(scope='module', params=sorted(ARMS))
 def generated(request, tmp_path_factory):
-    model, link, base = ARMS[request.param]
+    model, link, base, *kind = ARMS[request.param]
     out = tmp_path_factory.mktemp(request.param) / 'task.yaml'
-    result = generate(model, link, out, base=base)
+    result = generate(model, link, out, base=base, kind=(kind or ['point'])[0])
     out.write_text(result.text)
     return request.param, out, result
 
@@ -54,7 +56,10 @@ def test_the_file_loads_as_generated(generated):
     assert task.n_joints == result.task.n_joints >= 3
     assert task.policy.space == 'end_effector' and task.policy.learn_goal
     assert task.policy.feedforward
-    assert [p.name for p in task.parameters] == ['target_x', 'target_y', 'target_z']
+    pose = ['target_yaw'] if len(ARMS[name]) > 3 else []
+    assert [p.name for p in task.parameters] == ['target_x', 'target_y', 'target_z'] + pose
+    assert task.policy.orientation == bool(pose)
+    assert ('orientation_error' in task.reward.weights) == bool(pose)
     data = yaml.safe_load(out.read_text())
     assert data['robot']['joints'] == task_generator.split_joints(
         ARMS[name][0] if ARMS[name][0].startswith('package://') else data['robot']['model'],
@@ -83,17 +88,49 @@ def test_every_corner_of_the_box_is_reached(generated):
     for x in (task.tau_low[0], task.tau_high[0]):
         for y in (task.tau_low[1], task.tau_high[1]):
             for z in (task.tau_low[2], task.tau_high[2]):
-                tau = np.array([x, y, z])
+                tau = task.tau_default.copy()
+                tau[:3] = x, y, z
                 theta = policy.default_theta.copy()
                 theta[policy.goal] = task.target_of(tau)[0]
                 q = policy.reference(theta, tau).q[-1]
                 data.qpos[arm.qpos_adr] = q
                 mujoco.mj_kinematics(arm.model, data)
                 hand = data.site_xpos[arm.ee_site]
-                assert np.linalg.norm(hand - tau) <= task_generator.REACH_MARGIN, (tau, hand)
+                assert np.linalg.norm(hand - tau[:3]) <= task_generator.REACH_MARGIN, (tau, hand)
                 corners += 1
     assert corners == 8
     assert np.all(task.tau_high - task.tau_low >= 0.02)     # a box, not a point
+
+
+def test_a_pose_task_reaches_every_orientation_corner(generated):
+    """A pose task: each of the 16 corners (the box's and the yaw's ends) through the
+    policy's own pose DMP and IK ends within ORIENTATION_MARGIN of the target's orientation;
+    and the target's orientation is the hand's at the goal posture (the file's Euler angles
+    read back): with the default goal orientation the hand ends turned from the target at
+    the yaw's high end by exactly that yaw's offset, by forward kinematics on a fresh MjData
+    and the angle of R_hand^T R_target. A point task has no orientation corners."""
+    from psl_optimizer.robot_check import orientation_reach
+    name, out, _ = generated
+    task = load_task(str(out))
+    corners = orientation_reach(task)
+    if len(ARMS[name]) < 4:
+        assert corners == []
+        return
+    assert len(corners) == 16
+    assert max(angle for _, angle in corners) <= task_generator.ORIENTATION_MARGIN
+    policy = policy_for(task)
+    arm = ArmModel(task)
+    data = mujoco.MjData(arm.model)
+    theta = policy.default_theta.copy()
+    tau = task.tau_default.copy()
+    tau[3] = task.tau_high[3]
+    theta[policy.goal] = task.target_of(tau)[0]
+    data.qpos[arm.qpos_adr] = policy.reference(theta, tau).q[-1]
+    mujoco.mj_kinematics(arm.model, data)
+    hand = data.site_xmat[arm.ee_site].reshape(3, 3)
+    target = task.target_of(tau)[1]
+    turn = np.arccos(np.clip((np.trace(hand.T @ target) - 1) / 2, -1, 1))
+    assert turn == pytest.approx(task.tau_high[3] - task.tau_default[3], abs=2e-3)
 
 
 def test_the_demonstration_keeps_within_the_joints_speeds(generated):
