@@ -69,6 +69,7 @@ SATURATION_WARNING = 0.01    # share of saturated control periods worth a warnin
 LIMIT_WARNING = 0.02         # rad (m): a posture this close to a joint limit is warned about
 GEOMETRY_WARNING = 5.0       # the reward's distances costing more physics steps than this
 TIMING_REPEATS = 20          # calls timed per pair (and physics steps per timing)
+STUCK_ERROR = 0.1            # rad: a joint this far off its reference and off half its way
 REACH_WARNING = 0.5          # share of |success_threshold| a corner's goal_error may use up
 # manipulability / L^r below this along the reference is warned: the examples' demonstrations
 # stay above 0.03; TALOS's left arm (talos_arm_point_reach) starts at 0.005 and passes 0.0009,
@@ -202,6 +203,40 @@ def orientation_reach(task: TaskDefinition) -> list[tuple[np.ndarray, float]]:
         _, hand = policy.ik.pose(policy.reference(theta, tau).q[-1])
         turn = quaternion.log_map(quaternion.product(want, quaternion.conjugate(hand)))
         out.append((tau, float(np.linalg.norm(turn))))
+    return out
+
+
+def stuck_joints(arm: ArmModel, result, reference) -> list[str]:
+    """The driven joints that the model's own friction or damping keeps from following the
+    demonstration's reference (rollout `result`), each named with its error, the way the
+    reference moves it and the cause: a tracking error over `STUCK_ERROR` rad and over half
+    that way, where the joint's frictionloss f holds it at least half that error off under kp
+    (a static error up to f / kp), or its damping c slows it beyond the movement (the closed
+    loop's slow pole kp / (c + kd) under 1 / duration; Ogata, Modern Control Engineering,
+    sec. 5-3, an overdamped second-order system). A joint that lags for other reasons (low
+    gains under gravity, which a learned feed-forward takes up) is not named. [] when the
+    rollout was refused."""
+    if result.refused or result.q is None:
+        return []
+    m, task = arm.model, arm.task
+    q_ref = reference.q[:len(result.q)]
+    error = np.max(np.abs(result.q - q_ref), axis=0)
+    way = np.max(reference.q, axis=0) - np.min(reference.q, axis=0)
+    out = []
+    for j in np.flatnonzero((error > STUCK_ERROR) & (error > 0.5 * way)):
+        dof = arm.dof_adr[j]
+        kp, kd = task.controller.kp[j], task.controller.kd[j]
+        friction, damping = m.dof_frictionloss[dof], m.dof_damping[dof]
+        why = []
+        if friction / max(kp, 1e-12) >= 0.5 * error[j]:
+            why.append(f'frictionloss {friction:.3g} N m holds it up to '
+                       f'{friction / max(kp, 1e-12):.3g} rad off under kp {kp:.3g}')
+        if (damping + kd) / max(kp, 1e-12) > task.duration:
+            why.append(f'damping {damping:.3g} N m s/rad slows it to a time constant of '
+                       f'{(damping + kd) / max(kp, 1e-12):.3g} s under kp {kp:.3g}')
+        if why:
+            out.append(f'{arm.joint_names[j]} up to {error[j]:.3f} rad off (the reference moves '
+                       f'it {way[j]:.3f} rad): its {" and ".join(why)}')
     return out
 
 
@@ -535,6 +570,12 @@ def check_robot(task: TaskDefinition) -> RobotReport:
             + f': lower controller.{gain}, slow the movement (duration), or raise the motors\' '
             f'ctrlrange; the gain rule ({_rule_words(rule)}, docs/your_robot.md) picks '
             f'{rule.controller_yaml()}')
+    stuck = stuck_joints(arm, result, reference)
+    if stuck:
+        warnings.append(
+            'joints that do not follow their reference in the demonstration: '
+            + '; '.join(stuck) + ': raise their controller.kp (the gain rule does not count '
+            "a joint's own friction and damping), or keep the movement off them")
     if manip.minimum < SINGULAR_WARNING:
         warnings.append(
             f'near a singular posture: the hand\'s manipulability falls to '
