@@ -1,6 +1,7 @@
 """``psl init``: a task file from a robot description as published, in one command.
 
-``psl init MODEL --end-effector LINK`` writes a commented point-reaching task for the chain
+``psl init MODEL --end-effector LINK [--kind pose]`` writes a commented point- (or pose-)
+reaching task for the chain
 from the base (``--base``, default the world) to LINK: the joints, the locked rest, the gains,
 the postures, the end-effector point and the target box all from the model
 (`psl_optimizer.task_generator`), checked as ``psl check`` checks it. A model that cannot

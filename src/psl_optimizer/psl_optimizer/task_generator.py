@@ -1,9 +1,9 @@
 """A task file from a robot description as published (``psl init``): nothing tuned by hand.
 
 `generate` reads an MJCF or URDF (a path or ``package://``), an end-effector link and
-optionally a base link and a start posture, and writes a point-reaching task in the form of
-examples/xarm7_point_reach.yaml (end-effector DMP with a learned goal point and a learned
-feed-forward torque, under gravity), every value taken from the model:
+optionally a base link, a start posture and the kind (point or pose), and writes a reaching
+task in the form of examples/xarm7_point_reach.yaml (end-effector DMP with a learned goal point
+and a learned feed-forward torque, under gravity), every value taken from the model:
 
 - **the driven joints**: the hinge and slide joints on the chain from the base (default: the
   world) down to the end-effector link, base outward; every other joint is locked
@@ -27,7 +27,14 @@ feed-forward torque, under gravity), every value taken from the model:
   it more than `SAG_BOUND` (`sag_bandwidth`), all lowered while the demonstration's rollout
   saturates a torque;
 - control rate, duration, policy, reward weights and threshold as point_reach_3d.yaml (the
-  effort weight lowered where the arm's gravity torques would use up the threshold).
+  effort weight lowered where the arm's gravity torques would use up the threshold); an
+  MJCF's control rate a whole divisor of its physics rate (`_control_rate`), a slow arm's
+  movement longer (`movement_duration`) and a slow closed loop given time to settle
+  (`settle_time`);
+- with ``kind='pose'`` (6 driven joints or more) a pose target as pose_reach_3d.yaml: the
+  hand's orientation at the goal, a ``target_yaw`` range of `YAW_HALF` about it, a pose DMP and
+  ``orientation_error``; box and yaw shrink together until every corner is reached within
+  `REACH_MARGIN` and `ORIENTATION_MARGIN` (`psl_optimizer.robot_check.orientation_reach`).
 
 The draft is then checked as ``psl check`` checks it (`check_robot`): a file with warnings is
 not written. Imports no ROS.
