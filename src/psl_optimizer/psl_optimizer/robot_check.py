@@ -53,6 +53,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import time
+from collections.abc import Callable
 
 import mujoco
 import numpy as np
@@ -146,51 +147,31 @@ def hand_sag(arm: ArmModel, q: np.ndarray, kp: np.ndarray) -> tuple[np.ndarray, 
     return sag, float(np.linalg.norm(jac[:, arm.dof_adr] @ sag))
 
 
-def target_reach(task: TaskDefinition) -> list[tuple[np.ndarray, float]]:
-    """(tau, miss [m]) at each corner of the target range: how far the default movement with
-    its hand goal at that instance's target ends from it (its joint reference by the policy's
-    inverse kinematics); [] for a task without a learned hand goal or a target the task
-    parameters move."""
-    from psl_controller.policy import policy_for
-    policy = policy_for(task)
-    moving = [k for k, p in enumerate(task.parameters) if p.binds.kind == 'target_position']
-    if policy.ik is None or not task.policy.learn_goal or task.target is None or not moving:
-        return []
-    out = []
-    for corner in itertools.product(*((task.tau_low[k], task.tau_high[k]) for k in moving)):
-        tau = np.array(task.tau_default, dtype=float)
-        tau[moving] = corner
-        theta = policy.default_theta.copy()
-        target, _ = task.target_of(tau)
-        theta[policy.goal] = target
-        hand, _ = policy.ik.pose(policy.reference(theta, tau).q[-1])
-        out.append((tau, float(np.linalg.norm(hand - target))))
-    return out
-
-
-def orientation_reach(task: TaskDefinition) -> list[tuple[np.ndarray, float]]:
-    """(tau, angle [rad]) at each corner of the target range, orientation parameters
-    included: the angle between the hand's final orientation and the target's after the
-    default movement with its goal point and goal orientation at that instance's target (the
-    goal rotation relative to the demonstration's last orientation, as `psl_optimizer.ilc`
-    composes it); [] for a task whose policy does not learn a goal orientation or whose task
-    parameters turn no target."""
+def corner_reach(task: TaskDefinition) -> list[tuple[np.ndarray, float, float | None]]:
+    """(tau, miss [m], turn [rad] or None) at each corner of the target range: how far the
+    default movement with its hand goal at that instance's target ends from it (its joint
+    reference by the policy's inverse kinematics). The corners span the ``target_position``
+    parameters and, where the policy learns a goal orientation (a pose DMP), the
+    ``target_orientation`` ones too, the goal rotation then turned to each target's (relative
+    to the demonstration's last orientation, as `psl_optimizer.ilc` composes it) and the turn
+    the angle left between the hand and the target; None without. [] for a task without a
+    learned hand goal or a target the task parameters move. One reference per corner."""
     from psl_controller.policy import policy_for
     from psl_task import quaternion
     from psl_task.quaternion import quaternion_of
     policy = policy_for(task)
-    kinds = ('target_position', 'target_orientation')
+    turns = policy.ik is not None and policy.controls_orientation
+    kinds = ('target_position', 'target_orientation') if turns else ('target_position',)
     moving = [k for k, p in enumerate(task.parameters) if p.binds.kind in kinds]
-    if (policy.ik is None or not task.policy.learn_goal or task.target is None
-            or not policy.controls_orientation
-            or not any(task.parameters[k].binds.kind == kinds[1] for k in moving)):
+    if policy.ik is None or not task.policy.learn_goal or task.target is None or not moving:
         return []
     default = policy.default_theta.copy()
-    _, last = policy.ik.pose(policy.reference(default, task.tau_default).q[-1])
-    # the hand's final orientation is exp(goal) (x) its demonstration's: this factor maps a
-    # wanted final orientation to the goal rotation that gives it
-    last = quaternion.product(quaternion.conjugate(last),
-                              quaternion.exp_map(default[policy.orientation_goal]))
+    if turns:
+        # the hand's final orientation is exp(goal) (x) its demonstration's: this factor maps a
+        # wanted final orientation to the goal rotation that gives it
+        _, last = policy.ik.pose(policy.reference(default, task.tau_default).q[-1])
+        last = quaternion.product(quaternion.conjugate(last),
+                                  quaternion.exp_map(default[policy.orientation_goal]))
     out = []
     for corner in itertools.product(*((task.tau_low[k], task.tau_high[k]) for k in moving)):
         tau = np.array(task.tau_default, dtype=float)
@@ -198,12 +179,49 @@ def orientation_reach(task: TaskDefinition) -> list[tuple[np.ndarray, float]]:
         theta = default.copy()
         target, rotation = task.target_of(tau)
         theta[policy.goal] = target
-        want = quaternion_of(rotation)
-        theta[policy.orientation_goal] = quaternion.log_map(quaternion.product(want, last))
-        _, hand = policy.ik.pose(policy.reference(theta, tau).q[-1])
-        turn = quaternion.log_map(quaternion.product(want, quaternion.conjugate(hand)))
-        out.append((tau, float(np.linalg.norm(turn))))
+        if turns:
+            want = quaternion_of(rotation)
+            theta[policy.orientation_goal] = quaternion.log_map(quaternion.product(want, last))
+        hand, hand_quat = policy.ik.pose(policy.reference(theta, tau).q[-1])
+        turn = None
+        if turns:
+            turn = float(np.linalg.norm(quaternion.log_map(
+                quaternion.product(want, quaternion.conjugate(hand_quat)))))
+        out.append((tau, float(np.linalg.norm(hand - target)), turn))
     return out
+
+
+def target_reach(task: TaskDefinition) -> list[tuple[np.ndarray, float]]:
+    """(tau, miss [m]) at each corner of the target range (`corner_reach`)."""
+    return [(tau, miss) for tau, miss, _ in corner_reach(task)]
+
+
+def orientation_reach(task: TaskDefinition) -> list[tuple[np.ndarray, float]]:
+    """(tau, angle [rad]) at each corner of the target range, orientation parameters included
+    (`corner_reach`); [] for a task whose policy learns no goal orientation or whose task
+    parameters turn no target."""
+    corners = corner_reach(task)
+    if not any(task.parameters[k].binds.kind == 'target_orientation'
+               for k in range(len(task.parameters))):
+        return []
+    return [(tau, turn) for tau, _, turn in corners if turn is not None]
+
+
+def _far_corners(task: TaskDefinition, corners: list[tuple[np.ndarray, float]], component: str,
+                 what: str, distance: Callable[[float], str], fix: str) -> str | None:
+    """The warning for the corners whose miss, weighted by the reward's `component`, uses up
+    more than `REACH_WARNING` of the success threshold (None: none does); `distance` words
+    the largest miss."""
+    weight = task.reward.weights.get(component, 0.0)
+    threshold = abs(task.reward.success_threshold)
+    far = [(tau, miss) for tau, miss in corners if weight * miss > REACH_WARNING * threshold]
+    if not far:
+        return None
+    tau, miss = max(far, key=lambda c: c[1])
+    return (f'{what} out of reach: at {len(far)} of the {len(corners)} corners of the target '
+            f'range the hand ends up to {distance(miss)} (tau '
+            f'{np.array2string(tau, precision=3)}), {component} alone {weight * miss:.3f} of '
+            f"the success threshold's {threshold:g}: {fix}")
 
 
 def stuck_joints(arm: ArmModel, result, reference) -> list[str]:
@@ -533,30 +551,20 @@ def check_robot(task: TaskDefinition) -> RobotReport:
     costly = geometry_warning(step_seconds, pair_seconds)
     if costly:
         warnings.append(costly)
-    reach = target_reach(task)
-    weight = task.reward.weights.get('goal_error', 0.0)
-    far = [(tau, miss) for tau, miss in reach
-           if weight * miss > REACH_WARNING * abs(task.reward.success_threshold)]
+    corners = corner_reach(task)
+    reach = [(tau, miss) for tau, miss, _ in corners]
+    far = _far_corners(task, reach, 'goal_error', 'targets',
+                       lambda miss: f'{1000 * miss:.1f} mm from the target',
+                       'move or shrink the target_position ranges into the arm\'s reach')
     if far:
-        tau, miss = max(far, key=lambda c: c[1])
-        warnings.append(
-            f'targets out of reach: at {len(far)} of the {len(reach)} corners of the target '
-            f'range the hand ends up to {1000 * miss:.1f} mm from the target (tau '
-            f'{np.array2string(tau, precision=3)}), goal_error alone '
-            f'{weight * miss:.3f} of the success threshold\'s {abs(task.reward.success_threshold):g}: '
-            'move or shrink the target_position ranges into the arm\'s reach')
-    turns = orientation_reach(task)
-    weight = task.reward.weights.get('orientation_error', 0.0)
-    far = [(tau, angle) for tau, angle in turns
-           if weight * angle > REACH_WARNING * abs(task.reward.success_threshold)]
-    if far:
-        tau, angle = max(far, key=lambda c: c[1])
-        warnings.append(
-            f'target orientations out of reach: at {len(far)} of the {len(turns)} corners of the '
-            f'target range the hand ends up to {angle:.3f} rad from the target orientation (tau '
-            f'{np.array2string(tau, precision=3)}), orientation_error alone '
-            f'{weight * angle:.3f} of the success threshold\'s '
-            f'{abs(task.reward.success_threshold):g}: narrow the target_orientation ranges')
+        warnings.append(far)
+    if any(p.binds.kind == 'target_orientation' for p in task.parameters):
+        far = _far_corners(task, [(tau, turn) for tau, _, turn in corners if turn is not None],
+                           'orientation_error', 'target orientations',
+                           lambda angle: f'{angle:.3f} rad from the target orientation',
+                           'narrow the target_orientation ranges')
+        if far:
+            warnings.append(far)
     if saturated > SATURATION_WARNING:
         joints_at = [arm.joint_names[j] for j in np.flatnonzero(np.any(at_limit, axis=0))]
         gain = max(('kp', 'kd'), key=lambda name: parts.get(name, 0.0))

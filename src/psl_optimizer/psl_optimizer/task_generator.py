@@ -20,7 +20,7 @@ and a learned feed-forward torque, under gravity), every value taken from the mo
   manipulability is stated beside it in the file);
 - **the target box**: centred on the hand at the goal posture, sized by the reach, shrunk
   until the default movement toward each corner ends within `REACH_MARGIN` of it by the
-  policy's own inverse kinematics (`psl_optimizer.robot_check.target_reach`, what ``psl
+  policy's own inverse kinematics (`psl_optimizer.robot_check.corner_reach`, what ``psl
   check`` runs);
 - **the gains**: `psl_task.gain_rule.model_gains` at the start posture for its default
   damping ratio and bandwidth, a joint's bandwidth raised where PD alone would let gravity sag
@@ -34,7 +34,7 @@ and a learned feed-forward torque, under gravity), every value taken from the mo
 - with ``kind='pose'`` (6 driven joints or more) a pose target as pose_reach_3d.yaml: the
   hand's orientation at the goal, a ``target_yaw`` range of `YAW_HALF` about it, a pose DMP and
   ``orientation_error``; box and yaw shrink together until every corner is reached within
-  `REACH_MARGIN` and `ORIENTATION_MARGIN` (`psl_optimizer.robot_check.orientation_reach`).
+  `REACH_MARGIN` and `ORIENTATION_MARGIN` (`psl_optimizer.robot_check.corner_reach`).
 
 The draft is then checked as ``psl check`` checks it (`check_robot`): a file with warnings is
 not written. Imports no ROS.
@@ -517,7 +517,7 @@ def _fit(model_ref, end_effector, chain, out, start, goal, reach, arm,
          kind: str = 'point') -> Generated | None:
     """The task with `start` and `goal`: the box shrunk until every corner is reached, the
     bandwidth lowered while a torque saturates; None when the box cannot be reached."""
-    from psl_optimizer.robot_check import check_robot, orientation_reach, target_reach
+    from psl_optimizer.robot_check import check_robot, corner_reach
 
     kin = _Kinematics(arm, chain)
     half = reach * np.array(BOX_HALF)
@@ -535,8 +535,9 @@ def _fit(model_ref, end_effector, chain, out, start, goal, reach, arm,
 
     for _ in range(BOX_TRIES):
         text, task = draft(1.0)
-        if (max(miss for _, miss in target_reach(task)) > REACH_MARGIN
-                or max((turn for _, turn in orientation_reach(task)), default=0.0)
+        corners = corner_reach(task)
+        if (max(miss for _, miss, _ in corners) > REACH_MARGIN
+                or max((turn for _, _, turn in corners if turn is not None), default=0.0)
                 > ORIENTATION_MARGIN):
             half, yaw = half * BOX_SHRINK, yaw * BOX_SHRINK
             continue
