@@ -15,7 +15,7 @@ from pathlib import Path
 
 from psl_cli.options import fail
 
-KINDS = ('point', 'pose')
+KINDS = ('point', 'pose')   # task_generator.KINDS, not imported here (MuJoCo at start-up)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -29,7 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument('--posture', type=float, nargs='+', metavar='Q',
                    help='the start posture, one value per driven joint (base outward) '
                    '[rad (m)] (default: drawn from the ranges)')
-    p.add_argument('--kind', default='point', choices=KINDS,   # task_generator.KINDS (not imported here: mujoco)
+    p.add_argument('--kind', default='point', choices=KINDS,
                    help='the task: point (reach a target point) or pose (a point and a '
                    'turn about the vertical; 6 driven joints or more) (default point)')
     p.add_argument('--out', '-o', metavar='FILE',

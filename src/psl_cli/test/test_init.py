@@ -44,3 +44,11 @@ def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, args, words):
     for word in words:
         assert word in lines[0], lines[0]
     assert not (tmp_path / 'task.yaml').exists()
+
+
+def test_the_cli_offers_the_kinds_the_generator_writes():
+    """psl init's --kind choices are written out (the CLI does not import MuJoCo to build its
+    parser): they must be the generator's."""
+    from psl_cli.init import KINDS
+    from psl_optimizer.task_generator import KINDS as GENERATED
+    assert KINDS == GENERATED

@@ -602,6 +602,7 @@ def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
     """The commented task YAML: a point reach, or with `yaw` > 0 a pose reach (the hand's
     orientation at the goal, turned by up to `yaw` rad about the vertical)."""
     pose = yaw > 0.0
+    kind = 'pose' if pose else 'point'
     centre = goal.hand
     low, high = centre - half, centre + half
     duration = movement_duration(arm)
@@ -620,16 +621,14 @@ def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
                + (f' --base {chain.base}' if chain.base != 'world' else ''))
     urdf = arm.task.model_path.suffix.lower() == '.urdf'
     lines = [
-        f'# {"Pose" if pose else "Point"} reach with {file} as published, written by',
+        f'# {kind.capitalize()} reach with {file} as published, written by',
         f'#   {command}' + (' --kind pose' if pose else ''),
-        '# The hand moves from the start posture to a target '
-        + ('pose' if pose else 'point') + ' that changes from instance',
+        f'# The hand moves from the start posture to a target {kind} that changes from instance',
         "# to instance (tau = the target's x, y, z" + (', yaw' if pose else '')
         + '), under gravity, with gains from the model',
         '# and a learned feed-forward torque. Each value says where it came from. Edit the',
         '# target box (task_parameters) to your task, then run psl check again.',
-        f'name: {Path(arm.task.model_path).stem}_{end_effector}_'
-        + ('pose' if pose else 'point') + '_reach',
+        f'name: {Path(arm.task.model_path).stem}_{end_effector}_{kind}_reach',
         f'description: {end_effector} of {file} reaches a target '
         + ('pose (point and yaw)' if pose else 'point') + ' under gravity.',
         'robot:',
@@ -708,7 +707,7 @@ def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
         f'  kp: {_gain_vec(gains.kp)}   # N m / rad',
         f'  kd: {_gain_vec(gains.kd)}   # N m s / rad',
         '',
-        'policy:   # as ' + ('pose' if pose else 'point') + '_reach_3d.yaml',
+        f'policy:   # as {kind}_reach_3d.yaml',
         '  kind: dmp',
         '  n_basis: 5',
         '  space: end_effector   # the DMP over the hand point, joints by differential IK',
@@ -726,7 +725,7 @@ def render(model_ref, end_effector, chain: Chain, start: Posture, goal: Posture,
         f'    - {_vec(start.q)}',
         f'    - {_vec(goal.q)}',
         '',
-        'reward:   # as ' + ('pose' if pose else 'point') + '_reach_3d.yaml',
+        f'reward:   # as {kind}_reach_3d.yaml',
         '  weights:',
         f'    goal_error: {WEIGHTS["goal_error"]:.1f}   # m, the hand\'s distance to the target '
         'at the end',
