@@ -200,11 +200,14 @@ def orientation_reach(task: TaskDefinition) -> list[tuple[np.ndarray, float]]:
     """(tau, angle [rad]) at each corner of the target range, orientation parameters included
     (`corner_reach`); [] for a task whose policy learns no goal orientation or whose task
     parameters turn no target."""
-    corners = corner_reach(task)
-    if not any(task.parameters[k].binds.kind == 'target_orientation'
-               for k in range(len(task.parameters))):
+    if not turns_target(task):
         return []
-    return [(tau, turn) for tau, _, turn in corners if turn is not None]
+    return [(tau, turn) for tau, _, turn in corner_reach(task) if turn is not None]
+
+
+def turns_target(task: TaskDefinition) -> bool:
+    """Whether a task parameter turns the target (``target_orientation``)."""
+    return any(p.binds.kind == 'target_orientation' for p in task.parameters)
 
 
 def _far_corners(task: TaskDefinition, corners: list[tuple[np.ndarray, float]], component: str,
@@ -558,7 +561,7 @@ def check_robot(task: TaskDefinition) -> RobotReport:
                        'move or shrink the target_position ranges into the arm\'s reach')
     if far:
         warnings.append(far)
-    if any(p.binds.kind == 'target_orientation' for p in task.parameters):
+    if turns_target(task):
         far = _far_corners(task, [(tau, turn) for tau, _, turn in corners if turn is not None],
                            'orientation_error', 'target orientations',
                            lambda angle: f'{angle:.3f} rad from the target orientation',
